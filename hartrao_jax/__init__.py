@@ -1,0 +1,41 @@
+"""hartrao-jax: differentiable Gauss-Helmert adjustment of radio-telescope reflectors from
+terrestrial laser scans.
+
+The pipeline, in the order data flows:
+
+* campaign I/O: :func:`load_campaign`, :func:`read_scan`, :func:`write_campaign`
+* physics and models: :data:`EFFECTS`, :data:`INSTRUMENT`, :func:`make_model`
+* solver: :func:`gauss_helmert`, :func:`robust_gauss_helmert`, :func:`gauss_helmert_batch`
+* fitting campaigns: :func:`fit_scan`, :func:`fit_campaign`, :func:`write_fit`
+* simulation: :func:`simulate_campaign`
+
+Importing the package turns on JAX's float64 (``jax_enable_x64``): the adjustment needs it.
+"""
+
+from ._config import enable_x64 as _enable_x64
+
+_enable_x64()
+
+from ._campaign import (  # noqa: E402
+    Campaign,
+    CampaignError,
+    ScanData,
+    ScanMeta,
+    load_campaign,
+    read_scan,
+    write_campaign,
+)
+from ._fit import CampaignFit, ScanFit, fit_campaign, fit_json, fit_scan, write_fit  # noqa: E402
+from ._ghm import GHResult, gauss_helmert, gauss_helmert_batch, robust_gauss_helmert  # noqa: E402
+from ._model import ModelError, ParaboloidModel, make_model, parse_model  # noqa: E402
+from ._physics import EFFECTS, EXTENDED, INSTRUMENT, SIMPLIFIED  # noqa: E402
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Campaign", "CampaignError", "CampaignFit", "EFFECTS", "EXTENDED", "GHResult", "INSTRUMENT",
+    "ModelError", "ParaboloidModel", "SIMPLIFIED", "ScanData", "ScanFit", "ScanMeta",
+    "fit_campaign", "fit_json", "fit_scan", "gauss_helmert", "gauss_helmert_batch",
+    "load_campaign", "make_model", "parse_model", "read_scan", "robust_gauss_helmert",
+    "write_campaign", "write_fit",
+]

@@ -1,0 +1,302 @@
+"""Geometry: rotations, pointing, scanner polar coordinates, dish coordinates, panels, Zernike.
+
+Conventions (binding, from ``shared/spec/campaign-format.md``):
+
+* Scanner frame, seed eq. (2): ``x = r sin(theta) sin(phi)``, ``y = r sin(theta) cos(phi)``,
+  ``z = r cos(theta)``; the scanner hangs upside down, its z axis points to the nadir.
+* Telescope frame: origin at the paraboloid vertex, Z along the boresight, X north and Y west
+  when the telescope points at the zenith.
+* All angles in radians unless a name ends in ``_deg``; lengths in metres.
+
+Everything differentiable is written in ``jax.numpy``; panel bookkeeping is NumPy.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+# --------------------------------------------------------------------------------------------
+# Rotations
+# --------------------------------------------------------------------------------------------
+
+
+def rot_x(a: ArrayLike) -> Float[Array, "3 3"]:
+    """Right-handed rotation by ``a`` (rad) about the x axis."""
+    c, s = jnp.cos(a), jnp.sin(a)
+    o, z = jnp.ones_like(c), jnp.zeros_like(c)
+    return jnp.stack([jnp.stack([o, z, z]), jnp.stack([z, c, -s]), jnp.stack([z, s, c])])
+
+
+def rot_y(a: ArrayLike) -> Float[Array, "3 3"]:
+    """Right-handed rotation by ``a`` (rad) about the y axis."""
+    c, s = jnp.cos(a), jnp.sin(a)
+    o, z = jnp.ones_like(c), jnp.zeros_like(c)
+    return jnp.stack([jnp.stack([c, z, s]), jnp.stack([z, o, z]), jnp.stack([-s, z, c])])
+
+
+def rot_z(a: ArrayLike) -> Float[Array, "3 3"]:
+    """Right-handed rotation by ``a`` (rad) about the z axis."""
+    c, s = jnp.cos(a), jnp.sin(a)
+    o, z = jnp.ones_like(c), jnp.zeros_like(c)
+    return jnp.stack([jnp.stack([c, -s, z]), jnp.stack([s, c, z]), jnp.stack([z, z, o])])
+
+
+def rot_axis(axis: ArrayLike, angle: ArrayLike) -> Float[Array, "3 3"]:
+    """Right-handed rotation by ``angle`` (rad) about the unit vector ``axis`` (Rodrigues)."""
+    k = jnp.asarray(axis, dtype=float)
+    k = k / jnp.linalg.norm(k)
+    kx = jnp.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return jnp.eye(3) + jnp.sin(angle) * kx + (1.0 - jnp.cos(angle)) * (kx @ kx)
+
+
+def rotation_from_vector(w: Float[Array, "3"]) -> Float[Array, "3 3"]:
+    """Rotation matrix of the rotation vector ``w`` (axis times angle, rad); exact, safe at 0."""
+    theta2 = jnp.sum(w * w)
+    small = theta2 < 1e-16
+    theta = jnp.sqrt(jnp.where(small, 1.0, theta2))
+    a = jnp.where(small, 1.0 - theta2 / 6.0, jnp.sin(theta) / theta)
+    b = jnp.where(small, 0.5 - theta2 / 24.0, (1.0 - jnp.cos(theta)) / (theta * theta))
+    kx = jnp.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    return jnp.eye(3) + a * kx + b * (kx @ kx)
+
+
+def scanner_to_telescope(rx: ArrayLike, ry: ArrayLike) -> Float[Array, "3 3"]:
+    """Seed eq. (6) rotation ``Ry(ry) . Rx(rx)`` from the scanner to the (fitted) telescope frame."""
+    return rot_y(ry) @ rot_x(rx)
+
+
+def decompose_zyx(R: Float[Array, "3 3"]) -> tuple[Array, Array, Array]:
+    """Angles ``(kappa, ry, rx)`` with ``R = Rz(kappa) . Ry(ry) . Rx(rx)``.
+
+    The branch is chosen with ``cos(ry) < 0`` (scanner upside down, ``ry`` near pi), the
+    attitude of a scanner hanging towards the reflector, so that the initial values and
+    the simulator's truth agree with what the fit converges to.
+    """
+    # Third row of Rz Ry Rx is (-sin ry, cos ry sin rx, cos ry cos rx): independent of kappa.
+    r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
+    rx = jnp.arctan2(-r21, -r22)
+    ry = jnp.arctan2(-r20, -jnp.sqrt(r21**2 + r22**2))
+    M = rot_y(ry) @ rot_x(rx)
+    # R = Rz(kappa) M  ->  Rz(kappa) = R M^T
+    Rz = R @ M.T
+    kappa = jnp.arctan2(Rz[1, 0], Rz[0, 0])
+    return kappa, ry, rx
+
+
+# --------------------------------------------------------------------------------------------
+# Pointing
+# --------------------------------------------------------------------------------------------
+
+_E = np.array([1.0, 0.0, 0.0])
+_N = np.array([0.0, 1.0, 0.0])
+_U = np.array([0.0, 0.0, 1.0])
+_BASE = np.stack([_N, -_E, _U], axis=1)  # columns X_t, Y_t, Z_t at the zenith, in ENU
+
+
+def telescope_axes_hadec(ha_rad: ArrayLike, dec_rad: ArrayLike, lat_rad: ArrayLike) -> Array:
+    """Telescope axes of an HA-DEC mount as the columns of ``F`` (ENU components).
+
+    ``F(h, d) = R(P, -h) . R(E, lat - d) . [N, -E, U]`` with ``P = (0, cos lat, sin lat)``.
+    """
+    P = jnp.array([0.0, jnp.cos(lat_rad), jnp.sin(lat_rad)])
+    return rot_axis(P, -ha_rad) @ rot_axis(_E, lat_rad - dec_rad) @ _BASE
+
+
+def telescope_axes_altaz(elevation_rad: ArrayLike, azimuth_rad: ArrayLike) -> Array:
+    """Telescope axes of an alt-az mount (azimuth from north towards east), columns in ENU.
+
+    ``F = R(U, -az) . R(E, el - pi/2) . [N, -E, U]``: at the zenith this equals the HA-DEC
+    definition; at elevation 0 and azimuth 0 the boresight points to the northern horizon.
+    """
+    return rot_axis(_U, -azimuth_rad) @ rot_axis(_E, elevation_rad - jnp.pi / 2) @ _BASE
+
+
+def gravity_in_telescope(F: Float[Array, "3 3"]) -> Float[Array, "3"]:
+    """Unit gravity vector in the telescope frame, ``g = F^T (0, 0, -1)``."""
+    return F.T @ jnp.array([0.0, 0.0, -1.0])
+
+
+def elevation_of(F: Float[Array, "3 3"]) -> Array:
+    """Elevation of the boresight (rad): ``asin(F[2, 2])``."""
+    return jnp.arcsin(jnp.clip(F[2, 2], -1.0, 1.0))
+
+
+def pointing_axes(meta, telescope, site) -> np.ndarray:
+    """Telescope axes ``F`` (3x3 NumPy, columns in ENU) of a scan from its campaign metadata."""
+    if telescope.mount == "alt-az":
+        F = telescope_axes_altaz(np.radians(meta.elevation_deg), np.radians(meta.azimuth_deg or 0.0))
+    else:
+        F = telescope_axes_hadec(
+            np.radians(meta.ha_deg), np.radians(meta.dec_deg), np.radians(site.latitude_deg)
+        )
+    return np.asarray(F)
+
+
+def pointing_gravity(meta, telescope, site) -> np.ndarray:
+    """Unit gravity vector (telescope frame) of a scan, from HA/DEC or elevation/azimuth."""
+    return np.asarray(gravity_in_telescope(pointing_axes(meta, telescope, site)))
+
+
+def pointing_elevation_deg(meta, telescope, site) -> float:
+    """Elevation of the boresight (deg) of a scan."""
+    return float(np.degrees(elevation_of(pointing_axes(meta, telescope, site))))
+
+
+# --------------------------------------------------------------------------------------------
+# Scanner polar coordinates
+# --------------------------------------------------------------------------------------------
+
+
+def polar_to_cartesian(r: ArrayLike, phi: ArrayLike, theta: ArrayLike) -> Array:
+    """Seed eq. (2): ``(r sin(theta) sin(phi), r sin(theta) cos(phi), r cos(theta))``, last axis 3."""
+    st = jnp.sin(theta)
+    return jnp.stack([r * st * jnp.sin(phi), r * st * jnp.cos(phi), r * jnp.cos(theta)], axis=-1)
+
+
+def cartesian_to_raw(xyz: np.ndarray, cycle: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Raw two-face ``(r, phi, theta)`` of scanner-frame points, per the spec's face rule.
+
+    A direction of azimuth ``a = atan2(x, y)`` in [0, 2 pi) is recorded in face 1 as
+    ``(a, theta0)`` when ``a`` lies in the cycle's phi range (cycle 1: [0, pi), cycle 2:
+    [pi, 2 pi)), else in face 2 as ``(a - pi mod 2 pi, 2 pi - theta0)``. Cycle 0 (one-face
+    exports) always uses face 1 with phi in [0, 2 pi).
+    """
+    xyz = np.asarray(xyz, dtype=float)
+    x, y, z = xyz[..., 0], xyz[..., 1], xyz[..., 2]
+    r = np.sqrt(x * x + y * y + z * z)
+    a = np.mod(np.arctan2(x, y), 2 * np.pi)
+    theta0 = np.arccos(np.clip(z / np.where(r > 0, r, 1.0), -1.0, 1.0))
+    if cycle == 0:
+        return r, a, theta0
+    lo = 0.0 if cycle == 1 else np.pi
+    face1 = (a >= lo) & (a < lo + np.pi)
+    phi = np.where(face1, a, np.mod(a - np.pi, 2 * np.pi))
+    theta = np.where(face1, theta0, 2 * np.pi - theta0)
+    # guard against round-off putting phi on the wrong side of the cycle boundary
+    phi = np.where(phi >= lo + np.pi, np.nextafter(lo + np.pi, lo), phi)
+    phi = np.where(phi < lo, lo, phi)
+    return r, phi, theta
+
+
+def face_of(theta: ArrayLike) -> np.ndarray:
+    """Face (1 or 2) of raw vertical angles: face 1 in (0, pi), face 2 in (pi, 2 pi)."""
+    return np.where(np.mod(np.asarray(theta), 2 * np.pi) < np.pi, 1, 2)
+
+
+# --------------------------------------------------------------------------------------------
+# Dish coordinates, paraboloid, panels
+# --------------------------------------------------------------------------------------------
+
+
+def dish_coordinates(X: Float[Array, "... 3"]) -> tuple[Array, Array]:
+    """Dish radius ``rho = hypot(X, Y)`` (m) and azimuth ``psi = atan2(Y, X)`` in [0, 2 pi)."""
+    rho = jnp.hypot(X[..., 0], X[..., 1])
+    psi = jnp.mod(jnp.arctan2(X[..., 1], X[..., 0]), 2 * jnp.pi)
+    return rho, psi
+
+
+def paraboloid_normal_scale(rho: ArrayLike, f: ArrayLike) -> Array:
+    """``sqrt(1 + (rho / 2f)^2)``: converts a normal deviation into a change of Z at radius rho."""
+    return jnp.sqrt(1.0 + (rho / (2.0 * f)) ** 2)
+
+
+def paraboloid_deviation(X: Float[Array, "... 3"], f: ArrayLike, newton_steps: int = 3) -> Array:
+    """Signed distance (m) of points from the paraboloid ``Z = rho^2 / 4f``, along its normal.
+
+    Positive towards the focus (above the surface), as ``campaign-format.md`` defines the surface
+    deviation. Exact to round-off: the foot point is found by Newton's method in the meridian
+    plane, starting from the first-order estimate.
+    """
+    rho = jnp.hypot(X[..., 0], X[..., 1])
+    Z = X[..., 2]
+    # minimise (rho - s)^2 + (Z - s^2/4f)^2 over s
+    s = rho
+    for _ in range(newton_steps):
+        q = s * s / (4 * f)
+        g = (s - rho) + (q - Z) * s / (2 * f)
+        h = 1.0 + (s / (2 * f)) ** 2 + (q - Z) / (2 * f)
+        s = s - g / h
+    d = jnp.sqrt((rho - s) ** 2 + (Z - s * s / (4 * f)) ** 2)
+    return jnp.where(Z >= rho * rho / (4 * f), d, -d)
+
+
+def panel_ids(
+    rho: np.ndarray,
+    psi: np.ndarray,
+    ring_edges_m,
+    panels_per_ring,
+) -> np.ndarray:
+    """Panel id of each point (NumPy int64), -1 outside the panelled annulus.
+
+    Rings are numbered from 0 (innermost) outwards; within ring k the panels are numbered from
+    ``psi = 0`` counter-clockwise, each spanning ``2 pi / panels_per_ring[k]``.
+    """
+    edges = np.asarray(ring_edges_m, dtype=float)
+    counts = np.asarray(panels_per_ring, dtype=np.int64)
+    first = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    rho = np.asarray(rho, dtype=float)
+    ring = np.searchsorted(edges, rho, side="right") - 1
+    inside = (ring >= 0) & (ring < len(counts))
+    ring_c = np.clip(ring, 0, len(counts) - 1)
+    n = counts[ring_c]
+    k = np.floor(np.mod(np.asarray(psi, dtype=float), 2 * np.pi) / (2 * np.pi) * n).astype(np.int64)
+    k = np.minimum(k, n - 1)
+    return np.where(inside, first[ring_c] + k, -1)
+
+
+def panel_geometry(ring_edges_m, panels_per_ring) -> dict[str, np.ndarray]:
+    """Per-panel ring, inner/outer radius (m), azimuth start/end and centre (rad)."""
+    edges = np.asarray(ring_edges_m, dtype=float)
+    out = {k: [] for k in ("ring", "rho_in", "rho_out", "psi_start", "psi_end", "rho_c", "psi_c")}
+    for ring, n in enumerate(panels_per_ring):
+        w = 2 * np.pi / n
+        for k in range(n):
+            out["ring"].append(ring)
+            out["rho_in"].append(edges[ring])
+            out["rho_out"].append(edges[ring + 1])
+            out["psi_start"].append(k * w)
+            out["psi_end"].append((k + 1) * w)
+            out["rho_c"].append(0.5 * (edges[ring] + edges[ring + 1]))
+            out["psi_c"].append((k + 0.5) * w)
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+# --------------------------------------------------------------------------------------------
+# Zernike polynomials over the aperture (Noll ordering, unit-rms normalisation)
+# --------------------------------------------------------------------------------------------
+
+
+def noll_to_nm(j: int) -> tuple[int, int]:
+    """Radial order ``n`` and signed azimuthal frequency ``m`` of Noll index ``j`` (1-based).
+
+    ``m > 0`` is a cosine term (even ``j``), ``m < 0`` a sine term (odd ``j``).
+    """
+    if j < 1:
+        raise ValueError(f"Noll index must be >= 1, got {j}")
+    n, j1 = 0, j - 1
+    while j1 > n:
+        n += 1
+        j1 -= n
+    m = (-1) ** j * ((n % 2) + 2 * ((j1 + ((n + 1) % 2)) // 2))
+    return n, m
+
+
+def zernike(j: int, u: ArrayLike, psi: ArrayLike) -> Array:
+    """Noll-indexed Zernike polynomial ``Z_j`` at normalised radius ``u`` in [0, 1] and azimuth psi.
+
+    Normalised to unit rms over the unit disk (``Z_1 = 1``).
+    """
+    from math import factorial
+
+    n, m = noll_to_nm(j)
+    ma = abs(m)
+    R = jnp.zeros_like(jnp.asarray(u, dtype=float))
+    for s in range((n - ma) // 2 + 1):
+        c = (-1) ** s * factorial(n - s) / (factorial(s) * factorial((n + ma) // 2 - s) * factorial((n - ma) // 2 - s))
+        R = R + c * jnp.asarray(u, dtype=float) ** (n - 2 * s)
+    if m == 0:
+        return np.sqrt(n + 1.0) * R
+    ang = jnp.cos(ma * psi) if m > 0 else jnp.sin(ma * psi)
+    return np.sqrt(2.0 * (n + 1.0)) * R * ang

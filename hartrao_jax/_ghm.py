@@ -1,0 +1,313 @@
+"""Rigorous Gauss-Helmert adjustment, generic over a per-point condition ``F(l, x, c) = 0``.
+
+Model (Pope 1972; Lenzmann & Lenzmann 2004): every point ``i`` has observations ``l_i`` (here
+three: range, horizontal and vertical angle) with a priori standard deviations ``sigma_l`` and
+one condition ``F(l_i + v_i, x, c_i) = 0`` with the unknowns ``x`` and per-point constants
+``c_i``. The adjustment is re-linearised at ``l + v`` (not at ``l``), so it converges to the
+exact least-squares solution ``min v^T Sigma^-1 v`` even for strongly non-linear conditions.
+
+Per iteration, at the linearisation point ``(l0 = l + v, x0)``:
+
+* ``a_i = dF/dx``, ``b_i = dF/dl`` by JAX autodiff of the scalar condition (vmapped over points),
+* misclosure ``w_i = F(l0, x0) + b_i . (l_i - l0_i)``,
+* ``m_i = b_i Sigma_i b_i^T`` (a scalar: one condition per point),
+* normal equations ``N = sum a a^T / m``, ``n = sum a w / m``, accumulated chunk by chunk with
+  ``lax.scan`` so the memory is bounded whatever the number of points,
+* ``dx = -N^-1 n``, ``k_i = -(a_i . dx + w_i) / m_i``, ``v_i = Sigma_i b_i k_i``.
+
+``sigma0^2 = v^T Sigma^-1 v / (n - u)`` and the covariance of the unknowns is ``sigma0^2 N^-1``.
+
+Masks/weights (``weights`` in [0, 1]) serve three purposes with one mechanism: padding of batches
+to one shape, rejection of outliers (weight 0), and robust down-weighting.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from functools import partial
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
+
+Condition = Callable[[Float[Array, "3"], Float[Array, " u"], Float[Array, " k"]], Float[Array, ""]]
+
+
+class GHResult(eqx.Module):
+    """Result of a Gauss-Helmert adjustment (all arrays; batched results carry a leading axis).
+
+    Attributes:
+        x: estimated unknowns (units of each parameter).
+        cov: covariance of the unknowns, ``sigma0^2 N^-1``.
+        N: normal matrix at the solution (with a priori sigma0 = 1).
+        sigma0: a posteriori standard deviation of unit weight (dimensionless, ~1 if the
+            a priori sigmas are right).
+        v: residuals of the observations, shape (n, 3), same units as ``l``.
+        misclosure: ``F(l, x)`` at the observations (units of the condition; metres here).
+        normalized: standardized residual of each point, ``|k_i| sqrt(m_i) / sigma0``.
+        weights: the weights used at the end (0 for rejected or padded points).
+        redundancy: number of used points minus number of unknowns.
+        iterations: Gauss-Newton iterations done.
+        converged: True if the last step was below the tolerance.
+    """
+
+    x: Float[Array, " u"]
+    cov: Float[Array, "u u"]
+    N: Float[Array, "u u"]
+    sigma0: Float[Array, ""]
+    v: Float[Array, "n 3"]
+    misclosure: Float[Array, " n"]
+    normalized: Float[Array, " n"]
+    weights: Float[Array, " n"]
+    redundancy: Int[Array, ""]
+    iterations: Int[Array, ""]
+    converged: Bool[Array, ""]
+
+    @property
+    def sigma(self) -> Float[Array, " u"]:
+        """Standard deviations of the unknowns."""
+        return jnp.sqrt(jnp.diagonal(self.cov, axis1=-2, axis2=-1))
+
+    @property
+    def correlation(self) -> Float[Array, "u u"]:
+        """Correlation matrix of the unknowns."""
+        s = self.sigma
+        return self.cov / (s[..., :, None] * s[..., None, :])
+
+
+def _linearize(condition: Condition, l0, x, c):
+    """Value of the condition and its gradients ``a = dF/dx``, ``b = dF/dl`` for one point."""
+    F, (a, b) = jax.value_and_grad(lambda xx, ll: condition(ll, xx, c), argnums=(0, 1))(x, l0)
+    return F, a, b
+
+
+def _chunked(arrays, chunk: int):
+    """Reshape per-point arrays (n, ...) to (n_chunks, chunk, ...), padding the tail.
+
+    The tail repeats the last point (``edge`` mode), so the condition stays finite there; the
+    weights array must come padded with zeros (its pad is replaced by 0 by the caller).
+    """
+    n = arrays[0].shape[0]
+    n_chunks = max(1, -(-n // chunk))
+    pad = n_chunks * chunk - n
+    out = []
+    for a in arrays:
+        a = jnp.pad(a, [(0, pad)] + [(0, 0)] * (a.ndim - 1), mode="edge")
+        out.append(a.reshape((n_chunks, chunk) + a.shape[1:]))
+    return out, n
+
+
+def _unchunk(a, n):
+    return a.reshape((-1,) + a.shape[2:])[:n]
+
+
+def _solve_normal(N, rhs):
+    """Solve ``N y = rhs`` with Jacobi scaling and a Cholesky factorisation (lineax)."""
+    d = 1.0 / jnp.sqrt(jnp.where(jnp.diagonal(N) > 0, jnp.diagonal(N), 1.0))
+    Ns = N * d[:, None] * d[None, :]
+    op = lx.MatrixLinearOperator(Ns, lx.positive_semidefinite_tag)
+    y = lx.linear_solve(op, rhs * d, lx.Cholesky(), throw=False).value
+    return y * d
+
+
+def _inverse(N):
+    d = 1.0 / jnp.sqrt(jnp.where(jnp.diagonal(N) > 0, jnp.diagonal(N), 1.0))
+    Ns = N * d[:, None] * d[None, :]
+    L = jnp.linalg.cholesky(Ns)
+    I = jnp.eye(N.shape[0], dtype=N.dtype)
+    Li = jax.scipy.linalg.solve_triangular(L, I, lower=True)
+    return (Li.T @ Li) * d[:, None] * d[None, :]
+
+
+def _pass_normals(condition, L, V, C, W, S2, x):
+    """One pass over the chunks: accumulate ``N``, ``n`` at the linearisation point (l+v, x)."""
+    u = x.shape[0]
+    lin = jax.vmap(partial(_linearize, condition), in_axes=(0, None, 0))
+
+    def body(carry, chunk):
+        N, n = carry
+        l, v, c, w8, s2 = chunk
+        F, a, b = lin(l + v, x, c)
+        wm = F - jnp.sum(b * v, axis=-1)
+        m = jnp.sum(b * b * s2, axis=-1)
+        ok = (w8 > 0) & (m > 0)
+        q = jnp.where(ok, w8 / jnp.where(ok, m, 1.0), 0.0)
+        a = jnp.where(ok[:, None], a, 0.0)
+        aq = a * q[:, None]
+        return (N + aq.T @ a, n + aq.T @ jnp.where(ok, wm, 0.0)), None
+
+    init = (jnp.zeros((u, u), x.dtype), jnp.zeros((u,), x.dtype))
+    (N, n), _ = jax.lax.scan(body, init, (L, V, C, W, S2))
+    return N, n
+
+
+def _pass_residuals(condition, L, V, C, W, S2, x, dx):
+    """Second pass: new residuals ``v``, the weighted square sum and standardized residuals."""
+    lin = jax.vmap(partial(_linearize, condition), in_axes=(0, None, 0))
+
+    def body(omega, chunk):
+        l, v, c, w8, s2 = chunk
+        F, a, b = lin(l + v, x, c)
+        wm = F - jnp.sum(b * v, axis=-1)
+        m = jnp.sum(b * b * s2, axis=-1)
+        msafe = jnp.where(m > 0, m, 1.0)
+        k = -(a @ dx + wm) / msafe
+        v_new = s2 * b * k[:, None]
+        e = jnp.abs(k) * jnp.sqrt(msafe)
+        return omega + jnp.sum(jnp.where(w8 > 0, w8 * k * k * m, 0.0)), (v_new, e)
+
+    omega, (Vn, E) = jax.lax.scan(body, jnp.zeros((), x.dtype), (L, V, C, W, S2))
+    return Vn, E, omega
+
+
+def _pass_misclosure(condition, L, C, x):
+    f = jax.vmap(condition, in_axes=(0, None, 0))
+    return jax.lax.map(lambda lc: f(lc[0], x, lc[1]), (L, C))
+
+
+@eqx.filter_jit
+def _gauss_helmert(condition, l, x0, sigma_l, consts, weights, v0, tol, *, max_iter, chunk_size):
+    n_pts = l.shape[0]
+    u = x0.shape[0]
+    s2 = jnp.broadcast_to(jnp.asarray(sigma_l, l.dtype) ** 2, l.shape)
+    (L, C, W, S2, V0), n = _chunked([l, consts, weights, s2, v0], chunk_size)
+    W = W.reshape(-1).at[n_pts:].set(0.0).reshape(W.shape)
+
+    def step(state):
+        x, V, it, _, _ = state
+        N, nvec = _pass_normals(condition, L, V, C, W, S2, x)
+        dx = _solve_normal(N, -nvec)
+        Vn, _, _ = _pass_residuals(condition, L, V, C, W, S2, x, dx)
+        Ninv_diag = jnp.diagonal(_inverse(N))
+        ratio = jnp.max(jnp.abs(dx) / jnp.sqrt(jnp.where(Ninv_diag > 0, Ninv_diag, 1.0)))
+        return x + dx, Vn, it + 1, ratio, ratio < tol
+
+    def cond(state):
+        _, _, it, _, done = state
+        return (it < max_iter) & ~done
+
+    state = (x0, V0, jnp.array(0), jnp.array(jnp.inf, l.dtype), jnp.array(False))
+    x, V, it, ratio, done = jax.lax.while_loop(cond, step, state)
+
+    # final statistics at the solution: one more linearisation (dx ~ 0)
+    N, nvec = _pass_normals(condition, L, V, C, W, S2, x)
+    dx = _solve_normal(N, -nvec)
+    Vn, E, omega = _pass_residuals(condition, L, V, C, W, S2, x, dx)
+    x = x + dx
+    n_used = jnp.sum(weights > 0)
+    red = n_used - u
+    sigma0 = jnp.sqrt(omega / jnp.maximum(red, 1))
+    Ninv = _inverse(N)
+    wmis = _pass_misclosure(condition, L, C, x)
+    return GHResult(
+        x=x,
+        cov=sigma0**2 * Ninv,
+        N=N,
+        sigma0=sigma0,
+        v=_unchunk(Vn, n),
+        misclosure=_unchunk(wmis, n),
+        normalized=_unchunk(E, n) / sigma0,
+        weights=weights,
+        redundancy=red,
+        iterations=it,
+        converged=done,
+    )
+
+
+def gauss_helmert(
+    condition: Condition,
+    l: Float[Array, "n 3"],
+    x0: Float[Array, " u"],
+    sigma_l: Float[Array, "3"] | Float[Array, "n 3"],
+    consts: Float[Array, "n k"] | None = None,
+    weights: Float[Array, " n"] | None = None,
+    *,
+    v0: Float[Array, "n 3"] | None = None,
+    max_iter: int = 30,
+    tol: float = 1e-6,
+    chunk_size: int = 1 << 16,
+) -> GHResult:
+    """Rigorous Gauss-Helmert adjustment of ``condition(l_i + v_i, x, c_i) = 0`` for all points.
+
+    Args:
+        condition: pure function ``(l (3,), x (u,), c (k,)) -> scalar``: a plain function or a
+            callable ``eqx.Module`` (its arrays are traced, so a new model with other fixed
+            values does not recompile).
+        l: observations, one row per point (here range m, phi rad, theta rad).
+        x0: initial unknowns.
+        sigma_l: a priori standard deviations of the observations, per column or per point.
+        consts: per-point constants passed to the condition (for example the time stamp).
+        weights: per-point weights in [0, 1]; 0 excludes a point (padding, rejection).
+        v0: initial residuals (default zero).
+        max_iter: maximum Gauss-Newton iterations.
+        tol: convergence when every ``|dx_j|`` is below ``tol`` times its a priori standard
+            deviation ``sqrt((N^-1)_jj)``.
+        chunk_size: points per chunk of the normal-equation accumulation (bounds memory).
+    """
+    l = jnp.asarray(l, dtype=jnp.float64)
+    n = l.shape[0]
+    consts = jnp.zeros((n, 0), l.dtype) if consts is None else jnp.asarray(consts, l.dtype)
+    weights = jnp.ones((n,), l.dtype) if weights is None else jnp.asarray(weights, l.dtype)
+    v0 = jnp.zeros_like(l) if v0 is None else jnp.asarray(v0, l.dtype)
+    chunk = int(min(chunk_size, max(256, 1 << int(np.ceil(np.log2(max(n, 1)))))))
+    return _gauss_helmert(
+        condition, l, jnp.asarray(x0, l.dtype), jnp.asarray(sigma_l, l.dtype), consts, weights,
+        v0, float(tol), max_iter=max_iter, chunk_size=chunk,
+    )
+
+
+def gauss_helmert_batch(
+    condition: Condition,
+    l: Float[Array, "b n 3"],
+    x0: Float[Array, "b u"],
+    sigma_l: Float[Array, "3"],
+    consts: Float[Array, "b n k"],
+    weights: Float[Array, "b n"],
+    *,
+    max_iter: int = 30,
+    tol: float = 1e-6,
+    chunk_size: int = 1 << 16,
+) -> GHResult:
+    """Fit a batch of problems padded to one shape (weights 0 on padding) in one compiled call.
+
+    ``vmap`` of the adaptive loop: each member stops updating once it has converged (JAX masks
+    finished members), so each member's result equals fitting it alone; the batch runs as
+    long as its slowest member.
+    """
+    l = jnp.asarray(l, jnp.float64)
+    n = l.shape[1]
+    chunk = int(min(chunk_size, max(256, 1 << int(np.ceil(np.log2(max(n, 1)))))))
+    fn = lambda ll, xx, cc, ww: _gauss_helmert(
+        condition, ll, xx, jnp.asarray(sigma_l, l.dtype), cc, ww, jnp.zeros_like(ll),
+        float(tol), max_iter=max_iter, chunk_size=chunk,
+    )
+    return eqx.filter_jit(jax.vmap(fn))(l, jnp.asarray(x0, l.dtype), jnp.asarray(consts, l.dtype),
+                        jnp.asarray(weights, l.dtype))
+
+
+def robust_gauss_helmert(
+    condition: Condition,
+    l, x0, sigma_l, consts=None, weights=None, *,
+    k: float = 4.0, max_rounds: int = 6, **kwargs,
+) -> GHResult:
+    """Gauss-Helmert with iterative rejection of points beyond ``k`` a-posteriori sigmas.
+
+    After each adjustment every point's standardized residual ``|k_i| sqrt(m_i) / sigma0`` is
+    compared with ``k``; points beyond are given weight 0 and the adjustment is repeated from the
+    last solution, until no further point is rejected (or ``max_rounds``). Points rejected once
+    stay rejected (no oscillation). ``k = 4`` keeps 99.994 % of normally distributed points.
+    """
+    l = jnp.asarray(l, jnp.float64)
+    n = l.shape[0]
+    w = jnp.ones((n,), l.dtype) if weights is None else jnp.asarray(weights, l.dtype)
+    res = gauss_helmert(condition, l, x0, sigma_l, consts, w, **kwargs)
+    for _ in range(max_rounds):
+        bad = (res.normalized > k) & (w > 0)
+        if not bool(jnp.any(bad)):
+            break
+        w = jnp.where(bad, 0.0, w)
+        res = gauss_helmert(condition, l, res.x, sigma_l, consts, w, v0=res.v, **kwargs)
+    return res

@@ -1,0 +1,266 @@
+"""Command line: ``hartrao-jax COMMAND``.
+
+Every command reports bad input as one line ``error: <file>: <field>: <expectation>`` on
+stderr with exit status 2 (no traceback unless ``--debug``).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import click
+
+from ._config import enable_compilation_cache, enable_x64
+
+log = logging.getLogger("hartrao_jax")
+
+
+class UserError(Exception):
+    """An error worth one line to the user."""
+
+
+def _user_errors():
+    from ._campaign import CampaignError
+    from ._model import ModelError
+
+    errs = (CampaignError, ModelError, UserError, FileNotFoundError)
+    try:
+        from ._simulate import SimulationError  # type: ignore[attr-defined]
+
+        errs = errs + (SimulationError,)
+    except Exception:  # noqa: BLE001
+        pass
+    return errs
+
+
+def command(fn):
+    """Wrap a command: JAX set-up, logging, one-line errors."""
+
+    @functools.wraps(fn)
+    @click.pass_context
+    def wrapper(ctx, *args, **kwargs):
+        debug = ctx.obj.get("debug", False) if ctx.obj else False
+        enable_x64()
+        enable_compilation_cache()
+        try:
+            return fn(*args, **kwargs)
+        except _user_errors() as e:
+            if debug:
+                raise
+            msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+            click.echo(f"error: {msg}", err=True)
+            sys.exit(2)
+
+    return wrapper
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("--debug", is_flag=True, help="Show tracebacks.")
+@click.option("-v", "--verbose", is_flag=True, help="More log output.")
+@click.version_option(package_name="hartrao-jax")
+@click.pass_context
+def main(ctx, debug, verbose):
+    """hartrao-jax: reflector deformation from terrestrial laser scans (Gauss-Helmert, JAX)."""
+    from rich.logging import RichHandler
+
+    ctx.ensure_object(dict)
+    ctx.obj["debug"] = debug
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO, format="%(message)s",
+        handlers=[RichHandler(show_path=False, show_time=False, console=_console(stderr=True))],
+    )
+    for noisy in ("jax", "absl", "matplotlib", "distributed", "asyncio"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
+
+
+def _console(stderr=False):
+    from rich.console import Console
+
+    return Console(stderr=stderr)
+
+
+# --------------------------------------------------------------------------------------------
+# result table
+# --------------------------------------------------------------------------------------------
+
+
+def _fmt(v, s, scale=1.0, digits=4):
+    return f"{v * scale:.{digits}f} ± {s * scale:.{digits}f}"
+
+
+def print_fit_table(cf, title="fit") -> None:
+    """Short table of a campaign fit on the terminal (f in m, calibration in arcsec / mm)."""
+    from rich.table import Table
+
+    from ._model import parameter_unit
+
+    t = Table(title=title)
+    for c in ("scan", "cyc", "f [m]", "sigma0", "points", "rejected", "iter", "kappa [deg]"):
+        t.add_column(c, justify="right")
+    extra = [n for n in cf.model_names if n not in ("tx", "ty", "tz", "rx", "ry", "f")]
+    for n in extra:
+        unit = parameter_unit(n)
+        t.add_column(f"{n} [{'arcsec' if unit == 'rad' else 'mm' if unit == 'm' else unit}]",
+                     justify="right")
+    import math
+
+    for s in cf.scans:
+        est = s.estimates
+        row = [
+            s.meta.id, str(s.meta.cycle), _fmt(*est["f"], digits=5), f"{s.sigma0:.3f}",
+            f"{s.n_points}", f"{s.n_rejected}", f"{s.iterations}{'' if s.converged else '!'}",
+            f"{math.degrees(s.alignment.kappa_rad):.2f}",
+        ]
+        for n in extra:
+            unit = parameter_unit(n)
+            scale = 206264.806 if unit == "rad" else 1000.0 if unit == "m" else 1.0
+            row.append(_fmt(*est[n], scale=scale, digits=2))
+        t.add_row(*row)
+    _console().print(t)
+    pt = Table(title="positions")
+    for c in ("position", "elevation [deg]", "f [m]"):
+        pt.add_column(c, justify="right")
+    for p in cf.positions():
+        pt.add_row(p["position"], f"{p['elevation_deg']:.2f}",
+                   _fmt(p["f"]["value"], p["f"]["sigma"], digits=6))
+    _console().print(pt)
+
+
+# --------------------------------------------------------------------------------------------
+# commands
+# --------------------------------------------------------------------------------------------
+
+
+@main.command()
+@click.argument("out", type=click.Path(file_okay=False))
+@click.option("--preset", default="demo", show_default=True,
+              help="Simulation preset (demo, clean, paper, campaign, tour-red).")
+@click.option("--effect", "effects", multiple=True, metavar="ID=VALUE",
+              help="Add an effect of the physics catalog, e.g. x2=3e-4 or impulsive_shift=0.002; "
+                   "sub-parameters as ID.KEY=VALUE.")
+@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--step", "step_rad", type=float, default=None, help="Angular step (rad).")
+@command
+def simulate(out, preset, effects, seed, step_rad):
+    """Simulate a campaign (scans + truth) into OUT."""
+    from ._simulate import parse_effects, simulate_campaign
+
+    t0 = time.time()
+    camp = simulate_campaign(out, preset=preset, effects=parse_effects(list(effects)), seed=seed,
+                             step_rad=step_rad)
+    click.echo(f"wrote {len(camp.scans)} scans to {out} ({time.time() - t0:.1f} s)")
+
+
+def _keep_fn(preprocess: bool):
+    if not preprocess:
+        return None
+    try:
+        from ._preprocess import PreprocessConfig, keep_mask_fn
+    except ImportError:
+        return None
+    return keep_mask_fn(PreprocessConfig())
+
+
+@main.command()
+@click.argument("campaign", type=click.Path(exists=True))
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False))
+@click.option("--model", default="extended", show_default=True,
+              help="simplified, extended, or comma-separated parameter names of the catalog.")
+@click.option("--scans", default=None, help="Comma-separated scan ids (default: all).")
+@click.option("--fix", "fixes", multiple=True, metavar="NAME=VALUE",
+              help="Hold a parameter at a value (e.g. x10=0.0012).")
+@click.option("--robust-k", default=4.0, show_default=True, type=float,
+              help="Reject points beyond k a-posteriori sigmas (0: off).")
+@click.option("--batch/--no-batch", default=False, show_default=True,
+              help="Fit all scans in one compiled call (padded, masked).")
+@click.option("--preprocess/--no-preprocess", default=True, show_default=True,
+              help="Clean scans (range window, patches, RANSAC) before fitting.")
+@command
+def fit(campaign, out_dir, model, scans, fixes, robust_k, batch, preprocess):
+    """Fit every scan of CAMPAIGN; writes OUT/fit.json and OUT/residuals/*.parquet."""
+    from ._campaign import load_campaign
+    from ._fit import fit_campaign, write_fit
+
+    camp = load_campaign(campaign)
+    fixed = _parse_fixes(fixes)
+    cf = fit_campaign(
+        camp, model, scans=scans.split(",") if scans else None, fixed=fixed,
+        robust_k=robust_k or None, batch=batch, keep=_keep_fn(preprocess),
+    )
+    p = write_fit(out_dir, cf)
+    print_fit_table(cf, title=f"{camp.telescope.name}: model {model}")
+    click.echo(f"wrote {p}")
+
+
+def _parse_fixes(fixes) -> dict[str, float]:
+    out = {}
+    for f in fixes:
+        if "=" not in f:
+            raise UserError(f"--fix: {f!r}: expected NAME=VALUE")
+        k, v = f.split("=", 1)
+        try:
+            out[k.strip()] = float(v)
+        except ValueError:
+            raise UserError(f"--fix: {k}: expected a number, found {v!r}") from None
+    return out
+
+
+@main.command()
+@click.option("--out", "out_dir", default="demo-output", show_default=True,
+              type=click.Path(file_okay=False))
+@click.option("--seed", default=0, show_default=True, type=int)
+@command
+def demo(out_dir, seed):
+    """Simulate a two-cycle scan, fit it (simplified and extended), print, plot, report."""
+    from ._campaign import load_campaign
+    from ._fit import fit_campaign, write_fit
+    from ._simulate import simulate_campaign
+
+    out = Path(out_dir)
+    t0 = time.time()
+    camp_dir = out / "campaign"
+    if not (camp_dir / "campaign.toml").exists():
+        click.echo("simulating the demo campaign (position r23, two cycles) ...")
+        simulate_campaign(camp_dir, preset="demo", seed=seed)
+    camp = load_campaign(camp_dir)
+    keep = _keep_fn(True)
+    for model in ("simplified", "extended"):
+        cf = fit_campaign(camp, model, keep=keep)
+        write_fit(out / model, cf)
+        print_fit_table(cf, title=f"demo: model {model}")
+    truth = camp.root / "truth.json"
+    if truth.exists():
+        _print_truth_comparison(cf, json.loads(truth.read_text()))
+    try:
+        from ._report import write_report
+
+        html = write_report(out, campaign=camp)
+        click.echo(f"report: {html}")
+    except ImportError:
+        pass
+    click.echo(f"demo done in {time.time() - t0:.1f} s; outputs in {out}/")
+
+
+def _print_truth_comparison(cf, truth: dict) -> None:
+    from rich.table import Table
+
+    t = Table(title="extended fit against the simulator's truth")
+    for c in ("scan", "parameter", "truth", "estimate", "sigma", "(est-truth)/sigma"):
+        t.add_column(c, justify="right")
+    scans = {s["id"]: s for s in truth.get("scans", [])}
+    for s in cf.scans:
+        tr = scans.get(s.meta.id, {}).get("fit_frame", scans.get(s.meta.id, {}))
+        for n, (v, sg) in s.estimates.items():
+            if n in tr and isinstance(tr[n], (int, float)):
+                t.add_row(s.meta.id, n, f"{tr[n]:.7g}", f"{v:.7g}", f"{sg:.2g}",
+                          f"{(v - tr[n]) / sg:+.2f}")
+    _console().print(t)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -75,13 +75,20 @@ def kappa_from_legs(
     best = counts.min()
     med = np.median(counts)
     contrast = float(best / med) if med > 0 else 1.0
-    # symmetric candidates: minima within 1 % of the best, separated by > 10 deg
-    order = np.argsort(counts)
+    # symmetric candidates: minima within 2 % of the best, separated by > 10 deg; each taken at
+    # the middle of its flat bottom (a shadow wider than the counting window leaves a plateau)
+    tol = best + 0.02 * max(med - best, 1)
+    low = counts <= tol
     cands: list[float] = []
-    for i in order:
-        if counts[i] > best + 0.01 * max(med - best, 1):
+    for i in np.argsort(counts):
+        if not low[i]:
             break
-        k = kap[i]
+        lo = hi = 0
+        while lo < nb and low[(i - lo - 1) % nb]:
+            lo += 1
+        while hi < nb and low[(i + hi + 1) % nb]:
+            hi += 1
+        k = kap[i] + 0.5 * (hi - lo) * step_rad
         if all(abs(_wrap(k - c)) > np.radians(10) for c in cands):
             cands.append(float(_wrap(k)))
     return np.asarray(cands), contrast

@@ -267,11 +267,13 @@ def correction_columns(
 
 
 def inseparable_pairs(names, *, threshold: float = 0.9999, seed: int = 0) -> list[tuple[str, str, float]]:
-    """Pairs of instrument parameters whose corrections have the same shape (not separable).
+    """Pairs of instrument parameters with a correction of the same shape (not separable).
 
-    Compares the observation-space signatures of the parameters on a generic two-face sample of
-    directions and ranges; ``|correlation| >= threshold`` means the pair cannot be estimated
-    together (for example ``x5z`` and ``x7`` in phi). Returns ``(a, b, correlation)``.
+    Two parameters are refused together when, in some observation component (range, phi or
+    theta) that both correct, their correction columns are proportional on a generic two-face
+    sample of directions and ranges (``|correlation| >= threshold``), e.g. ``x5z`` and ``x7``
+    in phi: what is left of the other components is absorbed by the object parameters.
+    Returns ``(a, b, correlation)``.
     """
     inst = [n for n in names if n in INSTRUMENT]
     if len(inst) < 2:
@@ -281,17 +283,19 @@ def inseparable_pairs(names, *, threshold: float = 0.9999, seed: int = 0) -> lis
     phi = rng.uniform(0, 2 * np.pi, m)
     theta = np.where(rng.random(m) < 0.5, rng.uniform(0.2, 1.3, m), 2 * np.pi - rng.uniform(0.2, 1.3, m))
     r = rng.uniform(6.0, 15.0, m)
-    C = correction_columns(inst, r, phi, theta)
+    C = correction_columns(inst, r, phi, theta).reshape(len(inst), 3, m)
     out = []
     for i in range(len(inst)):
         for j in range(i + 1, len(inst)):
-            a, b = C[i], C[j]
-            na, nb = np.linalg.norm(a), np.linalg.norm(b)
-            if na == 0 or nb == 0:
-                continue
-            c = float(a @ b / (na * nb))  # uncentred: additive shapes matter
-            if abs(c) >= threshold:
-                out.append((inst[i], inst[j], c))
+            for k in range(3):
+                a, b = C[i, k], C[j, k]
+                na, nb = np.linalg.norm(a), np.linalg.norm(b)
+                if na == 0 or nb == 0:
+                    continue
+                c = float(a @ b / (na * nb))  # uncentred: additive shapes matter
+                if abs(c) >= threshold:
+                    out.append((inst[i], inst[j], c))
+                    break
     return out
 
 

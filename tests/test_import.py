@@ -9,10 +9,21 @@ import numpy as np
 import pytest
 
 from hartrao_jax._campaign import CampaignError, load_campaign, read_scan
-from hartrao_jax._import import (DEFAULT_INTENSITY, LEICA_EXPORT_SCANNER, ImportedScan,
-                                 _altaz_to_hadec, grid_angular_step, import_command, import_file,
-                                 iter_ptx, nn_angular_step, read_ptx, read_xyz,
-                                 telescope_preset, to_scan_data)
+from hartrao_jax._import import (
+    DEFAULT_INTENSITY,
+    LEICA_EXPORT_SCANNER,
+    ImportedScan,
+    _altaz_to_hadec,
+    grid_angular_step,
+    import_command,
+    import_file,
+    iter_ptx,
+    nn_angular_step,
+    read_ptx,
+    read_xyz,
+    telescope_preset,
+    to_scan_data,
+)
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "real" / "gbt-lassi"
 
@@ -144,6 +155,8 @@ def test_ptx_multi_scan(tmp_path):
     ({12: "2 1 abc 0.3"}, 13, "expected a number in field 3, found 'abc'"),
     ({15: "1 -2 -3 0,6"}, 16, "expected a number in field 4, found '0,6'"),
     ({10: "1 2 -3 0.1 5 6"}, 11, "expected 3 (x y z), 4 (x y z intensity) or 7"),
+    ({10: "1 2"}, 11, "found 2 (short row): '1 2'"),
+    ({10: ""}, 11, "found an empty line"),
 ])
 def test_ptx_bad_lines_name_the_line(tmp_path, lines, line_no, expected):
     text = ptx_text(2, 3, CELLS).splitlines()
@@ -324,7 +337,7 @@ def test_altaz_to_hadec_same_boresight(el, az):
 def test_import_ptx_campaign(tmp_path):
     text = ptx_text(2, 3, CELLS) + ptx_text(1, 2, ["4 5 -6 0.9", "0 0 0 0.5"])
     p = write(tmp_path, "m.ptx", text)
-    c = import_file(p, "ptx", tmp_path / "camp", elevation_deg=45.0, azimuth_deg=10.0)
+    import_file(p, "ptx", tmp_path / "camp", elevation_deg=45.0, azimuth_deg=10.0)
     c2 = load_campaign(tmp_path / "camp")
     assert [s.id for s in c2.scans] == ["p1-1c0", "p1-2c0"]
     assert [s.position for s in c2.scans] == ["p1-1", "p1-2"]
@@ -342,6 +355,15 @@ def test_import_ptx_campaign(tmp_path):
     with pytest.raises(CampaignError, match="campaign.toml: file: expected a new campaign"):
         import_file(p, "ptx", tmp_path / "camp")
     import_file(p, "ptx", tmp_path / "camp", overwrite=True)
+
+
+def test_import_skips_scans_without_points(tmp_path):
+    text = ptx_text(1, 2, ["0 0 0", "0 0 0"]) + ptx_text(2, 3, CELLS)
+    c = import_file(write(tmp_path, "m.ptx", text), "ptx", tmp_path / "camp")
+    assert [s.id for s in c.scans] == ["p1-2c0"] and c.scans[0].extra["ptx_scan_index"] == 2
+    with pytest.raises(CampaignError, match="points: expected at least one point, found none"):
+        import_file(write(tmp_path, "e.ptx", ptx_text(1, 2, ["0 0 0", "0 0 0 0.5"])), "ptx",
+                    tmp_path / "camp2")
 
 
 def test_import_pointing_defaults(tmp_path):

@@ -311,3 +311,106 @@ def robust_gauss_helmert(
         w = jnp.where(bad, 0.0, w)
         res = gauss_helmert(condition, l, res.x, sigma_l, consts, w, v0=res.v, **kwargs)
     return res
+
+
+class NormalEquations(eqx.Module):
+    """Normal equations of a linearisation, optionally with per-group sums (for nuisance groups).
+
+    With ``groups`` (an integer id per point, ``-1`` for none) the sums
+    ``S_g = sum 1/m``, ``s_g = sum a/m``, ``t_g = sum w/m`` over each group are returned as well:
+    eliminating one free offset per group (e.g. a panel offset common to both cycles) from
+    ``[N n]`` is then the Schur complement ``N - sum_g s_g s_g^T / S_g`` (Frisch-Waugh), without
+    ever forming a column per group.
+    """
+
+    N: Float[Array, "u u"]
+    n: Float[Array, " u"]
+    wMw: Float[Array, ""]
+    S: Float[Array, " g"]
+    s: Float[Array, "g u"]
+    t: Float[Array, " g"]
+
+    def eliminate_groups(self, d_offset: Float[Array, " u"] | None = None):
+        """``(N, n, wMw)`` with one additive offset per group eliminated.
+
+        ``d_offset`` is the derivative of the condition with respect to a group's offset relative
+        to ``a`` (default: the offset enters the condition with derivative 1, so the sums over
+        ``a/m`` are the coupling). Groups with no points are ignored.
+        """
+        S = jnp.where(self.S > 0, self.S, 1.0)
+        live = (self.S > 0).astype(self.N.dtype)
+        N = self.N - jnp.einsum("g,gi,gj->ij", live / S, self.s, self.s)
+        n = self.n - jnp.einsum("g,gi,g->i", live / S, self.s, self.t)
+        wMw = self.wMw - jnp.sum(live * self.t**2 / S)
+        return N, n, wMw
+
+
+@eqx.filter_jit
+def _normal_equations(condition, l, x, s2, consts, weights, v, groups, n_groups, chunk_size,
+                      offset_derivative):
+    u = x.shape[0]
+    lin = jax.vmap(partial(_linearize, condition), in_axes=(0, None, 0))
+    n_pts = l.shape[0]
+    (L, C, W, S2, V, G), n = _chunked([l, consts, weights, s2, v, groups], chunk_size)
+    W = W.reshape(-1).at[n_pts:].set(0.0).reshape(W.shape)
+
+    def body(carry, chunk):
+        N, nv, wmw, S, sg, tg = carry
+        ll, c, w8, ss2, vv, gg = chunk
+        F, a, b = lin(ll + vv, x, c)
+        wm = F - jnp.sum(b * vv, axis=-1)
+        m = jnp.sum(b * b * ss2, axis=-1)
+        ok = (w8 > 0) & (m > 0)
+        q = jnp.where(ok, w8 / jnp.where(ok, m, 1.0), 0.0)
+        a = jnp.where(ok[:, None], a, 0.0)
+        wm = jnp.where(ok, wm, 0.0)
+        # derivative of the condition w.r.t. a group offset (1 for a normal offset scaled by
+        # the caller through ``offset_derivative`` = index of a constant column, or -1 for 1)
+        dg = jnp.ones_like(wm) if offset_derivative < 0 else c[:, offset_derivative]
+        gid = jnp.where((gg >= 0) & ok, gg, n_groups)  # a dump group for the rest
+        aq = a * q[:, None]
+        S = S + jax.ops.segment_sum(q * dg * dg, gid, n_groups + 1)[:n_groups]
+        sg = sg + jax.ops.segment_sum(aq * dg[:, None], gid, n_groups + 1)[:n_groups]
+        tg = tg + jax.ops.segment_sum(q * wm * dg, gid, n_groups + 1)[:n_groups]
+        return (N + aq.T @ a, nv + aq.T @ wm, wmw + jnp.sum(q * wm * wm), S, sg, tg), None
+
+    init = (jnp.zeros((u, u), x.dtype), jnp.zeros((u,), x.dtype), jnp.zeros((), x.dtype),
+            jnp.zeros((n_groups,), x.dtype), jnp.zeros((n_groups, u), x.dtype),
+            jnp.zeros((n_groups,), x.dtype))
+    (N, nv, wmw, S, sg, tg), _ = jax.lax.scan(body, init, (L, C, W, S2, V, G))
+    return NormalEquations(N=N, n=nv, wMw=wmw, S=S, s=sg, t=tg)
+
+
+def normal_equations(
+    condition: Condition,
+    l: Float[Array, "n 3"],
+    x: Float[Array, " u"],
+    sigma_l,
+    consts=None,
+    weights=None,
+    v=None,
+    *,
+    groups: Int[Array, " n"] | None = None,
+    n_groups: int = 0,
+    offset_column: int = -1,
+    chunk_size: int = 1 << 16,
+) -> NormalEquations:
+    """Normal equations ``N = sum a a^T/m``, ``n = sum a w/m``, ``w^T M^-1 w`` at ``(l + v, x)``.
+
+    The building block of score (Lagrange-multiplier) tests, of joint adjustments (per-scan
+    normal equations reduced by Schur complement) and of sensitivity studies: evaluate it with
+    a model whose free parameters include the extra ones (at their null values) and partition.
+    ``groups``/``n_groups``: also accumulate per-group sums to eliminate one offset per group
+    (see :class:`NormalEquations`); ``offset_column``: index of a per-point constant holding
+    the derivative of the condition w.r.t. the group offset (-1: derivative 1).
+    """
+    l = jnp.asarray(l, jnp.float64)
+    n = l.shape[0]
+    consts = jnp.zeros((n, 0), l.dtype) if consts is None else jnp.asarray(consts, l.dtype)
+    weights = jnp.ones((n,), l.dtype) if weights is None else jnp.asarray(weights, l.dtype)
+    v = jnp.zeros_like(l) if v is None else jnp.asarray(v, l.dtype)
+    groups = -jnp.ones((n,), jnp.int32) if groups is None else jnp.asarray(groups, jnp.int32)
+    s2 = jnp.broadcast_to(jnp.asarray(sigma_l, l.dtype) ** 2, l.shape)
+    chunk = int(min(chunk_size, max(256, 1 << int(np.ceil(np.log2(max(n, 1)))))))
+    return _normal_equations(condition, l, jnp.asarray(x, l.dtype), s2, consts, weights, v, groups,
+                             int(n_groups), chunk, int(offset_column))

@@ -59,8 +59,16 @@ from typing import BinaryIO
 import click
 import numpy as np
 
-from ._campaign import (Campaign, CampaignError, Scanner, ScanData, ScanMeta, Site, Telescope,
-                        write_campaign)
+from ._campaign import (
+    Campaign,
+    CampaignError,
+    ScanData,
+    ScanMeta,
+    Scanner,
+    Site,
+    Telescope,
+    write_campaign,
+)
 from ._geometry import cartesian_to_raw
 
 log = logging.getLogger(__name__)
@@ -243,19 +251,34 @@ def _starts(counts: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------- estimates
 
 
-def _angles_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    return np.arctan2(np.linalg.norm(np.cross(u, v), axis=1), np.einsum("ij,ij->i", u, v))
-
-
 def _unit(xyz: np.ndarray) -> np.ndarray:
     r = np.linalg.norm(xyz, axis=1, keepdims=True)
     return xyz / np.where(r > 0, r, 1.0)
 
 
+def _raw_angles(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(phi, theta) of eq. (2) in the file's frame."""
+    r = np.linalg.norm(xyz, axis=1)
+    return (np.arctan2(xyz[:, 0], xyz[:, 1]),
+            np.arccos(np.clip(xyz[:, 2] / np.where(r > 0, r, 1.0), -1, 1)))
+
+
+def _encoder_steps(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """max(|d theta|, |d phi| wrapped) between point pairs: the step in raw angles."""
+    pa, ta = _raw_angles(a)
+    pb, tb = _raw_angles(b)
+    dphi = np.abs(np.mod(pa - pb + math.pi, TWO_PI) - math.pi)
+    return np.maximum(np.abs(ta - tb), dphi)
+
+
 def grid_angular_step(xyz: np.ndarray, cell: np.ndarray, rows: int,
                       max_pairs: int = 200_000) -> float | None:
-    """Median angle (rad) between grid neighbours (same column adjacent rows, same row adjacent
-    columns) of a column-major grid; `cell` = col * rows + row, ascending. None without pairs."""
+    """Median step (rad) in raw angles between grid neighbours: ``|d theta|`` along a column
+    (adjacent rows), ``|d phi|`` along a row (adjacent columns), as ``max(|d theta|, |d phi|)``.
+
+    `cell` = col * rows + row, ascending (column-major PTX order); at most `max_pairs` pairs
+    of each kind are used. None without neighbour pairs.
+    """
     n = len(cell)
     if n < 2:
         return None
@@ -269,7 +292,7 @@ def grid_angular_step(xyz: np.ndarray, cell: np.ndarray, rows: int,
         if d == 1:
             ok &= (cell[idx] % rows) != rows - 1
         if ok.any():
-            out.append(_angles_between(_unit(xyz[idx[ok]]), _unit(xyz[j[ok]])))
+            out.append(_encoder_steps(xyz[idx[ok]], xyz[j[ok]]))
     if not out:
         return None
     a = np.concatenate(out)
@@ -278,28 +301,30 @@ def grid_angular_step(xyz: np.ndarray, cell: np.ndarray, rows: int,
 
 
 def nn_angular_step(xyz: np.ndarray, max_points: int = 200_000) -> float | None:
-    """Median angle (rad) from each point to its nearest neighbour (directions from the origin).
+    """Median step (rad) in raw angles from each point to its nearest neighbour in direction,
+    ``max(|d theta|, |d phi|)`` (an unordered export has no grid to follow).
 
-    Above `max_points`, a slab of the points nearest in azimuth to the median azimuth is used
-    (full density, so nearest neighbours are not thinned). None with fewer than 2 points.
+    For a regular grid this is the instrument's step; for a subsampled export it is the spacing
+    of the points in the file. Above `max_points`, the points nearest in azimuth to the median
+    azimuth are used (a slab at full density, so neighbours are not thinned out). None with
+    fewer than 2 points.
     """
     from scipy.spatial import cKDTree
 
-    u = _unit(np.asarray(xyz, dtype=float))
-    u = u[np.linalg.norm(u, axis=1) > 0]
-    if len(u) < 2:
+    xyz = np.asarray(xyz, dtype=float)
+    xyz = xyz[np.linalg.norm(xyz, axis=1) > 0]
+    if len(xyz) < 2:
         return None
-    if len(u) > max_points:
-        a = np.arctan2(u[:, 0], u[:, 1])
-        med = np.median(a)
-        da = np.abs(np.mod(a - med + math.pi, TWO_PI) - math.pi)
-        u = u[np.argpartition(da, max_points)[:max_points]]
-    d, _ = cKDTree(u).query(u, k=2)
-    d = d[:, 1]
-    d = d[d > 0]
-    if not len(d):
+    if len(xyz) > max_points:
+        a = np.arctan2(xyz[:, 0], xyz[:, 1])
+        da = np.abs(np.mod(a - np.median(a) + math.pi, TWO_PI) - math.pi)
+        xyz = xyz[np.argpartition(da, max_points)[:max_points]]
+    u = _unit(xyz)
+    d, j = cKDTree(u).query(u, k=2)
+    ok = d[:, 1] > 0
+    if not ok.any():
         return None
-    return float(np.median(2 * np.arcsin(np.clip(d / 2, 0, 1))))
+    return float(np.median(_encoder_steps(xyz[ok], xyz[j[ok, 1]])))
 
 
 def _normalise_intensity(inten: np.ndarray, header: dict, path) -> np.ndarray:
@@ -387,23 +412,25 @@ def _ptx_grid(path, lines: _Lines, h: dict, chunk_rows: int, line_period_s: floa
         else:
             x = y = z = np.zeros(len(block))
         missing = has3 & (x == 0) & (y == 0) & (z == 0)
-        if width is None and (~missing).any():
-            width = int(counts[int(np.argmax(~missing))])
+        point = ~missing & has3  # lines of fewer than 3 fields fail the check below
+        if width is None and point.any():
+            width = int(counts[int(np.argmax(point))])
             if width not in _PTX_WIDTHS:
-                i = int(np.argmax(~missing))
+                i = int(np.argmax(point))
                 raise CampaignError(path, f"line {no0 + i}", "expected 3 (x y z), 4 (x y z "
                                     "intensity) or 7 (x y z intensity r g b) numbers per grid "
                                     f"point, found {width}: {_show(block[i])}")
             h["fields"] = _PTX_WIDTHS[width]
         ok_missing = np.isin(counts, (3, width) if width else tuple(_PTX_WIDTHS))
-        bad = np.where(missing, ~ok_missing, counts != (width or 0))
+        # without a width yet, every line that is not a missing cell has fewer than 3 fields
+        bad = np.where(missing, ~ok_missing, counts != width if width else True)
         if bad.any():
             i = int(np.argmax(bad))
             c = int(counts[i])
             want = width or 4
-            what = ("an empty line" if c == 0 else
-                    f"{c} (short row)" if c < want else f"{c}") + (f": {_show(block[i])}" if c
-                                                                   else "")
+            detail = f": {_show(block[i])}" if c else ""
+            what = ("an empty line" if c == 0 else f"{c} (short row){detail}" if c < want
+                    else f"{c}{detail}")
             raise CampaignError(path, f"line {no0 + i}", f"expected {want} numbers per grid "
                                 f"point ({_PTX_WIDTHS.get(want, 'x y z intensity')}) or '0 0 0' "
                                 f"for a missing return, found {what}")
@@ -546,7 +573,8 @@ def read_xyz(path, *, chunk_rows: int = 1_000_000, dt_s: float = XYZ_DT_S) -> Im
                                 "points, found an empty file")
         sep = b"," if b"," in first else b";" if b";" in first else None
         h["separator"] = sep.decode() if sep else "whitespace"
-        toks = first.decode("latin-1").split(sep.decode()) if sep else first.decode("latin-1").split()
+        text0 = first.decode("latin-1")
+        toks = text0.split(sep.decode()) if sep else text0.split()
         is_header = not all(_is_number(t.strip()) for t in toks)
         if is_header:
             h["columns"] = [t.strip() for t in toks]
@@ -716,7 +744,7 @@ def _ptx_extra(h: dict) -> dict:
     return out
 
 
-def _e57_imported(path, n_chunk) -> tuple[ScanData, dict]:
+def _e57_imported(path) -> tuple[ScanData, dict]:
     from ._campaign import read_scan_e57
 
     data = read_scan_e57(path, 0)
@@ -781,11 +809,18 @@ def import_file(path, fmt: str | None = None, out_dir=None, telescope="gbt",
             "n_points": len(s), "_step": h["angular_step_rad"]}))
         del s
     else:
-        data, h = _e57_imported(path, chunk_rows)
+        data, h = _e57_imported(path)
         items.append((data, {"n_points": len(data), "_step": h["angular_step_rad"]}))
 
-    metas, scans, steps = [], {}, []
     for k, (data, extra) in enumerate(items):
+        if not len(data):
+            log.warning("%s: scan %d has no points (all cells missing), not imported", path, k + 1)
+    numbered = [(k, d, e) for k, (d, e) in enumerate(items) if len(d)]
+    if not numbered:
+        raise CampaignError(path, "points", f"expected at least one point, found none in "
+                            f"{len(items)} scan{'s' if len(items) != 1 else ''}")
+    metas, scans, steps = [], {}, []
+    for k, data, extra in numbered:
         step = extra.pop("_step")
         if step is not None and step > 0:
             steps.append(step)

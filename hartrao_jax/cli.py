@@ -262,5 +262,12 @@ def _print_truth_comparison(cf, truth: dict) -> None:
     _console().print(t)
 
 
+
+# commands defined beside their modules
+from ._import import import_command  # noqa: E402
+
+main.add_command(import_command)
+
+
 if __name__ == "__main__":  # pragma: no cover
     main()

@@ -21,7 +21,7 @@ from ._align import Alignment, mount_heading, north_alignment
 from ._campaign import Campaign, ScanData, ScanMeta, read_scan
 from ._geometry import face_of, paraboloid_deviation, pointing_elevation_deg, pointing_gravity, rot_z
 from ._ghm import GHResult, gauss_helmert_batch, robust_gauss_helmert
-from ._init import InitialValues, initial_distance, initial_values
+from ._init import InitialValues, initial_distance, initial_values, quadric_initial_values
 from ._model import N_CONSTS, ParaboloidModel, make_model, parameter_unit
 from ._physics import INSTRUMENT
 
@@ -133,6 +133,22 @@ def _x0(names: Sequence[str], init: InitialValues, fixed: dict[str, float]) -> n
     return np.array([init.x.get(n, fixed.get(n, 0.0)) for n in names], dtype=float)
 
 
+def choose_initial_values(campaign: Campaign, meta: ScanMeta, data: ScanData, g, *, seed=0):
+    """Pointing-based initial values (scanner hanging on its gimbal) when they fit the data,
+    else the pose-free quadric fit (one-face exports, other scanner set-ups, offset reflectors).
+    """
+    tel = campaign.telescope
+    cands = []
+    if meta.cycle != 0 and tel.offset_m == 0:
+        cands.append(initial_values(data.range_m, data.phi_rad, data.theta_rad, g,
+                                    focal_length_m=tel.focal_length_m, seed=seed))
+        if cands[-1].inlier_fraction >= 0.5:
+            return cands[-1]
+    q = quadric_initial_values(data.range_m, data.phi_rad, data.theta_rad, seed=seed)
+    cands.append(q)
+    return max(cands, key=lambda c: c.inlier_fraction)
+
+
 def prepare_scan(
     campaign: Campaign, meta: ScanMeta, data: ScanData | None = None, *, window_m: float = 0.10,
     keep: np.ndarray | None = None, seed: int = 0,
@@ -144,10 +160,7 @@ def prepare_scan(
     """
     data = read_scan(campaign, meta) if data is None else data
     g = pointing_gravity(meta, campaign.telescope, campaign.site)
-    init = initial_values(
-        data.range_m, data.phi_rad, data.theta_rad, g,
-        focal_length_m=campaign.telescope.focal_length_m, seed=seed,
-    )
+    init = choose_initial_values(campaign, meta, data, g, seed=seed)
     dist = initial_distance(data.range_m, data.phi_rad, data.theta_rad, init.x)
     window = np.abs(dist) < window_m
     if keep is not None:

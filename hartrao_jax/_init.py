@@ -168,3 +168,96 @@ def initial_distance(
     R = np.asarray(rot_y(x["ry"]) @ rot_x(x["rx"]))
     X = xs @ R.T + np.array([x["tx"], x["ty"], x["tz"]])
     return X[:, 2] - (X[:, 0] ** 2 + X[:, 1] ** 2) / (4 * x["f"])
+
+
+# --------------------------------------------------------------------------------------------
+# Any pose: algebraic quadric fit (no pointing, offset reflectors, any scanner orientation)
+# --------------------------------------------------------------------------------------------
+
+
+def _quadric_design(P: np.ndarray) -> np.ndarray:
+    x, y, z = P[:, 0], P[:, 1], P[:, 2]
+    return np.column_stack([x * x, y * y, z * z, 2 * x * y, 2 * x * z, 2 * y * z, x, y, z,
+                            np.ones(len(P))])
+
+
+def _paraboloid_from_quadric(q: np.ndarray):
+    """Axis ``a`` (towards the focus side), vertex ``V`` and focal length from quadric coefficients.
+
+    ``x^T Q x + p . x + c = 0`` with ``Q = k (I - a a^T)`` for a paraboloid of revolution:
+    ``a`` is the eigenvector of the smallest |eigenvalue|; ``f = -(a . p) / (4 k)``.
+    """
+    Q = np.array([[q[0], q[3], q[4]], [q[3], q[1], q[5]], [q[4], q[5], q[2]]])
+    p, c = q[6:9], q[9]
+    w, E = np.linalg.eigh(Q)
+    i = int(np.argmin(np.abs(w)))
+    a = E[:, i]
+    k = float(np.mean(np.delete(w, i)))
+    f = -float(a @ p) / (4 * k)
+    if f < 0:
+        a, f = -a, -f
+    Pp = np.eye(3) - np.outer(a, a)
+    V_perp = -0.5 * Pp @ (p / k)  # (I - a a^T) V
+    # along the axis: the vertex satisfies the quadric: V = V_perp + s a
+    #   V^T Q V + p.V + c = 0 -> k |V_perp|^2 + p.V_perp + s (p.a) + c = 0
+    s = -(k * V_perp @ V_perp + p @ V_perp + c) / (p @ a)
+    return a, V_perp + s * a, f
+
+
+def _paraboloid_distance(P: np.ndarray, a: np.ndarray, V: np.ndarray, f: float) -> np.ndarray:
+    """Approximate signed distance (m) of points from the paraboloid (axis a, vertex V, f)."""
+    D = P - V
+    h = D @ a
+    rho2 = np.sum(D * D, axis=1) - h * h
+    return (h - rho2 / (4 * f)) / np.sqrt(1 + rho2 / (4 * f * f))
+
+
+def quadric_initial_values(
+    r: np.ndarray, phi: np.ndarray, theta: np.ndarray, *, n_sample: int = 20000,
+    tol_m: float = 0.05, rounds: int = 6, seed: int = 0,
+) -> InitialValues:
+    """Initial values for any pose from an algebraic quadric fit of the points (scanner frame).
+
+    Works without pointing metadata, for any scanner orientation and for offset reflectors
+    whose vertex lies far outside the data. The fit is trimmed against non-reflector returns
+    (it keeps the points nearest to the current paraboloid, then tightens). The paraboloid axis
+    ``a`` (towards the focus) fixes ``rx, ry`` (third row of ``Ry Rx`` equals ``a``) and the vertex
+    fixes the translation.
+    """
+    rng = np.random.default_rng(seed)
+    n = len(r)
+    idx = rng.choice(n, size=min(n, n_sample), replace=False) if n > n_sample else np.arange(n)
+    P = np.asarray(polar_to_cartesian(r[idx], phi[idx], theta[idx]))
+    mu = np.median(P, axis=0)
+    scale = float(np.median(np.linalg.norm(P - mu, axis=1))) or 1.0
+    Pn = (P - mu) / scale
+    keep = np.ones(len(P), bool)
+    a = V = None
+    f = np.nan
+    for i in range(rounds):
+        D = _quadric_design(Pn[keep])
+        _, _, Vt = np.linalg.svd(D, full_matrices=False)
+        a, Vn, fn = _paraboloid_from_quadric(Vt[-1])
+        V, f = mu + Vn * scale, fn * scale
+        d = np.abs(_paraboloid_distance(P, a, V, f))
+        cut = np.quantile(d, 0.7) if i == 0 else max(4 * 1.4826 * np.median(d[keep]), tol_m)
+        keep = d <= cut
+    R = _rotation_axis_to_z(a)
+    kappa, ry, rx = (float(v) for v in decompose_zyx(R))
+    R2 = np.asarray(rot_y(ry) @ rot_x(rx))
+    t = -R2 @ V
+    d = np.abs(_paraboloid_distance(P, a, V, f))
+    return InitialValues(
+        x={"tx": float(t[0]), "ty": float(t[1]), "tz": float(t[2]), "rx": rx, "ry": ry, "f": float(f)},
+        kappa_rad=0.0, heading_rad=0.0, inlier_fraction=float(np.mean(d < tol_m)), tol_m=tol_m,
+    )
+
+
+def _rotation_axis_to_z(a: np.ndarray) -> np.ndarray:
+    """A rotation whose third row is ``a`` (maps the axis ``a`` onto +Z)."""
+    a = a / np.linalg.norm(a)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(a[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(helper, a)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(a, e1)
+    return np.stack([e1, e2, a])

@@ -248,51 +248,62 @@ def correct_observations(
     return r + dr, phi + dphi, theta + dtheta
 
 
-def correction_columns(
-    names, r: np.ndarray, phi: np.ndarray, theta: np.ndarray
-) -> np.ndarray:
-    """Derivative of ``(dr, r dphi sin(theta), r dtheta)`` (metres) w.r.t. each parameter.
+def face_signatures(names, r: np.ndarray, a: np.ndarray, theta0: np.ndarray):
+    """Cartesian displacement (m) of each direction by a unit value of each parameter, split
+    into the part that flips between the faces and the part common to both.
 
-    Shape ``(len(names), 3 n)``: the signature of each parameter in observation space, used to
-    find pairs that cannot be separated (same column shape up to scale).
+    The same direction (azimuth ``a``, nadir angle ``theta0``, range ``r``) is observed in face 1
+    as ``(a, theta0)`` and in face 2 as ``(a + pi, 2 pi - theta0)``. Returns ``(odd, even)``,
+    each of shape ``(len(names), 3 n)``: ``odd = (d1 - d2) / 2``, ``even = (d1 + d2) / 2``.
     """
-    cols = []
-    st = np.abs(np.sin(theta))
+    from ._geometry import polar_to_cartesian
+
+    faces = [(a, theta0), (np.mod(a + np.pi, 2 * np.pi), 2 * np.pi - theta0)]
+    odd, even = [], []
     for name in names:
-        dr, dphi, dth = instrument_corrections(r, phi, theta, {name: 1.0})
-        # linear in the value: evaluating at value 1 gives the column
-        dr, dphi, dth = (np.asarray(a) for a in (dr, dphi, dth))
-        cols.append(np.concatenate([dr, r * st * dphi, r * dth]))
-    return np.asarray(cols)
+        d = []
+        for phi, th in faces:
+            x0 = np.asarray(polar_to_cartesian(r, phi, th))
+            # linear in the value: a small value and a difference quotient give the column
+            h = 1e-7
+            x1 = np.asarray(polar_to_cartesian(*correct_observations(r, phi, th, {name: h})))
+            d.append(((x1 - x0) / h).ravel())
+        odd.append((d[0] - d[1]) / 2)
+        even.append((d[0] + d[1]) / 2)
+    return np.asarray(odd), np.asarray(even)
 
 
 def inseparable_pairs(names, *, threshold: float = 0.9999, seed: int = 0) -> list[tuple[str, str, float]]:
-    """Pairs of instrument parameters with a correction of the same shape (not separable).
+    """Pairs of instrument parameters that cannot be estimated together (same column shape).
 
-    Two parameters are refused together when, in some observation component (range, phi or
-    theta) that both correct, their correction columns are proportional on a generic two-face
-    sample of directions and ranges (``|correlation| >= threshold``), e.g. ``x5z`` and ``x7``
-    in phi: what is left of the other components is absorbed by the object parameters.
-    Returns ``(a, b, correlation)``.
+    Two-face scans separate the instrument from the object through the part of each effect
+    that flips between the faces; the part common to both faces is largely absorbed by the
+    object parameters. A pair is refused when their face-flipping parts are proportional
+    (e.g. ``x5z`` and ``x7``: the same phi term; x5z's theta term is common to both faces),
+    or when their whole signatures are, on a generic sample of directions and ranges
+    (``|correlation| >= threshold``). Returns ``(a, b, correlation)``.
     """
     inst = [n for n in names if n in INSTRUMENT]
     if len(inst) < 2:
         return []
     rng = np.random.default_rng(seed)
-    m = 4000
-    phi = rng.uniform(0, 2 * np.pi, m)
-    theta = np.where(rng.random(m) < 0.5, rng.uniform(0.2, 1.3, m), 2 * np.pi - rng.uniform(0.2, 1.3, m))
+    m = 3000
+    a = rng.uniform(0, 2 * np.pi, m)
+    theta0 = rng.uniform(0.2, 1.3, m)
     r = rng.uniform(6.0, 15.0, m)
-    C = correction_columns(inst, r, phi, theta).reshape(len(inst), 3, m)
+    odd, even = face_signatures(inst, r, a, theta0)
+    full = np.concatenate([odd, even], axis=1)
+
+    def corr(u, v):
+        nu, nv = np.linalg.norm(u), np.linalg.norm(v)
+        if nu < 1e-12 * u.size or nv < 1e-12 * v.size:
+            return 0.0
+        return float(u @ v / (nu * nv))
+
     out = []
     for i in range(len(inst)):
         for j in range(i + 1, len(inst)):
-            for k in range(3):
-                a, b = C[i, k], C[j, k]
-                na, nb = np.linalg.norm(a), np.linalg.norm(b)
-                if na == 0 or nb == 0:
-                    continue
-                c = float(a @ b / (na * nb))  # uncentred: additive shapes matter
+            for c in (corr(odd[i], odd[j]), corr(full[i], full[j])):
                 if abs(c) >= threshold:
                     out.append((inst[i], inst[j], c))
                     break

@@ -93,41 +93,50 @@ def _fmt(v, s, scale=1.0, digits=4):
     return f"{v * scale:.{digits}f} ± {s * scale:.{digits}f}"
 
 
+def _pm(v: float, s: float, digits: int) -> str:
+    return f"{v:.{digits}f}±{s:.{digits}f}"
+
+
 def print_fit_table(cf, title="fit") -> None:
-    """Short table of a campaign fit on the terminal (f in m, calibration in arcsec / mm)."""
+    """Short table of a campaign fit on the terminal.
+
+    f in m with its sigma in mm; angular calibration parameters in arcsec, lengths in mm.
+    """
+    from rich.markup import escape
     from rich.table import Table
 
     from ._model import parameter_unit
 
-    t = Table(title=title)
-    for c in ("scan", "cyc", "f [m]", "sigma0", "points", "rejected", "iter", "kappa [deg]"):
-        t.add_column(c, justify="right")
+    t = Table(title=title, padding=(0, 1))
+    for c in ("scan", "f [m]", "σf [mm]", "σ0", "points", "rej", "it", "κ [°]"):
+        t.add_column(escape(c), justify="right")
     extra = [n for n in cf.model_names if n not in ("tx", "ty", "tz", "rx", "ry", "f")]
+    units = {n: parameter_unit(n) for n in extra}
     for n in extra:
-        unit = parameter_unit(n)
-        t.add_column(f"{n} [{'arcsec' if unit == 'rad' else 'mm' if unit == 'm' else unit}]",
-                     justify="right")
+        u = units[n]
+        t.add_column(escape(f'{n} [{"″" if u == "rad" else "mm" if u == "m" else u}]'), justify="right")
     import math
 
     for s in cf.scans:
         est = s.estimates
+        f, sf = est["f"]
         row = [
-            s.meta.id, str(s.meta.cycle), _fmt(*est["f"], digits=5), f"{s.sigma0:.3f}",
-            f"{s.n_points}", f"{s.n_rejected}", f"{s.iterations}{'' if s.converged else '!'}",
-            f"{math.degrees(s.alignment.kappa_rad):.2f}",
+            s.meta.id, f"{f:.5f}", f"{sf * 1e3:.3f}", f"{s.sigma0:.3f}", f"{s.n_points}",
+            f"{s.n_rejected}", f"{s.iterations}{'' if s.converged else '!'}",
+            f"{math.degrees(s.alignment.kappa_rad):.1f}",
         ]
         for n in extra:
-            unit = parameter_unit(n)
-            scale = 206264.806 if unit == "rad" else 1000.0 if unit == "m" else 1.0
-            row.append(_fmt(*est[n], scale=scale, digits=2))
+            scale = 206264.806 if units[n] == "rad" else 1000.0 if units[n] == "m" else 1.0
+            v, sg = est[n]
+            row.append(_pm(v * scale, sg * scale, 1 if scale > 1 else 6))
         t.add_row(*row)
     _console().print(t)
-    pt = Table(title="positions")
-    for c in ("position", "elevation [deg]", "f [m]"):
-        pt.add_column(c, justify="right")
+    pt = Table(title="positions", padding=(0, 1))
+    for c in ("position", "elevation [°]", "f [m]", "σf [mm]"):
+        pt.add_column(escape(c), justify="right")
     for p in cf.positions():
-        pt.add_row(p["position"], f"{p['elevation_deg']:.2f}",
-                   _fmt(p["f"]["value"], p["f"]["sigma"], digits=6))
+        pt.add_row(p["position"], f"{p['elevation_deg']:.2f}", f"{p['f']['value']:.6f}",
+                   f"{p['f']['sigma'] * 1e3:.3f}")
     _console().print(pt)
 
 
@@ -249,7 +258,9 @@ def demo(out_dir, seed):
 def _print_truth_comparison(cf, truth: dict) -> None:
     from rich.table import Table
 
-    t = Table(title="extended fit against the simulator's truth")
+    t = Table(title="extended fit against the simulator's truth",
+              caption="The simulated reflector carries realistic panel deviations (0.1-0.2 mm rms) "
+                      "that no paraboloid contains: they bias the pose by a few formal sigma.")
     for c in ("scan", "parameter", "truth", "estimate", "sigma", "(est-truth)/sigma"):
         t.add_column(c, justify="right")
     scans = {s["id"]: s for s in truth.get("scans", [])}

@@ -1,0 +1,944 @@
+"""Preprocessing (paper section 2.3): range window, angular patches, RANSAC planes per patch.
+
+Stages, applied in this order to the rows of one scan; each removed row gets the code of the
+first stage that removed it (:data:`REASONS`):
+
+1. ``non_finite``: a NaN/inf observation (rows dropped while reading are counted too).
+2. ``range_window``: paper eq. (3), ``D_min <= r <= D_max``. By default ``D_min``/``D_max`` are
+   the smallest/largest distance from the scanner to the reflector annulus
+   ``cone_radius_m <= rho <= diameter_m / 2`` of the paraboloid, plus ``range_margin_m``. The
+   scanner position comes from the initial values (:func:`._init.initial_values`, i.e. the
+   pointing's gravity plus a heading search on the scan); without them from the nominal
+   geometry (scanner at the focus, a wider margin).
+3. ``geometry_window``: the quadrupod legs are locally planar too, so RANSAC alone cannot remove
+   them. Points further than ``geometry_window_m`` (vertically) from the initial paraboloid
+   (:func:`._init.initial_distance`), or outside the annulus
+   ``[cone_radius_m - rim_margin_m, diameter_m / 2 + rim_margin_m]`` of the initial frame, are
+   removed: legs and cone stand decimetres to metres in front of the surface, the background
+   and rim mixed pixels lie beyond the rim.
+4. Segmentation (NumPy): the raw angles are discretised into patches of about
+   ``patch_size_m`` x ``patch_size_m`` at the reflector's range: ``dtheta = s / R`` and, per
+   theta band, ``dphi = s / (R sin theta)`` (so patches near the nadir are not slivers). Faces
+   are keyed separately, so a patch never mixes face 1 (theta < pi) and face 2. Patches with
+   more than ``max_patch_points`` are cut into strips, patches with fewer than
+   ``min_patch_points`` are removed (``small_patch``).
+5. RANSAC (JAX, vmapped over all patches of a scan, chunked with ``lax.map(batch_size=...)``):
+   ``ransac_iterations`` minimal samples (3 distinct points) per patch, scored by the MSAC cost
+   ``sum min(d^2, eps^2)``, then a plane refinement (see below). Points beyond ``epsilon`` from
+   the refined plane are removed (paper eq. 4, ``ransac_outlier``); a patch whose plane holds
+   fewer than ``min_patch_points`` inliers is removed as a whole (``small_patch``).
+
+Planes are fitted in one of two frames (``PreprocessConfig.frame``):
+
+* ``"flat"`` (default when initial values exist): telescope-frame coordinates of the initial
+  pose with the initial paraboloid's sag removed and the height scaled to a normal distance,
+  ``(X, Y, (Z - rho^2/4f) / sqrt(1 + (rho/2f)^2))``. The reflector is then locally planar to far
+  below the noise whatever the patch size, so ``epsilon`` needs no curvature allowance and
+  coarse scans can use large patches. A plane in this frame is "paraboloid + local tilt and
+  offset"; its distances are normal distances from the reflector (to first order).
+* ``"scanner"`` (the paper's choice; the fallback without initial values): planes in the
+  scanner's Cartesian frame (eq. 2); ``epsilon`` then includes the curvature allowance
+  ``(1.3 s)^2 / (12 f)``: the largest distance of a paraboloid patch of side ``1.3 s`` (the
+  patch's extent on the surface at incidence up to ~40 deg) from its least-squares plane, with
+  the principal curvatures bounded by ``1 / 2f``.
+
+Plane refinement: the rigorous Gauss-Helmert plane adjustment in the raw observations
+(condition ``n . p(r, phi, theta) - d = 0``, see :class:`PlaneCondition`) minimises
+``sum (n . p_i - d)^2 / m_i`` with ``m_i = b_i Sigma_l b_i^T`` the variance of point ``i``'s
+distance from the plane. Inside one patch (0.3 m seen from ~12 m: ray directions within
++-0.7 deg, ranges within +-1 %) ``m_i`` is the same for every point to better than 1e-3, so the
+GH solution is the total-least-squares plane of the inliers (smallest eigenvector of their
+scatter matrix), iterated with the inlier set. That is what runs here, vmapped over thousands of
+patches in one compiled call; calling the generic GH solver once per patch costs a compilation
+plus a while-loop per patch (seconds for 5000 patches x 3 iterations). The test suite checks on
+one patch that both give the same plane to a small fraction of its standard deviation.
+
+The default ``epsilon`` is ``k_sigma * sqrt(sigma_range^2 + (sigma_angle * D_max)^2)`` (an upper
+bound of the standard deviation of a point's distance from the surface, whatever the incidence)
+plus the allowance: ``allowance_m`` (default: 0.5 mm for panel steps and the curvature left by
+the initial focal length in the ``"flat"`` frame; the curvature bound above in the
+``"scanner"`` frame).
+
+Patch size: ``patch_size_m=None`` chooses the paper's "about 30 cm^2", read as patches of
+0.3 m x 0.3 m (about 5000 patches on the 26-m dish; 500-2500 points per patch at the paper's
+0.63 mrad step), enlarged on coarser scans so that a typical patch holds about
+``target_patch_points`` points (measured on the data: order independent): 0.3 m at 3 mrad,
+~0.75 m at 10 mrad, ~1.5 m at 20 mrad.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._campaign import Campaign, ScanData, ScanMeta, read_scan
+from ._geometry import pointing_gravity, polar_to_cartesian, rot_x, rot_y
+from ._init import InitialValues, initial_values
+
+log = logging.getLogger("hartrao_jax")
+
+PREPROCESS_SCHEMA = "hartrao-preprocess/1"
+
+KEPT, NON_FINITE, RANGE_WINDOW, GEOMETRY_WINDOW, RANSAC_OUTLIER, SMALL_PATCH = range(6)
+REASONS: dict[int, str] = {
+    KEPT: "kept",
+    NON_FINITE: "non_finite",
+    RANGE_WINDOW: "range_window",
+    GEOMETRY_WINDOW: "geometry_window",
+    RANSAC_OUTLIER: "ransac_outlier",
+    SMALL_PATCH: "small_patch",
+}
+"""uint8 reason codes of :attr:`PreprocessResult.reason` (0: kept)."""
+
+
+# --------------------------------------------------------------------------------------------
+# Configuration and result
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PreprocessConfig:
+    """Parameters of the preprocessing (m, rad). ``None`` means "derive from the campaign".
+
+    Attributes:
+        d_min_m, d_max_m: range window (paper eq. 3); None: from the geometry (module doc).
+        range_margin_m: margin of the automatic range window with initial values.
+        nominal_range_margin_m: margin without initial values (scanner height unknown).
+        patch_size_m: side of a patch at the reflector's range; None: automatic (module doc).
+        target_patch_points: typical points per patch the automatic patch size aims at.
+        epsilon_m: RANSAC inlier threshold (paper eq. 4); None: ``k_sigma`` sigmas + allowance.
+        k_sigma: sigmas of the automatic ``epsilon``.
+        allowance_m: added to the automatic ``epsilon``; None: frame-dependent (module doc).
+        ransac_iterations: minimal samples (hypotheses) per patch.
+        refine_iterations: total-least-squares refinements after RANSAC.
+        min_patch_points: smaller patches (and planes with fewer inliers) are removed.
+        max_patch_points: larger patches are cut into strips of at most this many points.
+        seed: seeds the RANSAC samples and the initial-value search: same seed, same result.
+        use_initial_values: derive the windows and the "flat" frame from the initial values.
+        geometry_window_m: half-width of the window about the initial paraboloid (vertical).
+        rim_margin_m, cone_margin_m: tolerances of the annulus test at the rim and at the
+            cone (the spec: no reflector data inside ``cone_radius_m``; the simulator puts the
+            cone's hole exactly on the paraboloid there, so only the radius separates them).
+        refine_pose: refine the initial pose (trimmed Gauss-Newton on ``pose_sample`` points
+            inside the height window, :func:`refine_pose`) before the radius tests.
+        frame: "flat", "scanner" or None (flat when initial values exist, else scanner).
+        batch_size: patches per vmapped chunk of ``lax.map``; None: from ``memory_mb``.
+        memory_mb: budget of one chunk's largest intermediate (patches x points x hypotheses).
+        ransac_float32: score the hypotheses in float32 (centred coordinates; the refinement
+            and the final classification are float64).
+    """
+
+    d_min_m: float | None = None
+    d_max_m: float | None = None
+    range_margin_m: float = 0.3
+    nominal_range_margin_m: float = 2.5
+    patch_size_m: float | None = None
+    target_patch_points: int = 40
+    epsilon_m: float | None = None
+    k_sigma: float = 4.5
+    allowance_m: float | None = None
+    ransac_iterations: int = 64
+    refine_iterations: int = 2
+    min_patch_points: int = 10
+    max_patch_points: int = 4096
+    seed: int = 0
+    use_initial_values: bool = True
+    geometry_window_m: float = 0.05
+    rim_margin_m: float = 0.05
+    cone_margin_m: float = 0.01
+    refine_pose: bool = True
+    pose_sample: int = 20000
+    frame: str | None = None
+    batch_size: int | None = None
+    memory_mb: float = 96.0
+    ransac_float32: bool = True
+
+    def __post_init__(self):
+        if self.frame not in (None, "flat", "scanner"):
+            raise ValueError(f"frame must be 'flat', 'scanner' or None, not {self.frame!r}")
+        if self.min_patch_points < 3:
+            raise ValueError("min_patch_points must be >= 3 (a plane needs 3 points)")
+        if self.max_patch_points < max(self.min_patch_points, 8):
+            raise ValueError("max_patch_points must be >= min_patch_points and >= 8")
+        if self.ransac_iterations < 1:
+            raise ValueError("ransac_iterations must be >= 1")
+
+
+@dataclass
+class PreprocessResult:
+    """Outcome of preprocessing one scan (NumPy; SI units).
+
+    Attributes:
+        scan_id: the scan.
+        keep: bool (n,) over the rows of the ``ScanData`` given (True: reflector point kept).
+        reason: uint8 (n,) code of :data:`REASONS` (0 kept, else the stage that removed it).
+        row: int64 (n,) original row index in the scan file (``ScanData.row``).
+        patch: int32 (n,) patch index of each row (-1: not in a patch).
+        planes: (n_patches, 4) ``A, B, C, D`` of each patch's plane ``A x + B y + C z + D = 0``
+            (unit normal, m) in ``plane_frame``; NaN for patches that were not fitted.
+        patch_points, patch_inliers: points per patch and the refined plane's inliers.
+        patch_rms_m: rms distance (m) of the inliers from their plane.
+        plane_frame: "flat" or "scanner" (module doc).
+        params: the parameters actually used (windows, patch size, epsilon, ...).
+        stats: counts per stage and timings (what ``preprocess.json`` holds per scan).
+        init: the initial values the windows came from (None if not used or failed).
+    """
+
+    scan_id: str
+    keep: np.ndarray
+    reason: np.ndarray
+    row: np.ndarray
+    patch: np.ndarray
+    planes: np.ndarray
+    patch_points: np.ndarray
+    patch_inliers: np.ndarray
+    patch_rms_m: np.ndarray
+    plane_frame: str
+    params: dict[str, Any]
+    stats: dict[str, Any]
+    init: InitialValues | None = None
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def kept_rows(self) -> np.ndarray:
+        """Original row indices (file rows) of the kept points."""
+        return self.row[self.keep]
+
+    def removed(self) -> dict[str, int]:
+        """Rows of the given ScanData removed per stage (``non_finite`` without dropped rows)."""
+        counts = np.bincount(self.reason, minlength=len(REASONS))
+        return {REASONS[k]: int(counts[k]) for k in REASONS if k != KEPT}
+
+
+# --------------------------------------------------------------------------------------------
+# Geometry helpers (NumPy)
+# --------------------------------------------------------------------------------------------
+
+
+def _pose(x: Mapping[str, float] | InitialValues) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(R, t, f)`` of object parameters (``tx ty tz rx ry f``): ``X = R x_s + t``."""
+    x = x.x if isinstance(x, InitialValues) else x
+    R = np.asarray(rot_y(x["ry"]) @ rot_x(x["rx"]))
+    return R, np.array([x["tx"], x["ty"], x["tz"]]), float(x["f"])
+
+
+def _normal_distance(xs: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Approximate normal distance of scanner points from the paraboloid of ``p`` (6 values)."""
+    R = np.asarray(rot_y(p[4]) @ rot_x(p[3]))
+    X = xs @ R.T + p[:3]
+    q = X[:, 0] ** 2 + X[:, 1] ** 2
+    return (X[:, 2] - q / (4 * p[5])) / np.sqrt(1.0 + q / (4 * p[5] ** 2))
+
+
+def refine_pose(xs: np.ndarray, x: Mapping[str, float], *, iterations: int = 8,
+                min_tol_m: float = 0.003) -> dict[str, float]:
+    """Trimmed Gauss-Newton of ``tx ty tz rx ry f`` on scanner points near the paraboloid.
+
+    The initial values hold the rotation from the gravity vector and a heading found on a grid,
+    so ``rx, ry`` can be off by 1e-2 rad, compensated by decimetres in ``tx, ty`` (the surface
+    itself stays within a centimetre): good enough for a height window, not for the radius tests
+    at the cone and the rim. A few Gauss-Newton steps on (a sample of) the points inside the
+    height window, trimmed at 4 robust sigmas, fix that. NumPy, numerical Jacobian (7 passes).
+    """
+    p = np.array([x["tx"], x["ty"], x["tz"], x["rx"], x["ry"], x["f"]], float)
+    keep = np.ones(len(xs), bool)
+    h = np.array([1e-6, 1e-6, 1e-6, 1e-7, 1e-7, 1e-6])
+    for _ in range(iterations):
+        r0 = _normal_distance(xs, p)
+        a = np.abs(r0)
+        tol = max(4 * 1.4826 * np.median(a[keep]), min_tol_m)
+        keep = a <= tol
+        if keep.sum() < 50:
+            break
+        J = np.stack([(_normal_distance(xs[keep], p + h[k] * np.eye(6)[k]) - r0[keep]) / h[k]
+                      for k in range(6)], 1)
+        dp, *_ = np.linalg.lstsq(J, -r0[keep], rcond=None)
+        if not np.all(np.isfinite(dp)):
+            break
+        p = p + dp
+        if np.all(np.abs(dp[:3]) < 1e-5) and np.all(np.abs(dp[3:5]) < 1e-7):
+            break
+    return dict(zip(("tx", "ty", "tz", "rx", "ry", "f"), (float(v) for v in p)))
+
+
+def reflector_distance_range(
+    scanner_position: np.ndarray, f: float, rho_min: float, rho_max: float, offset_m: float = 0.0,
+    n_rho: int = 129, n_psi: int = 720,
+) -> tuple[float, float]:
+    """Smallest and largest distance (m) from a point to the annulus of ``Z = rho^2 / 4f``.
+
+    The annulus is ``rho_min <= rho <= rho_max`` about the axis (for an offset reflector,
+    ``offset_m > 0``, the aperture circle centred ``offset_m`` off the axis along X, widened to
+    all azimuths). Evaluated on a dense polar grid (the extremes lie on the boundary or at a
+    smooth interior extremum; the grid error is far below any sensible margin).
+    """
+    if offset_m:
+        rho_min, rho_max = max(0.0, offset_m - rho_max), offset_m + rho_max
+    rho = np.linspace(rho_min, rho_max, n_rho)[:, None]
+    psi = np.linspace(0.0, 2 * np.pi, n_psi, endpoint=False)[None, :]
+    X = rho * np.cos(psi)
+    Y = rho * np.sin(psi)
+    Z = np.broadcast_to(rho**2 / (4 * f), X.shape)
+    p = np.asarray(scanner_position, float)
+    d = np.sqrt((X - p[0]) ** 2 + (Y - p[1]) ** 2 + (Z - p[2]) ** 2)
+    return float(d.min()), float(d.max())
+
+
+def default_range_window(
+    campaign: Campaign, init: InitialValues | None, config: PreprocessConfig | None = None
+) -> tuple[float, float]:
+    """``(D_min, D_max)`` (m) from the telescope geometry and the scanner pose (module doc)."""
+    cfg = config or PreprocessConfig()
+    tel = campaign.telescope
+    if init is not None:
+        _, t, f = _pose(init)
+        margin = cfg.range_margin_m
+    else:  # nominal: the scanner hangs at the sub-reflector, near the focus
+        t, f = np.array([0.0, 0.0, tel.focal_length_m]), tel.focal_length_m
+        margin = cfg.nominal_range_margin_m
+    lo, hi = reflector_distance_range(t, f, tel.cone_radius_m, tel.diameter_m / 2, tel.offset_m)
+    return max(0.0, lo - margin), hi + margin
+
+
+def _flat_coordinates(xs: np.ndarray, x: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Fitted-frame ``X, Y`` and the normal distance from the paraboloid of ``x``; ``rho``."""
+    R, t, f = _pose(x)
+    X = xs @ R.T + t
+    q = X[:, 0] ** 2 + X[:, 1] ** 2
+    h = X[:, 2] - q / (4 * f)  # == _init.initial_distance (vertical)
+    X[:, 2] = h / np.sqrt(1.0 + q / (4 * f * f))
+    return X, np.sqrt(q)
+
+
+def _patch_keys(phi, theta, cycle: int, size_m: float, range_m: float) -> np.ndarray:
+    """Dense int64 patch key of every point (face, theta band, phi bin); see the module doc."""
+    face2 = theta >= np.pi
+    th0 = np.where(face2, 2 * np.pi - theta, theta)
+    dth = size_m / range_m
+    n_band = int(math.ceil(math.pi / dth)) + 1
+    band = np.clip((th0 / dth).astype(np.int64), 0, n_band - 1)
+    lo, span = (0.0, 2 * np.pi) if cycle == 0 else ((0.0, np.pi) if cycle == 1 else (np.pi, np.pi))
+    centres = (np.arange(n_band) + 0.5) * dth
+    n_phi = np.maximum(1, np.round(span * range_m * np.sin(centres) / size_m)).astype(np.int64)
+    nb = n_phi[band]
+    j = np.clip(((np.mod(phi - lo, 2 * np.pi) / span) * nb).astype(np.int64), 0, nb - 1)
+    J = int(n_phi.max())
+    return (face2.astype(np.int64) * n_band + band) * J + j
+
+
+def _auto_patch_size(phi, theta, cycle, range_m: float, cfg: PreprocessConfig) -> tuple[float, float]:
+    """Patch side (m) so that a typical patch holds ``target_patch_points``; and that median."""
+    s0 = 0.30
+    keys = _patch_keys(phi, theta, cycle, s0, range_m)
+    counts = np.bincount(keys) if len(keys) else np.zeros(1, np.int64)
+    counts = counts[counts > 0]
+    typical = float(np.median(counts)) if len(counts) else 0.0
+    if typical <= 0:
+        return s0, typical
+    return s0 * max(1.0, math.sqrt(cfg.target_patch_points / typical)), typical
+
+
+# --------------------------------------------------------------------------------------------
+# Plane fits (JAX)
+# --------------------------------------------------------------------------------------------
+
+
+def _three_distinct(u: Float[Array, "h 3"], n: Array) -> Array:
+    """Three distinct indices in [0, n) per row of uniforms ``u`` (n >= 3)."""
+    i1 = jnp.minimum((u[:, 0] * n).astype(jnp.int32), n - 1)
+    i2 = (i1 + 1 + jnp.minimum((u[:, 1] * (n - 1)).astype(jnp.int32), n - 2)) % n
+    a, b = jnp.minimum(i1, i2), jnp.maximum(i1, i2)
+    k = jnp.minimum((u[:, 2] * (n - 2)).astype(jnp.int32), n - 3)
+    k = k + (k >= a)
+    k = k + (k >= b)
+    return jnp.stack([i1, i2, k], axis=1)
+
+
+def _adjugate_sym(M: Float[Array, "3 3"]) -> Float[Array, "3 3"]:
+    """Adjugate of a symmetric 3x3 matrix (``det(M) M^-1``, defined for singular ``M`` too)."""
+    a, b, c = M[0, 0], M[0, 1], M[0, 2]
+    d, e, f = M[1, 1], M[1, 2], M[2, 2]
+    A = d * f - e * e
+    B = c * e - b * f
+    C = b * e - c * d
+    D = a * f - c * c
+    E = b * c - a * e
+    F = a * d - b * b
+    return jnp.stack([jnp.stack([A, B, C]), jnp.stack([B, D, E]), jnp.stack([C, E, F])])
+
+
+def _tls_plane(p: Float[Array, "p 3"], w: Float[Array, " p"], n0: Float[Array, "3"]):
+    """Total-least-squares plane of the points with 0/1 weights ``w``: ``(n, d)``, ``n.p = d``.
+
+    The normal is the eigenvector of the smallest eigenvalue of the scatter matrix ``M``, found
+    by inverse iteration from ``n0`` (the current normal) with the adjugate of ``M`` (no
+    division, exact for perfectly planar points): each step shrinks the error by
+    ``lambda_min / lambda_mid`` ~ (sigma / patch size)^2 ~ 1e-5, so two steps are exact to
+    round-off (a batched ``eigh`` gives the same and compiles much slower).
+    """
+    sw = jnp.maximum(jnp.sum(w), 1.0)
+    c = jnp.sum(p * w[:, None], axis=0) / sw
+    q = (p - c) * w[:, None]
+    M = q.T @ (p - c)
+    adj = _adjugate_sym(M)
+    v = n0
+    for _ in range(2):
+        u = adj @ v
+        nu = jnp.sqrt(jnp.sum(u * u))
+        v = jnp.where(nu > 0, u / jnp.where(nu > 0, nu, 1.0), v)
+    v = jnp.where(v @ n0 < 0, -v, v)
+    return v, v @ c
+
+
+def _patch_fit(pts, n, eps, u, *, n_refine: int, f32: bool):
+    """RANSAC (MSAC score) + TLS refinement of one padded patch.
+
+    Args:
+        pts: (P, 3) centred coordinates (first ``n`` rows valid).
+        n: number of valid points (>= 3).
+        eps: inlier threshold (m).
+        u: (H, 3) uniforms in [0, 1): the minimal samples of the H hypotheses.
+    Returns ``(inlier (P,) bool, normal (3,), d, n_inliers int32, rms, ransac_inliers int32)``.
+    """
+    P = pts.shape[0]
+    valid = jnp.arange(P) < n
+    ct = jnp.float32 if f32 else jnp.float64
+    idx = _three_distinct(u, n)
+    q = pts.astype(ct)
+    tri = q[idx]  # (H, 3, 3)
+    nrm = jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    ln = jnp.sqrt(jnp.sum(nrm * nrm, axis=1))
+    scale = jnp.max(jnp.abs(q)) + jnp.asarray(1e-12, ct)
+    ok = ln > jnp.asarray(1e-6, ct) * scale * scale
+    nh = nrm / jnp.where(ok, ln, 1.0)[:, None]
+    d = jnp.sum(nh * tri[:, 0], axis=1)
+    e = jnp.asarray(eps, ct)
+    dist = q @ nh.T - d[None, :]  # (P, H): the one large intermediate
+    cost = jnp.sum(jnp.where(valid[:, None], jnp.minimum(dist * dist, e * e), 0), axis=0)
+    cost = jnp.where(ok, cost, jnp.inf)
+    best = jnp.argmin(cost)
+    n_ransac = jnp.sum(valid & (jnp.abs(dist[:, best]) <= e), dtype=jnp.int32)
+    p64 = pts.astype(jnp.float64)
+    normal = nh[best].astype(jnp.float64)
+    d0 = d[best].astype(jnp.float64)
+    for _ in range(n_refine):
+        r = p64 @ normal - d0
+        w = (valid & (jnp.abs(r) <= eps)).astype(jnp.float64)
+        enough = jnp.sum(w) >= 3
+        n_new, d_new = _tls_plane(p64, w, normal)
+        normal = jnp.where(enough, n_new, normal)
+        d0 = jnp.where(enough, d_new, d0)
+    r = p64 @ normal - d0
+    inl = valid & (jnp.abs(r) <= eps)
+    n_in = jnp.sum(inl, dtype=jnp.int32)
+    rms = jnp.sqrt(jnp.sum(jnp.where(inl, r * r, 0.0)) / jnp.maximum(n_in - 3, 1))
+    return inl, normal, d0, n_in, rms, n_ransac
+
+
+@eqx.filter_jit
+def _fit_patches(pts, n, eps, u, *, n_refine: int, f32: bool, batch_size: int):
+    """Padded patches: ``lax.map`` over chunks of ``batch_size`` vmapped :func:`_patch_fit`."""
+    return jax.lax.map(lambda a: _patch_fit(*a, n_refine=n_refine, f32=f32), (pts, n, eps, u),
+                       batch_size=batch_size)
+
+
+def _next_pow2(k: int) -> int:
+    return 1 << max(0, int(k - 1).bit_length())
+
+
+def ransac_uniforms(seed: int, ids: np.ndarray, n_hyp: int) -> np.ndarray:
+    """(len(ids), n_hyp, 3) float32 uniforms of the patches ``ids`` (row ``i`` of one stream).
+
+    Drawn with NumPy (``default_rng(seed)``) rather than ``jax.random`` inside the compiled
+    kernel: threefry under ``vmap`` took longer to compile (1.3 s) than the kernel itself.
+    A patch's samples depend only on the seed and its id, not on the chunking.
+    """
+    ids = np.asarray(ids, np.int64)
+    if len(ids) == 0:
+        return np.zeros((0, n_hyp, 3), np.float32)
+    U = np.random.default_rng(seed).random((int(ids.max()) + 1, n_hyp, 3), dtype=np.float32)
+    return U[ids]
+
+
+def fit_planes(
+    pts: np.ndarray, n: np.ndarray, eps: np.ndarray | float, *, seed: int = 0,
+    ransac_iterations: int = 64, refine_iterations: int = 2, ransac_float32: bool = True,
+    batch_size: int | None = None, memory_mb: float = 96.0, ids: np.ndarray | None = None,
+    max_chunk: int = 8192,
+) -> dict[str, np.ndarray]:
+    """RANSAC + TLS planes of padded patches (the JAX core, usable on its own).
+
+    Args:
+        pts: (n_patches, P, 3) coordinates; the first ``n[i]`` rows of patch ``i`` are valid.
+            Centre them per patch (the float32 scoring is done on these values).
+        n: (n_patches,) valid points per patch (patches with ``n < 3`` give no plane).
+        eps: inlier threshold (m), scalar or per patch.
+        ids: integer id per patch for its random samples (default ``arange``): the result of a
+            patch does not depend on the chunking or on the other patches.
+        batch_size: patches per vmapped step of ``lax.map``; None: as many as fit in
+            ``memory_mb`` for the (P x hypotheses) distance matrices (a few copies of it).
+        max_chunk: patches per compiled call; calls use power-of-two patch counts up to this,
+            so the same few shapes (and compilations) serve every scan.
+    Returns a dict of NumPy arrays: ``inlier`` (n_patches, P) bool, ``normal`` (n_patches, 3),
+    ``d`` (plane ``normal . p = d``), ``n_inliers``, ``rms``, ``ransac_inliers``.
+    """
+    pts = np.asarray(pts)
+    n_p, P = pts.shape[0], pts.shape[1]
+    H = int(ransac_iterations)
+    n = np.asarray(n, np.int64)
+    eps = np.broadcast_to(np.asarray(eps, np.float64), (n_p,))
+    ids = np.arange(n_p) if ids is None else np.asarray(ids, np.int64)
+    if batch_size is None:
+        per_patch = P * H * (4 if ransac_float32 else 8) * 3
+        batch_size = int(max(1, min(1024, memory_mb * 2**20 // per_patch)))
+        batch_size = 1 << (batch_size.bit_length() - 1)  # power of two: stable shapes
+    good = n >= 3
+    n_run = np.where(good, np.minimum(n, P), 3).astype(np.int32)  # dummies: 3-point fits
+    U = ransac_uniforms(seed, ids, H)
+    dt_pts = np.float32 if ransac_float32 else np.float64
+    n_call = int(min(max_chunk, _next_pow2(max(n_p, 1))))
+    bs = int(min(batch_size, n_call))
+    outs = []
+    for s in range(0, n_p, n_call):
+        e = min(s + n_call, n_p)
+        k = n_call - (e - s)
+        sl = lambda a, fill: a[s:e] if not k else np.concatenate(
+            [a[s:e], np.full((k,) + a.shape[1:], fill, a.dtype)])
+        out = _fit_patches(
+            jnp.asarray(sl(pts, 0), dt_pts), jnp.asarray(sl(n_run, 3)),
+            jnp.asarray(sl(eps, 1.0), jnp.float64), jnp.asarray(sl(U, 0.5)),
+            n_refine=int(refine_iterations), f32=bool(ransac_float32), batch_size=bs,
+        )
+        outs.append([np.asarray(a)[: e - s] for a in out])
+    if not outs:
+        z = np.zeros(0)
+        return {"inlier": np.zeros((0, P), bool), "normal": np.zeros((0, 3)), "d": z,
+                "n_inliers": z.astype(np.int32), "rms": z, "ransac_inliers": z.astype(np.int32)}
+    inl, normal, d, n_in, rms, n_r = (np.concatenate(c) for c in zip(*outs))
+    inl = inl & good[:, None]
+    return {"inlier": inl, "normal": np.where(good[:, None], normal, np.nan),
+            "d": np.where(good, d, np.nan), "n_inliers": np.where(good, n_in, 0),
+            "rms": np.where(good, rms, np.nan), "ransac_inliers": np.where(good, n_r, 0)}
+
+
+class PlaneCondition(eqx.Module):
+    """Gauss-Helmert condition of a plane in raw observations (for :func:`._ghm.gauss_helmert`).
+
+    ``F(l, x) = n(x) . p(l) - x[2]`` with ``p`` the scanner Cartesian point of ``l = (r, phi,
+    theta)`` (eq. 2) and ``n(x) = R0 (x0, x1, 1) / |(x0, x1, 1)|``: ``R0`` rotates z onto a
+    starting normal so the parameterisation is regular near the solution. Unknowns
+    ``x = (x0, x1, d)`` (-, -, m). Used to check the vmapped refinement against the rigorous
+    adjustment; too slow per patch for thousands of patches (module doc).
+    """
+
+    R0: Float[Array, "3 3"]
+
+    @staticmethod
+    def around(normal) -> PlaneCondition:
+        """Condition whose ``x = (0, 0, d)`` is the plane with this normal."""
+        z = np.asarray(normal, float) / np.linalg.norm(normal)
+        a = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        x = np.cross(a, z)
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        return PlaneCondition(jnp.asarray(np.stack([x, y, z], axis=1)))
+
+    def normal(self, x):
+        v = jnp.stack([x[0], x[1], jnp.ones_like(x[0])])
+        return self.R0 @ (v / jnp.sqrt(jnp.sum(v * v)))
+
+    def __call__(self, l, x, c):
+        return self.normal(x) @ polar_to_cartesian(l[0], l[1], l[2]) - x[2]
+
+
+# --------------------------------------------------------------------------------------------
+# One scan
+# --------------------------------------------------------------------------------------------
+
+
+def _segment(keys: np.ndarray, max_pp: int):
+    """Sort points by patch; cut patches larger than ``max_pp`` into consecutive strips.
+
+    Returns ``(order, pid_sorted, counts, starts)``: ``order`` indexes the input points in patch
+    order (stable: file order inside a patch), ``pid_sorted`` the compact patch id of each.
+    """
+    occ = np.bincount(keys) if len(keys) else np.zeros(1, np.int64)
+    remap = np.cumsum(occ > 0) - 1  # dense key -> compact patch id
+    inv = remap[keys]
+    order = np.argsort(inv, kind="stable")
+    pid = inv[order]
+    counts = occ[occ > 0]
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    nsub = -(-counts // max_pp)
+    if np.any(nsub > 1):
+        rank = np.arange(len(pid)) - starts[pid]
+        base = np.concatenate([[0], np.cumsum(nsub)[:-1]])
+        pid = base[pid] + rank * nsub[pid] // counts[pid]
+        counts = np.bincount(pid, minlength=int(nsub.sum()))
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    return order, pid, counts, starts
+
+
+def preprocess_scan(
+    campaign: Campaign, meta: ScanMeta, data: ScanData, config: PreprocessConfig | None = None,
+) -> PreprocessResult:
+    """Clean one scan: range window, geometry window, patches, RANSAC planes (module doc).
+
+    Returns a :class:`PreprocessResult` whose ``keep`` mask and ``reason`` codes run over the
+    rows of ``data`` (``data.row`` gives their file rows).
+    """
+    cfg = config or PreprocessConfig()
+    tel, sc = campaign.telescope, campaign.scanner
+    t_start = time.perf_counter()
+    timing: dict[str, float] = {}
+    notes: list[str] = []
+    n = len(data)
+    r, phi, th = data.range_m, data.phi_rad, data.theta_rad
+    reason = np.zeros(n, np.uint8)
+    finite = np.isfinite(r) & np.isfinite(phi) & np.isfinite(th)
+    reason[~finite] = NON_FINITE
+
+    # ---- initial values (pointing + heading search)
+    t0 = time.perf_counter()
+    init = None
+    if cfg.use_initial_values and finite.sum() >= 100:
+        g = pointing_gravity(meta, tel, campaign.site)
+        try:
+            iv = initial_values(r[finite], phi[finite], th[finite], g,
+                                focal_length_m=tel.focal_length_m, seed=cfg.seed)
+            if all(np.isfinite(v) for v in iv.x.values()) and iv.x["f"] > 0 \
+                    and iv.inlier_fraction >= 0.2:
+                init = iv
+            else:
+                notes.append(f"initial values rejected (inlier fraction {iv.inlier_fraction:.2f})"
+                             "; nominal geometry used")
+        except (np.linalg.LinAlgError, ValueError) as e:  # pragma: no cover - defensive
+            notes.append(f"initial values failed ({e}); nominal geometry used")
+    timing["initial_values"] = time.perf_counter() - t0
+
+    # ---- range window (eq. 3)
+    t0 = time.perf_counter()
+    auto_lo, auto_hi = default_range_window(campaign, init, cfg)
+    d_min = auto_lo if cfg.d_min_m is None else float(cfg.d_min_m)
+    d_max = auto_hi if cfg.d_max_m is None else float(cfg.d_max_m)
+    alive = finite.copy()
+    out_range = alive & ~((r >= d_min) & (r <= d_max))
+    reason[out_range] = RANGE_WINDOW
+    alive &= ~out_range
+    idx = np.flatnonzero(alive)
+    xs = np.asarray(polar_to_cartesian(r[idx], phi[idx], th[idx]))
+
+    # ---- geometry window (initial paraboloid, annulus)
+    frame = cfg.frame or ("flat" if init is not None else "scanner")
+    if frame == "flat" and init is None:
+        notes.append("frame 'flat' needs initial values: using 'scanner'")
+        frame = "scanner"
+    pose = None
+    if init is not None:
+        pose = dict(init.x)
+        Xf, rho = _flat_coordinates(xs, pose)
+        if cfg.refine_pose:
+            near = np.flatnonzero(np.abs(Xf[:, 2]) <= cfg.geometry_window_m)
+            if len(near) >= 100:
+                sub = np.random.default_rng(cfg.seed).choice(
+                    near, size=min(len(near), cfg.pose_sample), replace=False)
+                pose = refine_pose(xs[sub], pose)
+                Xf, rho = _flat_coordinates(xs, pose)
+        f_ = pose["f"]
+        hv = Xf[:, 2] * np.sqrt(1.0 + rho**2 / (4 * f_ * f_))  # vertical distance
+        rim = tel.diameter_m / 2 + abs(tel.offset_m)
+        inner = tel.cone_radius_m - cfg.cone_margin_m if tel.offset_m == 0 else -np.inf
+        good = ((np.abs(hv) <= cfg.geometry_window_m) & (rho >= inner)
+                & (rho <= rim + cfg.rim_margin_m))
+        reason[idx[~good]] = GEOMETRY_WINDOW
+        idx, xs, Xf = idx[good], xs[good], Xf[good]
+        coords = Xf if frame == "flat" else xs
+        del hv, rho
+    else:
+        coords = xs
+    timing["windows"] = time.perf_counter() - t0
+
+    # ---- patches
+    t0 = time.perf_counter()
+    R_ref = float(np.median(r[idx])) if len(idx) else float(tel.focal_length_m)
+    typical = None
+    if cfg.patch_size_m is None:
+        size, typical = _auto_patch_size(phi[idx], th[idx], meta.cycle, R_ref, cfg)
+    else:
+        size = float(cfg.patch_size_m)
+    f_use = pose["f"] if pose is not None else tel.focal_length_m
+    sigma_n = math.hypot(sc.sigma_range_m, sc.sigma_angle_rad * d_max)
+    if cfg.allowance_m is not None:
+        allowance = float(cfg.allowance_m)
+    elif frame == "flat":
+        allowance = 0.0005
+    else:
+        allowance = (1.3 * size) ** 2 / (12 * f_use)
+    eps = cfg.k_sigma * sigma_n + allowance if cfg.epsilon_m is None else float(cfg.epsilon_m)
+
+    keys = _patch_keys(phi[idx], th[idx], meta.cycle, size, R_ref)
+    order, pid, counts, starts = _segment(keys, cfg.max_patch_points)
+    n_patches = len(counts)
+    patch_of = np.full(n, -1, np.int32)
+    patch_of[idx[order]] = pid
+    small = counts < cfg.min_patch_points
+    big_ids = np.flatnonzero(~small)
+    timing["segmentation"] = time.perf_counter() - t0
+
+    # ---- RANSAC + refinement on the patches large enough
+    t0 = time.perf_counter()
+    planes = np.full((n_patches, 4), np.nan)
+    n_inl = np.zeros(n_patches, np.int64)
+    rms = np.full(n_patches, np.nan)
+    inlier_sorted = np.zeros(len(order), bool)
+    if len(big_ids):
+        c_sorted = coords[order]
+        cen = np.stack([np.bincount(pid, weights=c_sorted[:, k], minlength=n_patches)
+                        for k in range(3)], 1) / np.maximum(counts, 1)[:, None]
+        rank = np.arange(len(pid)) - starts[pid]
+        dt_ = np.float32 if cfg.ransac_float32 else np.float64
+        # size buckets (powers of two): padding wastes at most half of a bucket
+        bucket = np.maximum(5, np.ceil(np.log2(np.maximum(counts, 1))).astype(np.int64))
+        for b in np.unique(bucket[big_ids]):
+            ids_b = big_ids[bucket[big_ids] == b]
+            P = int(2**b)
+            comp = np.full(n_patches, -1, np.int64)
+            comp[ids_b] = np.arange(len(ids_b))
+            sel = comp[pid] >= 0
+            dest = comp[pid[sel]] * P + rank[sel]
+            pad = np.zeros((len(ids_b) * P, 3), dt_)
+            pad[dest] = c_sorted[sel] - cen[pid[sel]]
+            res = fit_planes(
+                pad.reshape(len(ids_b), P, 3), counts[ids_b], eps, seed=cfg.seed,
+                ransac_iterations=cfg.ransac_iterations, refine_iterations=cfg.refine_iterations,
+                ransac_float32=cfg.ransac_float32, batch_size=cfg.batch_size,
+                memory_mb=cfg.memory_mb, ids=ids_b,
+            )
+            del pad
+            inlier_sorted[sel] = res["inlier"].reshape(-1)[dest]
+            nrm, dd = res["normal"], res["d"]
+            D = -(dd + np.sum(nrm * cen[ids_b], axis=1))
+            # orientation: towards the scanner (scanner frame) or towards +Z (flat frame)
+            flip = (D < 0) if frame == "scanner" else (nrm[:, 2] < 0)
+            sgn = np.where(flip, -1.0, 1.0)
+            planes[ids_b] = np.column_stack([nrm * sgn[:, None], D * sgn])
+            n_inl[ids_b] = res["n_inliers"]
+            rms[ids_b] = res["rms"]
+    timing["ransac"] = time.perf_counter() - t0
+
+    weak = n_inl < cfg.min_patch_points  # includes the small patches (0 inliers)
+    rows_sorted = idx[order]
+    reason[rows_sorted[~inlier_sorted]] = RANSAC_OUTLIER
+    reason[rows_sorted[small[pid] | (weak[pid] & inlier_sorted)]] = SMALL_PATCH
+    keep = reason == KEPT
+
+    counts_reason = np.bincount(reason, minlength=len(REASONS))
+    removed = {REASONS[k]: int(counts_reason[k]) for k in REASONS if k != KEPT}
+    removed["non_finite"] += int(data.n_dropped_nonfinite)
+    fitted = ~weak
+    params = {
+        "d_min_m": d_min, "d_max_m": d_max, "d_min_auto_m": auto_lo, "d_max_auto_m": auto_hi,
+        "patch_size_m": size, "typical_points_per_0.3m_patch": typical,
+        "reference_range_m": R_ref, "epsilon_m": eps, "epsilon_allowance_m": allowance,
+        "sigma_distance_m": sigma_n, "k_sigma": cfg.k_sigma, "frame": frame,
+        "geometry_window_m": cfg.geometry_window_m if init is not None else None,
+        "rim_margin_m": cfg.rim_margin_m,
+        "cone_margin_m": cfg.cone_margin_m, "ransac_iterations": cfg.ransac_iterations,
+        "refine_iterations": cfg.refine_iterations, "min_patch_points": cfg.min_patch_points,
+        "max_patch_points": cfg.max_patch_points, "seed": cfg.seed,
+        "initial_values": None if init is None else {
+            **{k: float(v) for k, v in init.x.items()}, "kappa_rad": init.kappa_rad,
+            "inlier_fraction": init.inlier_fraction},
+        "pose": pose,
+    }
+    timing["total"] = time.perf_counter() - t_start
+    stats = {
+        "n_rows": n + int(data.n_dropped_nonfinite),
+        "n_input": n,
+        "n_kept": int(keep.sum()),
+        "removed": removed,
+        "n_patches": int(n_patches),
+        "n_patches_fitted": int(fitted.sum()),
+        "n_patches_small": int(small.sum()),
+        "n_patches_weak": int((weak & ~small).sum()),
+        "points_per_patch": {
+            "min": int(counts.min()) if n_patches else 0,
+            "median": float(np.median(counts)) if n_patches else 0.0,
+            "max": int(counts.max()) if n_patches else 0,
+        },
+        "plane_rms_median_m": float(np.nanmedian(rms[fitted])) if fitted.any() else None,
+        "timing_s": timing,
+    }
+    return PreprocessResult(
+        scan_id=meta.id, keep=keep, reason=reason, row=np.asarray(data.row, np.int64),
+        patch=patch_of, planes=planes, patch_points=counts, patch_inliers=n_inl,
+        patch_rms_m=rms, plane_frame=frame, params=params, stats=stats, init=init, notes=notes,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Campaigns, outputs
+# --------------------------------------------------------------------------------------------
+
+
+def _jsonable(v):
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
+    if isinstance(v, (np.integer,)):
+        return int(v)
+    if isinstance(v, (np.floating, float)):
+        return float(v) if math.isfinite(v) else None
+    if isinstance(v, np.ndarray):
+        return _jsonable(v.tolist())
+    return v
+
+
+def preprocess_json(results: Mapping[str, PreprocessResult],
+                    config: PreprocessConfig | None = None, campaign: Campaign | None = None) -> dict:
+    """The ``preprocess.json`` document (schema ``hartrao-preprocess/1``)."""
+    scans = []
+    tot = {"n_rows": 0, "n_kept": 0, "removed": {REASONS[k]: 0 for k in REASONS if k != KEPT}}
+    for sid, res in results.items():
+        s = res.stats
+        scans.append({
+            "id": sid, "n_rows": s["n_rows"], "n_kept": s["n_kept"],
+            "kept_fraction": s["n_kept"] / max(s["n_rows"], 1), "removed": s["removed"],
+            "n_patches": s["n_patches"], "n_patches_fitted": s["n_patches_fitted"],
+            "n_patches_small": s["n_patches_small"], "points_per_patch": s["points_per_patch"],
+            "plane_rms_median_m": s["plane_rms_median_m"], "params": res.params,
+            "timing_s": s["timing_s"], "notes": res.notes,
+        })
+        tot["n_rows"] += s["n_rows"]
+        tot["n_kept"] += s["n_kept"]
+        for k, v in s["removed"].items():
+            tot["removed"][k] += v
+    doc = {
+        "schema": PREPROCESS_SCHEMA,
+        "reasons": {str(k): v for k, v in REASONS.items()},
+        "config": dataclasses.asdict(config) if config is not None else None,
+        "scans": scans,
+        "totals": tot,
+    }
+    if campaign is not None:
+        doc["campaign"] = str(campaign.root)
+    return _jsonable(doc)
+
+
+def write_preprocess_json(path, results: Mapping[str, PreprocessResult],
+                          config: PreprocessConfig | None = None,
+                          campaign: Campaign | None = None) -> Path:
+    """Write ``preprocess.json`` (schema ``hartrao-preprocess/1``) to ``path`` (file or dir)."""
+    p = Path(path)
+    if p.is_dir() or p.suffix == "":
+        p.mkdir(parents=True, exist_ok=True)
+        p = p / "preprocess.json"
+    else:
+        p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text(json.dumps(preprocess_json(results, config, campaign), indent=2))
+    return p
+
+
+def write_masks(out_dir, results: Mapping[str, PreprocessResult]) -> Path:
+    """``out_dir/masks/<scan>.parquet``: ``row`` (file row), ``reason`` (uint8), ``patch``."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    d = Path(out_dir) / "masks"
+    d.mkdir(parents=True, exist_ok=True)
+    for sid, res in results.items():
+        pq.write_table(pa.table({"row": res.row, "reason": res.reason, "patch": res.patch}),
+                       d / f"{sid}.parquet")
+    return d
+
+
+def preprocess_table(results: Mapping[str, PreprocessResult], title: str = "preprocessing"):
+    """A rich table: per scan, rows, kept and removed per stage, patches, epsilon, time."""
+    from rich.table import Table
+
+    t = Table(title=title)
+    for c in ("scan", "rows", "kept", "non-finite", "range", "geometry", "RANSAC", "small patch",
+              "patches", "eps mm", "time s"):
+        t.add_column(c, justify="left" if c == "scan" else "right")
+    for sid, res in results.items():
+        s, rm = res.stats, res.stats["removed"]
+        t.add_row(sid, f"{s['n_rows']:,}", f"{s['n_kept']:,} ({s['n_kept'] / max(s['n_rows'], 1):.1%})",
+                  f"{rm['non_finite']:,}", f"{rm['range_window']:,}", f"{rm['geometry_window']:,}",
+                  f"{rm['ransac_outlier']:,}", f"{rm['small_patch']:,}",
+                  f"{s['n_patches_fitted']:,}/{s['n_patches']:,}",
+                  f"{1e3 * res.params['epsilon_m']:.2f}", f"{s['timing_s']['total']:.1f}")
+    return t
+
+
+def preprocess_campaign(
+    campaign: Campaign, config: PreprocessConfig | None = None, out_dir=None,
+    progress: bool = True, *, scans=None, masks: bool = True, console=None,
+) -> dict[str, PreprocessResult]:
+    """Preprocess every scan (or those named); with ``out_dir`` write ``preprocess.json``
+    (and ``masks/<scan>.parquet``) there and print the summary table."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    cfg = config or PreprocessConfig()
+    metas = [campaign.scan(s) for s in scans] if scans else list(campaign.scans)
+    results: dict[str, PreprocessResult] = {}
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                  TimeElapsedColumn(), disable=not progress) as prog:
+        task = prog.add_task("preprocessing", total=len(metas))
+        for m in metas:
+            prog.update(task, description=f"preprocessing {m.id}")
+            data = read_scan(campaign, m)
+            results[m.id] = preprocess_scan(campaign, m, data, cfg)
+            prog.advance(task)
+    if out_dir is not None:
+        write_preprocess_json(Path(out_dir) / "preprocess.json", results, cfg, campaign)
+        if masks:
+            write_masks(out_dir, results)
+    if progress or out_dir is not None:
+        (console or Console()).print(preprocess_table(results, f"{campaign.telescope.name}: preprocessing"))
+    return results
+
+
+def keep_mask_fn(
+    config: PreprocessConfig | None = None, campaign: Campaign | None = None,
+) -> Callable[[ScanMeta, ScanData], np.ndarray] | Callable[..., np.ndarray]:
+    """``keep(meta, data) -> bool mask`` for ``fit_campaign(keep=...)``.
+
+    The preprocessing needs the campaign (telescope geometry, scanner sigmas): pass it here.
+    Without it the callable accepts ``keep(meta, data, campaign)`` or falls back to the HartRAO
+    defaults of :func:`._campaign.default_campaign` (with a warning).
+    """
+    cfg = config or PreprocessConfig()
+
+    def keep(meta: ScanMeta, data: ScanData, camp: Campaign | None = None) -> np.ndarray:
+        c = camp or campaign
+        if c is None:
+            from ._campaign import default_campaign
+
+            log.warning("keep_mask_fn: no campaign given, using the HartRAO defaults")
+            c = default_campaign()
+        return preprocess_scan(c, meta, data, cfg).keep
+
+    return keep
+
+
+__all__ = [
+    "PREPROCESS_SCHEMA", "REASONS", "PlaneCondition", "PreprocessConfig", "PreprocessResult",
+    "default_range_window", "fit_planes", "keep_mask_fn", "preprocess_campaign",
+    "preprocess_json", "preprocess_scan", "preprocess_table", "reflector_distance_range",
+    "write_masks", "write_preprocess_json",
+]

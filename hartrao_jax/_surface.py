@@ -1,0 +1,787 @@
+"""Surface products: panels, cycle averaging and per-panel deviations (paper sec. 3, end).
+
+From the adjustment of each scan (:class:`._fit.ScanFit`) to the reflector's surface:
+
+1. North alignment. ``ScanFit.X_tel`` already holds the north-aligned telescope-frame
+   coordinates (``X_tel = Rz(kappa) X_fit``: X north, Y west at the zenith).
+2. Panels. Every point gets the panel id of the campaign's layout (``ring_edges_m``,
+   ``panels_per_ring``; :func:`._geometry.panel_ids`); points within ``margin_radial_m`` of a
+   ring edge or within ``margin_tangential_m`` (arc length at the point's radius) of a panel's
+   side are masked (panel -1): the paper's "edges removed by using a defined mask", so that no
+   point can be given to the wrong panel and no average spans a gap between panels.
+3. Per-cycle deviations: ``ScanFit.deviation_m``, the signed normal distance from the scan's
+   fitted paraboloid, positive towards the focus (``campaign-format.md``).
+4. Cycle averaging (paper: "points within a panel are grouped into circles with their nearest
+   neighbours where the circle has a radius of about 1 cm; points within one circle are
+   averaged"). Points are grouped, panel by panel, into cells of a square lattice in the
+   aperture plane (X, Y) of side ``radius_m * sqrt(2)``, so every point of a cell lies within
+   ``radius_m`` of the cell's centre (a circle of that radius). The key of a cell includes the
+   panel id: two panels are never averaged together. A cell's value is the mean of its cycle-1
+   mean and its cycle-2 mean, so both faces weigh the same whatever the point densities and
+   the two-face-sensitive errors (opposite sign in the two cycles at the same place) cancel.
+   A cell seen by one cycle only (the two cycles' points of one spot can fall on two sides of a
+   cell boundary) is paired with the nearest such cell of the other cycle in the same panel
+   whose centroid lies within ``radius_m`` (mutual nearest neighbours, ``scipy cKDTree``);
+   cells left without a partner are not part of the average (counted as ``n_unpaired``).
+5. Per panel: a plane ``d = a + t_r (rho - rho_c) + t_t rho_c dpsi`` is fitted to the averaged
+   points of the panel (the offset/tilt parametrisation of ``physics.md``'s ``panel_offset``):
+   ``deviation_m = a`` (the panel's mean deviation, i.e. its offset at its centre), ``sigma_m``
+   its standard deviation, ``tilt_rad = hypot(t_r, t_t)`` (radial and tangential parts as
+   ``tilt_radial_rad`` (outer edge up) and ``tilt_tangential_rad`` (counter-clockwise edge up)),
+   ``rms_m`` the rms of the panel's deviations, ``rms_plane_m`` about its plane, ``n`` points.
+
+Outputs (:func:`write_surface`): ``surface.json`` (schema ``hartrao-surface/1``, see
+:func:`surface_json`), ``points/<position>.parquet`` (cycle-averaged points) and
+``cycles/<scan>.parquet`` (the masked per-cycle points). Units: m, rad.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ._geometry import face_of, panel_geometry, panel_ids
+
+log = logging.getLogger("hartrao_jax")
+
+SURFACE_SCHEMA = "hartrao-surface/1"
+
+
+# --------------------------------------------------------------------------------------------
+# Configuration, layout, results
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SurfaceConfig:
+    """Parameters of the surface products (m).
+
+    Attributes:
+        margin_radial_m: points closer than this to a ring edge are masked.
+        margin_tangential_m: points closer than this (arc length) to a panel's side are masked.
+        radius_m: radius of the averaging circles (paper: about 1 cm).
+        min_points: a panel with fewer averaged points gets no deviation (null in the JSON).
+        model: model of the adjustment when :func:`surface_campaign` fits the campaign.
+        used_only: only points that entered the adjustment (``ScanFit.used``).
+    """
+
+    margin_radial_m: float = 0.02
+    margin_tangential_m: float = 0.02
+    radius_m: float = 0.01
+    min_points: int = 3
+    model: str = "extended"
+    used_only: bool = True
+
+    def __post_init__(self):
+        if self.radius_m <= 0:
+            raise ValueError(f"radius_m must be > 0, not {self.radius_m}")
+        if self.margin_radial_m < 0 or self.margin_tangential_m < 0:
+            raise ValueError("panel margins must be >= 0")
+        if self.min_points < 1:
+            raise ValueError("min_points must be >= 1")
+
+
+@dataclass(frozen=True)
+class PanelLayout:
+    """Rings and panels of a reflector (``campaign-format.md``, "Panels")."""
+
+    ring_edges_m: tuple[float, ...]
+    panels_per_ring: tuple[int, ...]
+
+    def __post_init__(self):
+        object.__setattr__(self, "ring_edges_m", tuple(float(e) for e in self.ring_edges_m))
+        object.__setattr__(self, "panels_per_ring", tuple(int(n) for n in self.panels_per_ring))
+        if len(self.ring_edges_m) != len(self.panels_per_ring) + 1:
+            raise ValueError("ring_edges_m needs one more entry than panels_per_ring")
+
+    @classmethod
+    def from_telescope(cls, telescope) -> PanelLayout | None:
+        """The telescope's layout; None without the (optional) panel keys."""
+        if not telescope.ring_edges_m or not telescope.panels_per_ring:
+            return None
+        return cls(tuple(telescope.ring_edges_m), tuple(telescope.panels_per_ring))
+
+    @classmethod
+    def default(cls) -> PanelLayout:
+        """HartRAO 26-m: 255 panels in 7 rings."""
+        return cls((1.6, 3.2, 4.8, 6.4, 8.0, 9.6, 11.2, 12.95), (15, 24, 30, 36, 42, 48, 60))
+
+    @property
+    def n_panels(self) -> int:
+        return int(sum(self.panels_per_ring))
+
+    def geometry(self) -> dict[str, np.ndarray]:
+        return panel_geometry(self.ring_edges_m, self.panels_per_ring)
+
+
+@dataclass
+class CyclePoints:
+    """The surface points of one scan (one cycle) after masking (N points, SI units).
+
+    ``panel`` is -1 for points outside every panel or within the edge margins (no layout: 0).
+    """
+
+    scan: str
+    cycle: int
+    X: np.ndarray  # (N, 3) north-aligned telescope frame
+    deviation_m: np.ndarray  # (N,) positive towards the focus
+    panel: np.ndarray  # (N,) int32
+    face: np.ndarray  # (N,) int8
+    phi_rad: np.ndarray  # (N,) raw horizontal angle
+
+    def __len__(self):
+        return len(self.deviation_m)
+
+    @property
+    def inside(self) -> np.ndarray:
+        return self.panel >= 0
+
+    @property
+    def rms_m(self) -> float:
+        d = self.deviation_m[self.inside]
+        return float(np.sqrt(np.mean(d * d))) if len(d) else float("nan")
+
+
+@dataclass
+class AveragedPoints:
+    """Cycle-averaged points (M groups): centroid, mean deviation, panel, points per cycle."""
+
+    X: np.ndarray  # (M, 3)
+    deviation_m: np.ndarray  # (M,)
+    panel: np.ndarray  # (M,) int32
+    n1: np.ndarray  # (M,) points of the first cycle (cycle 1, or the only one)
+    n2: np.ndarray  # (M,) points of cycle 2
+    diff_m: np.ndarray  # (M,) mean(cycle 1) - mean(cycle 2) (NaN for single-cycle groups)
+    n_unpaired: int = 0
+
+    def __len__(self):
+        return len(self.deviation_m)
+
+    @property
+    def rms_m(self) -> float:
+        d = self.deviation_m
+        return float(np.sqrt(np.mean(d * d))) if len(d) else float("nan")
+
+
+@dataclass
+class PanelTable:
+    """Per-panel results (arrays of length ``n_panels``; NaN where a panel has too few points)."""
+
+    panel: np.ndarray
+    ring: np.ndarray
+    deviation_m: np.ndarray
+    sigma_m: np.ndarray
+    tilt_rad: np.ndarray
+    tilt_radial_rad: np.ndarray
+    tilt_tangential_rad: np.ndarray
+    mean_m: np.ndarray
+    rms_m: np.ndarray
+    rms_plane_m: np.ndarray
+    n: np.ndarray
+
+    def records(self) -> list[dict]:
+        keys = ("deviation_m", "sigma_m", "tilt_rad", "tilt_radial_rad", "tilt_tangential_rad",
+                "mean_m", "rms_m", "rms_plane_m")
+        out = []
+        for i in range(len(self.panel)):
+            r = {"panel": int(self.panel[i]), "ring": int(self.ring[i])}
+            r.update({k: _num(getattr(self, k)[i]) for k in keys})
+            r["n"] = int(self.n[i])
+            out.append(r)
+        return out
+
+
+@dataclass
+class PositionSurface:
+    """The surface of one telescope position: per-cycle points, their average, panels."""
+
+    position: str
+    pointing: dict[str, Any]  # ha_deg, dec_deg / elevation_deg, azimuth_deg (when known)
+    cycles: list[CyclePoints]
+    averaged: AveragedPoints
+    panels: PanelTable | None
+    cycle_panels: dict[str, PanelTable | None]
+    kind: str  # "cycle average" | "single cycle" | "one face"
+    kappa_rad: dict[str, float] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+
+@dataclass
+class SurfaceResult:
+    config: SurfaceConfig
+    layout: PanelLayout | None
+    positions: list[PositionSurface]
+    source: dict[str, Any] = field(default_factory=dict)  # where the fits came from
+    disturbed: list[dict] = field(default_factory=list)
+
+    def position(self, name: str) -> PositionSurface:
+        for p in self.positions:
+            if p.position == name:
+                return p
+        raise KeyError(name)
+
+
+def _num(v) -> float | None:
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+# --------------------------------------------------------------------------------------------
+# Panels and masks
+# --------------------------------------------------------------------------------------------
+
+
+def panel_mask(X: np.ndarray, layout: PanelLayout | None, config: SurfaceConfig | None = None
+               ) -> np.ndarray:
+    """Panel id of each point (int32), -1 outside the panels or within the edge margins.
+
+    Without a layout every point is in panel 0 (one pseudo panel: no panel products).
+    """
+    cfg = config or SurfaceConfig()
+    X = np.asarray(X, float)
+    if layout is None:
+        return np.zeros(len(X), np.int32)
+    rho = np.hypot(X[:, 0], X[:, 1])
+    psi = np.mod(np.arctan2(X[:, 1], X[:, 0]), 2 * np.pi)
+    pid = panel_ids(rho, psi, layout.ring_edges_m, layout.panels_per_ring)
+    ok = pid >= 0
+    g = layout.geometry()
+    k = np.where(ok, pid, 0)
+    mr, mt = cfg.margin_radial_m, cfg.margin_tangential_m
+    ok &= (rho - g["rho_in"][k] >= mr) & (g["rho_out"][k] - rho >= mr)
+    ok &= (rho * (psi - g["psi_start"][k]) >= mt) & (rho * (g["psi_end"][k] - psi) >= mt)
+    return np.where(ok, pid, -1).astype(np.int32)
+
+
+def cycle_points(scan: str, cycle: int, X: np.ndarray, deviation_m: np.ndarray,
+                 theta_rad: np.ndarray | None, phi_rad: np.ndarray | None,
+                 layout: PanelLayout | None, config: SurfaceConfig | None = None,
+                 keep: np.ndarray | None = None, face: np.ndarray | None = None) -> CyclePoints:
+    """Masked surface points of one scan from its telescope-frame points and deviations.
+
+    ``keep`` selects the points to use (e.g. ``ScanFit.used``); the result holds only those.
+    """
+    X = np.asarray(X, float)
+    dev = np.asarray(deviation_m, float)
+    sel = np.isfinite(dev) & np.all(np.isfinite(X), axis=1)
+    if keep is not None:
+        sel &= np.asarray(keep, bool)
+    idx = np.flatnonzero(sel)
+    if face is None:
+        face = face_of(theta_rad) if theta_rad is not None else np.ones(len(dev), np.int8)
+    face = np.asarray(face)[idx].astype(np.int8)
+    phi = np.asarray(phi_rad, float)[idx] if phi_rad is not None else np.full(len(idx), np.nan)
+    Xs = X[idx]
+    return CyclePoints(scan, int(cycle), Xs, dev[idx], panel_mask(Xs, layout, config), face, phi)
+
+
+# --------------------------------------------------------------------------------------------
+# Cycle averaging
+# --------------------------------------------------------------------------------------------
+
+
+def _cell_keys(X: np.ndarray, panel: np.ndarray, side: float, origin: np.ndarray,
+               span: int) -> np.ndarray:
+    ij = np.floor((X[:, :2] - origin) / side).astype(np.int64)
+    return (panel.astype(np.int64) * span + ij[:, 1]) * span + ij[:, 0]
+
+
+def cycle_average(X1: np.ndarray, d1: np.ndarray, p1: np.ndarray,
+                  X2: np.ndarray | None = None, d2: np.ndarray | None = None,
+                  p2: np.ndarray | None = None, radius_m: float = 0.01, *,
+                  return_groups: bool = False):
+    """Average two cycles' deviations, panel by panel, in circles of ``radius_m`` (module doc).
+
+    ``X*`` (n, 3) telescope-frame points, ``d*`` deviations, ``p*`` panel ids (negative ids are
+    ignored). With no second cycle the groups are single-cycle means. Returns
+    :class:`AveragedPoints`; with ``return_groups`` also the output group of every input point
+    of each cycle (``-1``: not averaged).
+    """
+    X1 = np.asarray(X1, float)
+    d1 = np.asarray(d1, float)
+    p1 = np.asarray(p1)
+    if X2 is None:
+        X2, d2, p2 = np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int32)
+    X2 = np.asarray(X2, float)
+    d2 = np.asarray(d2, float)
+    p2 = np.asarray(p2)
+    two = len(d2) > 0 and len(d1) > 0
+    s1, s2 = np.flatnonzero(p1 >= 0), np.flatnonzero(p2 >= 0)
+    side = radius_m * math.sqrt(2.0)
+    allxy = np.concatenate([X1[s1, :2], X2[s2, :2]])
+    if len(allxy) == 0:
+        empty = AveragedPoints(np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int32),
+                               np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+        if return_groups:
+            return empty, np.full(len(d1), -1), np.full(len(d2), -1)
+        return empty
+    origin = allxy.min(axis=0) - side
+    span = int(np.ceil((allxy.max(axis=0) - origin).max() / side)) + 2
+    if span * span * (max(int(p1.max(initial=0)), int(p2.max(initial=0))) + 1) >= 2**62:
+        raise ValueError("cycle_average: the point cloud is too large for radius_m")
+    del allxy
+    k = np.concatenate([_cell_keys(X1[s1], p1[s1], side, origin, span),
+                        _cell_keys(X2[s2], p2[s2], side, origin, span)])
+    _, inv = np.unique(k, return_inverse=True)
+    del k
+    inv = inv.reshape(-1)
+    K = int(inv.max()) + 1
+    i1, i2 = inv[: len(s1)], inv[len(s1):]
+    del inv
+
+    def sums(i, X, d, s):
+        c = np.bincount(i, minlength=K)
+        out = [np.bincount(i, weights=d[s], minlength=K)]
+        out += [np.bincount(i, weights=X[s, j], minlength=K) for j in range(3)]
+        return c, out
+
+    c1, S1 = sums(i1, X1, d1, s1)
+    c2, S2 = sums(i2, X2, d2, s2)
+    pan = np.empty(K, np.int32)
+    pan[i1] = p1[s1]
+    pan[i2] = p2[s2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        m1 = [a / c1 for a in S1]  # mean dev, X, Y, Z per cell (NaN where empty)
+        m2 = [a / c2 for a in S2]
+    both = (c1 > 0) & (c2 > 0)
+    out_of_cell = np.full(K, -1, np.int64)
+    partner = np.full(K, -1, np.int64)  # cycle-2 cell paired with a cycle-1 orphan
+    n_unpaired = 0
+    if two:
+        o1, o2 = np.flatnonzero((c1 > 0) & (c2 == 0)), np.flatnonzero((c2 > 0) & (c1 == 0))
+        if len(o1) and len(o2):
+            pairs = _mutual_nearest(
+                np.column_stack([m1[1][o1], m1[2][o1]]), pan[o1],
+                np.column_stack([m2[1][o2], m2[2][o2]]), pan[o2], radius_m)
+            partner[o1[pairs[:, 0]]] = o2[pairs[:, 1]]
+        n_unpaired = int(c1[o1].sum() + c2[o2].sum()) - int(
+            c1[partner >= 0].sum() + c2[partner[partner >= 0]].sum())
+        groups1 = np.flatnonzero(both | (partner >= 0))  # the cycle-1 cell of every group
+        groups2 = np.where(both[groups1], groups1, partner[groups1])
+    else:
+        groups1 = np.flatnonzero(c1 > 0) if len(d1) else np.flatnonzero(c2 > 0)
+        groups2 = groups1
+    M = len(groups1)
+    out_of_cell[groups1] = np.arange(M)
+    out_of_cell[groups2] = np.arange(M)
+    if two:
+        dev = 0.5 * (m1[0][groups1] + m2[0][groups2])
+        X = 0.5 * np.column_stack([m1[j][groups1] + m2[j][groups2] for j in (1, 2, 3)])
+        diff = m1[0][groups1] - m2[0][groups2]
+        n1, n2 = c1[groups1], c2[groups2]
+    else:
+        mm, cc = (m1, c1) if len(d1) else (m2, c2)
+        dev = mm[0][groups1]
+        X = np.column_stack([mm[j][groups1] for j in (1, 2, 3)])
+        diff = np.full(M, np.nan)
+        n1, n2 = (cc[groups1], np.zeros(M, np.int64)) if len(d1) else (np.zeros(M, np.int64),
+                                                                       cc[groups1])
+    res = AveragedPoints(X, dev, pan[groups1].astype(np.int32), n1.astype(np.int64),
+                         n2.astype(np.int64), diff, n_unpaired)
+    if not return_groups:
+        return res
+    g1 = np.full(len(d1), -1, np.int64)
+    g2 = np.full(len(d2), -1, np.int64)
+    g1[s1] = out_of_cell[i1]
+    g2[s2] = out_of_cell[i2]
+    return res, g1, g2
+
+
+def _mutual_nearest(a: np.ndarray, pa: np.ndarray, b: np.ndarray, pb: np.ndarray,
+                    radius: float) -> np.ndarray:
+    """Pairs ``(i, j)`` of mutual nearest neighbours of ``a`` and ``b`` within ``radius``, same
+    panel (panel ids enter as a third coordinate far larger than any distance)."""
+    from scipy.spatial import cKDTree
+
+    sep = 1e3 * (1.0 + np.abs(np.concatenate([a.ravel(), b.ravel()])).max(initial=1.0))
+    A = np.column_stack([a, pa * sep])
+    B = np.column_stack([b, pb * sep])
+    da, ja = cKDTree(B).query(A, k=1, distance_upper_bound=radius)
+    db, jb = cKDTree(A).query(B, k=1, distance_upper_bound=radius)
+    i = np.flatnonzero(np.isfinite(da))
+    j = ja[i]
+    ok = jb[j] == i
+    return np.column_stack([i[ok], j[ok]])
+
+
+# --------------------------------------------------------------------------------------------
+# Per-panel statistics
+# --------------------------------------------------------------------------------------------
+
+
+def panel_statistics(X: np.ndarray, deviation_m: np.ndarray, panel: np.ndarray,
+                     layout: PanelLayout, min_points: int = 3) -> PanelTable:
+    """Offset, tilt, rms and point count of every panel (plane fit per panel, module doc)."""
+    g = layout.geometry()
+    P = layout.n_panels
+    X = np.asarray(X, float)
+    d = np.asarray(deviation_m, float)
+    p = np.asarray(panel)
+    s = (p >= 0) & (p < P) & np.isfinite(d)
+    X, d, p = X[s], d[s], p[s].astype(np.int64)
+    rho = np.hypot(X[:, 0], X[:, 1])
+    psi = np.arctan2(X[:, 1], X[:, 0])
+    dr = rho - g["rho_c"][p]
+    dt = g["rho_c"][p] * (np.mod(psi - g["psi_c"][p] + np.pi, 2 * np.pi) - np.pi)
+    cols = (np.ones_like(d), dr, dt)
+    n = np.bincount(p, minlength=P)
+
+    def bs(w):
+        return np.bincount(p, weights=w, minlength=P)
+
+    N = np.empty((P, 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            N[:, a, b] = N[:, b, a] = bs(cols[a] * cols[b])
+    u = np.stack([bs(c * d) for c in cols], 1)
+    dd = bs(d * d)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = u[:, 0] / n
+        rms = np.sqrt(dd / n)
+    dev = mean.copy()
+    sig = np.full(P, np.nan)
+    tr = np.full(P, np.nan)
+    tt = np.full(P, np.nan)
+    rmsp = np.full(P, np.nan)
+    enough = n >= max(min_points, 1)
+    for i in np.flatnonzero(enough):
+        Ni = N[i]
+        # plane fit when the points span the panel in both directions, else the mean only
+        if n[i] >= 4 and np.linalg.cond(Ni) < 1e10:
+            Q = np.linalg.inv(Ni)
+            x = Q @ u[i]
+            rss = max(dd[i] - x @ u[i], 0.0)
+            s2 = rss / (n[i] - 3)
+            dev[i], tr[i], tt[i] = x
+            sig[i] = math.sqrt(s2 * Q[0, 0])
+            rmsp[i] = math.sqrt(rss / n[i])
+        else:
+            var = max(dd[i] / n[i] - mean[i] ** 2, 0.0)
+            sig[i] = math.sqrt(var / max(n[i] - 1, 1))
+            rmsp[i] = math.sqrt(var)
+    dev[~enough] = np.nan
+    mean[~enough] = np.nan
+    rms[~enough] = np.nan
+    return PanelTable(
+        panel=np.arange(P), ring=np.asarray(g["ring"], np.int64), deviation_m=dev, sigma_m=sig,
+        tilt_rad=np.hypot(tr, tt), tilt_radial_rad=tr, tilt_tangential_rad=tt, mean_m=mean,
+        rms_m=rms, rms_plane_m=rmsp, n=n.astype(np.int64))
+
+
+# --------------------------------------------------------------------------------------------
+# Positions
+# --------------------------------------------------------------------------------------------
+
+
+def position_surface(position: str, cycles: Sequence[CyclePoints], layout: PanelLayout | None,
+                     config: SurfaceConfig | None = None, pointing: Mapping | None = None,
+                     kappa_rad: Mapping[str, float] | None = None) -> PositionSurface:
+    """Average the cycles of one position and compute its panel table.
+
+    Scans of cycle 1 are averaged with those of cycle 2; with only one of them (or one-face
+    scans, cycle 0) the groups are single-cycle means and the two-face errors do not cancel.
+    """
+    cfg = config or SurfaceConfig()
+    notes = []
+    by = {c: [p for p in cycles if p.cycle == c] for c in (0, 1, 2)}
+    a, b = by[1], by[2]
+    if a and b:
+        kind = "cycle average"
+    else:
+        a, b = (a or b or by[0]), []
+        kind = "one face" if by[0] and not (by[1] or by[2]) else "single cycle"
+        notes.append(f"{kind}: no cycle averaging, the two-face-sensitive errors do not cancel")
+
+    def cat(ps):
+        if not ps:
+            return np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int32)
+        return (np.concatenate([p.X for p in ps]), np.concatenate([p.deviation_m for p in ps]),
+                np.concatenate([p.panel for p in ps]))
+
+    avg = cycle_average(*cat(a), *cat(b), radius_m=cfg.radius_m)
+    if kind == "cycle average" and len(avg):
+        paired = int(avg.n1.sum() + avg.n2.sum())
+        frac = avg.n_unpaired / max(paired + avg.n_unpaired, 1)
+        if frac > 0.2:
+            notes.append(f"{frac:.0%} of the points have no partner of the other cycle within "
+                         f"{cfg.radius_m * 100:g} cm (coarse scan or different grids): "
+                         "consider a larger radius_m")
+    panels = cyc = None
+    cyc = {}
+    if layout is not None:
+        panels = panel_statistics(avg.X, avg.deviation_m, avg.panel, layout, cfg.min_points)
+        for p in cycles:
+            cyc[p.scan] = panel_statistics(p.X, p.deviation_m, p.panel, layout, cfg.min_points)
+    return PositionSurface(position, dict(pointing or {}), list(cycles), avg, panels, cyc, kind,
+                           dict(kappa_rad or {}), notes)
+
+
+def _pointing(meta) -> dict[str, Any]:
+    out = {}
+    for k in ("ha_deg", "dec_deg", "elevation_deg", "azimuth_deg"):
+        v = getattr(meta, k, None)
+        if v is not None:
+            out[k] = float(v)
+    return out
+
+
+def surface_from_fit(campaign_fit, config: SurfaceConfig | None = None, *,
+                     keep: Mapping[str, np.ndarray] | None = None,
+                     exclude: Iterable[str] = ()) -> SurfaceResult:
+    """Surface products of a :class:`._fit.CampaignFit` (every position of it).
+
+    ``keep``: optional extra masks per scan id (True: use the point), e.g. from
+    :func:`._disturbed.cut_keep`; ``exclude``: scan ids to leave out.
+    """
+    cfg = config or SurfaceConfig()
+    camp = campaign_fit.campaign
+    layout = PanelLayout.from_telescope(camp.telescope)
+    exclude = set(exclude)
+    groups: dict[str, list] = {}
+    for s in campaign_fit.scans:
+        if s.meta.id in exclude:
+            continue
+        groups.setdefault(s.meta.position, []).append(s)
+    positions = []
+    for pos, fits in groups.items():
+        cps, kap = [], {}
+        for s in fits:
+            m = s.used.copy() if cfg.used_only else np.ones(len(s.deviation_m), bool)
+            if keep is not None and s.meta.id in keep:
+                m &= np.asarray(keep[s.meta.id], bool)
+            cps.append(cycle_points(s.meta.id, s.meta.cycle, s.X_tel, s.deviation_m,
+                                    s.data.theta_rad, s.data.phi_rad, layout, cfg, keep=m))
+            kap[s.meta.id] = float(s.alignment.kappa_rad)
+        ps = position_surface(pos, cps, layout, cfg, _pointing(fits[0].meta), kap)
+        ps.pointing.setdefault("elevation_deg", float(fits[0].elevation_deg))
+        positions.append(ps)
+    return SurfaceResult(cfg, layout, positions,
+                         {"model": list(campaign_fit.model_names), "campaign": str(camp.root)})
+
+
+def read_residuals(path) -> dict[str, np.ndarray]:
+    """A ``residuals/<scan>.parquet`` table of ``write_fit`` as NumPy columns."""
+    import pyarrow.parquet as pq
+
+    t = pq.read_table(path)
+    return {c: t.column(c).to_numpy() for c in t.column_names}
+
+
+def layout_for(fit_doc: Mapping | None = None, campaign=None) -> PanelLayout | None:
+    """The panel layout of a campaign, or of the campaign a ``fit.json`` names, or the default."""
+    if campaign is not None:
+        return PanelLayout.from_telescope(campaign.telescope)
+    root = (fit_doc or {}).get("campaign")
+    if root and (Path(root) / "campaign.toml").exists():
+        try:
+            from ._campaign import load_campaign
+
+            return PanelLayout.from_telescope(load_campaign(root).telescope)
+        except Exception as e:  # noqa: BLE001
+            log.warning("could not read %s (%s): default panel layout", root, e)
+    return PanelLayout.default()
+
+
+def surface_from_fit_dir(fit_dir, config: SurfaceConfig | None = None, *, campaign=None,
+                         layout: PanelLayout | None | str = "auto",
+                         keep: Mapping[str, np.ndarray] | None = None,
+                         exclude: Iterable[str] = ()) -> SurfaceResult:
+    """Surface products from a ``fit`` output directory (``fit.json`` + ``residuals/``).
+
+    The layout comes from ``campaign`` (or the campaign ``fit.json`` names, or the default).
+    ``keep`` masks are indexed by the residual tables' rows.
+    """
+    cfg = config or SurfaceConfig()
+    fit_dir = Path(fit_dir)
+    doc = json.loads((fit_dir / "fit.json").read_text())
+    if isinstance(layout, str):
+        layout = layout_for(doc, campaign)
+    exclude = set(exclude)
+    pos_meta = {p["position"]: p for p in doc.get("positions", [])}
+    groups: dict[str, list[dict]] = {}
+    for s in doc["scans"]:
+        if s["id"] not in exclude:
+            groups.setdefault(s["position"], []).append(s)
+    positions = []
+    for pos, scans in groups.items():
+        cps, kap = [], {}
+        for s in scans:
+            path = fit_dir / "residuals" / f"{s['id']}.parquet"
+            if not path.exists():
+                raise FileNotFoundError(f"{path}: residual table of scan {s['id']} not found "
+                                        "(was the fit written with residuals?)")
+            r = read_residuals(path)
+            m = r["used"].astype(bool) if cfg.used_only else np.ones(len(r["used"]), bool)
+            if keep is not None and s["id"] in keep:
+                m &= np.asarray(keep[s["id"]], bool)
+            X = np.column_stack([r["X_m"], r["Y_m"], r["Z_m"]])
+            cps.append(cycle_points(s["id"], int(s["cycle"]), X, r["deviation_m"],
+                                    r["theta_rad"], r["phi_rad"], layout, cfg, keep=m,
+                                    face=r.get("face")))
+            kap[s["id"]] = float(s.get("kappa_rad", float("nan")))
+        pm = pos_meta.get(pos, {})
+        pointing = {k: float(pm[k]) for k in ("ha_deg", "dec_deg", "elevation_deg", "azimuth_deg")
+                    if pm.get(k) is not None}
+        positions.append(position_surface(pos, cps, layout, cfg, pointing, kap))
+    return SurfaceResult(cfg, layout, positions, {"model": doc.get("model"),
+                                                  "fit_dir": str(fit_dir),
+                                                  "campaign": doc.get("campaign")})
+
+
+# --------------------------------------------------------------------------------------------
+# Campaigns and outputs
+# --------------------------------------------------------------------------------------------
+
+
+def _preprocess_keep(campaign) -> Callable | None:
+    try:
+        from ._preprocess import PreprocessConfig, keep_mask_fn
+    except ImportError:
+        return None
+    return keep_mask_fn(PreprocessConfig(), campaign)
+
+
+def surface_campaign(campaign, config: SurfaceConfig | None = None, out_dir=None, *,
+                     fit_dir=None, preprocess: bool = True, disturbed: str | None = None,
+                     progress: bool = False, write_fit_dir: bool = True) -> SurfaceResult:
+    """Surface products of a campaign, written to ``out_dir`` when given.
+
+    Without ``fit_dir`` the campaign is fitted with ``config.model`` (default: extended) via
+    :func:`._fit.fit_campaign` (after preprocessing when available and ``preprocess``), and the
+    fit is written to ``out_dir/fit`` (``write_fit_dir``). With ``fit_dir`` its ``fit.json`` and
+    residual tables are used. ``disturbed``: None (report only), ``"exclude"`` (leave disturbed
+    scans out) or ``"cut"`` (drop their affected phi range; refitted when fitting here).
+    """
+    from ._disturbed import cut_keep, detect_disturbed_campaign, detect_disturbed_residuals
+
+    cfg = config or SurfaceConfig()
+    if disturbed not in (None, "exclude", "cut"):
+        raise ValueError(f"disturbed must be None, 'exclude' or 'cut', not {disturbed!r}")
+    if fit_dir is not None:
+        reports = detect_disturbed_residuals(fit_dir)
+        bad = {r.scan: r for r in reports}
+        keep = None
+        if disturbed == "cut" and bad:
+            keep = {}
+            for sid, rep in bad.items():
+                r = read_residuals(Path(fit_dir) / "residuals" / f"{sid}.parquet")
+                keep[sid] = cut_keep(r["phi_rad"], rep)
+        res = surface_from_fit_dir(fit_dir, cfg, campaign=campaign, keep=keep,
+                                   exclude=bad if disturbed == "exclude" else ())
+    else:
+        from ._fit import fit_campaign, fit_scan, write_fit
+
+        base = _preprocess_keep(campaign) if preprocess else None
+        cf = fit_campaign(campaign, cfg.model, keep=base, progress=progress)
+        reports = detect_disturbed_campaign(cf)
+        bad = {r.scan: r for r in reports}
+        if disturbed == "cut" and bad:
+            for i, s in enumerate(cf.scans):
+                if s.meta.id in bad:
+                    k = cut_keep(s.data.phi_rad, bad[s.meta.id])
+                    if base is not None:
+                        k &= base(s.meta, s.data)
+                    cf.scans[i] = fit_scan(campaign, s.meta, cfg.model, data=s.data, keep=k)
+        if out_dir is not None and write_fit_dir:
+            write_fit(Path(out_dir) / "fit", cf)
+        res = surface_from_fit(cf, cfg, exclude=bad if disturbed == "exclude" else ())
+        res.source["fit_dir"] = str(Path(out_dir) / "fit") if out_dir and write_fit_dir else None
+    res.disturbed = [dict(r.to_json(), action=disturbed or "reported") for r in reports]
+    if out_dir is not None:
+        write_surface(out_dir, res)
+    return res
+
+
+def surface_json(result: SurfaceResult) -> dict:
+    """The ``surface.json`` document (schema ``hartrao-surface/1``)."""
+    cfg = result.config
+    positions = []
+    for p in result.positions:
+        cycles = []
+        for c in p.cycles:
+            rec = {"scan": c.scan, "cycle": c.cycle, "n_points": int(c.inside.sum()),
+                   "n_masked": int((~c.inside).sum()), "rms_m": _num(c.rms_m),
+                   "kappa_rad": _num(p.kappa_rad.get(c.scan, float("nan"))),
+                   "points_file": f"cycles/{c.scan}.parquet"}
+            tab = p.cycle_panels.get(c.scan)
+            if tab is not None:
+                rec["panels"] = tab.records()
+            cycles.append(rec)
+        a = p.averaged
+        rec = {"position": p.position, **p.pointing, "kind": p.kind,
+               "scans": [c.scan for c in p.cycles],
+               "n_points": len(a), "n_unpaired": int(a.n_unpaired), "rms_m": _num(a.rms_m),
+               "face_difference_rms_m": _num(np.sqrt(np.nanmean(a.diff_m ** 2)))
+               if np.isfinite(a.diff_m).any() else None,
+               "points_file": f"points/{_safe(p.position)}.parquet",
+               "panels": p.panels.records() if p.panels is not None else [],
+               "cycles": cycles, "notes": p.notes}
+        positions.append(rec)
+    lay = result.layout
+    return {
+        "schema": SURFACE_SCHEMA,
+        "sign": "deviation_m > 0: towards the focus (above the paraboloid)",
+        "frame": "telescope frame, north-aligned (X north, Y west at the zenith)",
+        "config": asdict(cfg),
+        "layout": ({"ring_edges_m": list(lay.ring_edges_m),
+                    "panels_per_ring": list(lay.panels_per_ring)} if lay else None),
+        "source": result.source,
+        "disturbed": result.disturbed,
+        "positions": positions,
+    }
+
+
+def _safe(name: str) -> str:
+    return "".join(ch if ch.isalnum() or ch in "._-" else "_" for ch in str(name))
+
+
+def write_surface_json(path, result: SurfaceResult) -> Path:
+    """Write ``surface.json`` to ``path`` (a file, or a directory to put it in)."""
+    p = Path(path)
+    if p.suffix != ".json":
+        p.mkdir(parents=True, exist_ok=True)
+        p = p / "surface.json"
+    else:
+        p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text(json.dumps(surface_json(result), indent=1))
+    return p
+
+
+def write_surface(out_dir, result: SurfaceResult, *, cycles: bool = True) -> Path:
+    """``surface.json`` + ``points/<position>.parquet`` (+ ``cycles/<scan>.parquet``)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    out = Path(out_dir)
+    (out / "points").mkdir(parents=True, exist_ok=True)
+    for p in result.positions:
+        a = p.averaged
+        pq.write_table(pa.table({
+            "X_m": a.X[:, 0], "Y_m": a.X[:, 1], "Z_m": a.X[:, 2], "deviation_m": a.deviation_m,
+            "panel": a.panel, "n1": a.n1, "n2": a.n2, "diff_m": a.diff_m,
+        }), out / "points" / f"{_safe(p.position)}.parquet")
+        if cycles:
+            (out / "cycles").mkdir(exist_ok=True)
+            for c in p.cycles:
+                pq.write_table(pa.table({
+                    "X_m": c.X[:, 0], "Y_m": c.X[:, 1], "Z_m": c.X[:, 2],
+                    "deviation_m": c.deviation_m, "panel": c.panel, "face": c.face,
+                    "phi_rad": c.phi_rad,
+                }), out / "cycles" / f"{_safe(c.scan)}.parquet")
+    return write_surface_json(out / "surface.json", result)
+
+
+__all__ = [
+    "SURFACE_SCHEMA", "AveragedPoints", "CyclePoints", "PanelLayout", "PanelTable",
+    "PositionSurface", "SurfaceConfig", "SurfaceResult", "cycle_average", "cycle_points",
+    "layout_for", "panel_mask", "panel_statistics", "position_surface", "read_residuals",
+    "surface_campaign", "surface_from_fit", "surface_from_fit_dir", "surface_json",
+    "write_surface", "write_surface_json",
+]

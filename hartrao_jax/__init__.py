@@ -29,6 +29,9 @@ from ._fit import CampaignFit, ScanFit, fit_campaign, fit_json, fit_scan, write_
 from ._ghm import GHResult, gauss_helmert, gauss_helmert_batch, robust_gauss_helmert  # noqa: E402
 from ._model import ModelError, ParaboloidModel, make_model, parse_model  # noqa: E402
 from ._physics import EFFECTS, EXTENDED, INSTRUMENT, SIMPLIFIED  # noqa: E402
+from ._simulate import CLASSES, PRESETS, parse_effects, simulate_campaign, simulate_scan  # noqa: E402
+
+simulate = simulate_campaign
 
 __version__ = "0.1.0"
 
@@ -37,5 +40,6 @@ __all__ = [
     "ModelError", "ParaboloidModel", "SIMPLIFIED", "ScanData", "ScanFit", "ScanMeta",
     "fit_campaign", "fit_json", "fit_scan", "gauss_helmert", "gauss_helmert_batch",
     "load_campaign", "make_model", "parse_model", "read_scan", "robust_gauss_helmert",
-    "write_campaign", "write_fit",
+    "write_campaign", "write_fit", "CLASSES", "PRESETS", "parse_effects", "simulate",
+    "simulate_campaign", "simulate_scan",
 ]

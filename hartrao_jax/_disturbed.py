@@ -208,94 +208,88 @@ def line_series(phi: np.ndarray, theta: np.ndarray, deviation_m: np.ndarray, cyc
     return LineSeries(cycle, lo, width_rad, med, cnt)
 
 
-def _robust_sigma(s: np.ndarray) -> float:
-    d = np.diff(s)
-    d = d[np.isfinite(d)]
-    if len(d) < 5:
-        return float("nan")
-    return float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0))
+def noise_scale(med: np.ndarray, cnt: np.ndarray) -> np.ndarray:
+    """Per face, ``c`` with ``var(median of line j) = c / n_j``, from neighbouring lines.
 
-
-def _window_means(s: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
-    """Means of ``s[k-w:k]`` and ``s[k:k+w]`` for every boundary k (NaN-aware; NaN if empty)."""
-    L = len(s)
-    ok = np.isfinite(s)
-    c = np.concatenate([[0], np.cumsum(ok)])
-    v = np.concatenate([[0.0], np.cumsum(np.where(ok, s, 0.0))])
-    k = np.arange(L + 1)
-    a0, a1 = np.clip(k - w, 0, L), k
-    b0, b1 = k, np.clip(k + w, 0, L)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        left = (v[a1] - v[a0]) / (c[a1] - c[a0])
-        right = (v[b1] - v[b0]) / (c[b1] - c[b0])
-    left[(c[a1] - c[a0]) < max(2, w // 2)] = np.nan
-    right[(c[b1] - c[b0]) < max(2, w // 2)] = np.nan
-    return left, right
-
-
-def _mosum(S: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per boundary: 2-dof statistic, jumps per face (right mean - left mean), sigmas."""
-    sig = np.array([_robust_sigma(s) for s in S])
-    D = np.full((len(S), S.shape[1] + 1), np.nan)
-    for i, s in enumerate(S):
-        left, right = _window_means(s, w)
-        D[i] = right - left
-    with np.errstate(invalid="ignore"):
-        T = D / (sig[:, None] * math.sqrt(2.0 / w))
-    T2 = np.nansum(T * T, axis=0)
-    T2[np.all(~np.isfinite(T), axis=0)] = np.nan
-    return np.sqrt(T2), D, sig
-
-
-def _segment_fit(S: np.ndarray, a: int, b: int) -> tuple[float, tuple[int, ...], float, float]:
-    """Best one-change and two-change split of ``S[:, a:b]`` (sum of squares over the faces).
-
-    Returns ``(rss1, (k1,), rss2, (k1, k2))`` packed as (rss_one, splits_one, rss_box, splits_box)
-    in the order (rss1, k1, rss2, (k1, k2)).
+    The normalised differences ``(m_j - m_j-1) / sqrt(1/n_j + 1/n_j-1)`` have variance ``c``
+    (noise plus whatever structure changes from one line to the next); ``c`` is their squared
+    robust (MAD) scale.
     """
-    X = S[:, a:b]
-    ok = np.isfinite(X)
-    Xv = np.where(ok, X, 0.0)
-    c = np.concatenate([np.zeros((len(S), 1)), np.cumsum(ok, 1)], 1)
-    s1 = np.concatenate([np.zeros((len(S), 1)), np.cumsum(Xv, 1)], 1)
-    s2 = np.concatenate([np.zeros((len(S), 1)), np.cumsum(Xv * Xv, 1)], 1)
-    n = X.shape[1]
+    out = np.full(len(med), np.nan)
+    for i, (m, n) in enumerate(zip(med, cnt)):
+        ok = np.isfinite(m) & (n > 0)
+        mm, nn = m[ok], n[ok].astype(float)
+        if len(mm) < 6:
+            continue
+        z = np.diff(mm) / np.sqrt(1 / nn[1:] + 1 / nn[:-1])
+        out[i] = (1.4826 * np.median(np.abs(z - np.median(z)))) ** 2
+    return out
 
-    def seg(i, j):  # RSS of segment [i, j) about its own mean, summed over faces
-        cc = c[:, j] - c[:, i]
-        ss = s1[:, j] - s1[:, i]
-        qq = s2[:, j] - s2[:, i]
+
+def _cums(S: np.ndarray, W: np.ndarray):
+    Wv = np.where(np.isfinite(S), W, 0.0)
+    Sv = np.where(np.isfinite(S), S, 0.0)
+    z = np.zeros((len(S), 1))
+    cw = np.concatenate([z, np.cumsum(Wv, 1)], 1)
+    cs = np.concatenate([z, np.cumsum(Wv * Sv, 1)], 1)
+    cq = np.concatenate([z, np.cumsum(Wv * Sv * Sv, 1)], 1)
+    return cw, cs, cq
+
+
+def _mosum(S: np.ndarray, W: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per line boundary k: the 2-dof statistic and the jumps per face (weighted mean of the
+    ``w`` lines after k minus the ``w`` lines before; weights = inverse variances ``W``)."""
+    L = S.shape[1]
+    cw, cs, _ = _cums(S, W)
+    k = np.arange(L + 1)
+    a0, b1 = np.clip(k - w, 0, L), np.clip(k + w, 0, L)
+    wl, wr = cw[:, k] - cw[:, a0], cw[:, b1] - cw[:, k]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        D = (cs[:, b1] - cs[:, k]) / wr - (cs[:, k] - cs[:, a0]) / wl
+        T = D / np.sqrt(1 / wl + 1 / wr)
+    bad = ~np.isfinite(T)
+    T2 = np.where(bad, 0.0, T * T).sum(0)
+    T2[bad.all(0)] = np.nan
+    return np.sqrt(T2), np.where(bad, np.nan, D)
+
+
+def _segment_fit(S: np.ndarray, W: np.ndarray, a: int, b: int):
+    """Best one-change and two-change (box) piecewise-constant fits of ``S[:, a:b]``.
+
+    Weighted residual sums of squares (chi-square units, summed over the faces); returns
+    ``(chi2_one, k, chi2_box, (k1, k2))`` with boundaries as line indices of ``S``.
+    """
+    cw, cs, cq = _cums(S[:, a:b], W[:, a:b])
+    n = b - a
+
+    def seg(i, j):
+        ww, ss, qq = cw[:, j] - cw[:, i], cs[:, j] - cs[:, i], cq[:, j] - cq[:, i]
         with np.errstate(invalid="ignore", divide="ignore"):
-            r = np.where(cc > 0, qq - ss * ss / np.where(cc > 0, cc, 1), 0.0)
-        return r.sum(0)
+            return np.where(ww > 0, qq - ss * ss / np.where(ww > 0, ww, 1.0), 0.0).sum(0)
 
     ks = np.arange(1, n)
     r1 = seg(np.zeros_like(ks), ks) + seg(ks, np.full_like(ks, n))
-    k1 = int(ks[np.argmin(r1)])
     i, j = np.triu_indices(n + 1, 1)
     m = (i >= 1) & (j <= n - 1)
     i, j = i[m], j[m]
     r2 = seg(np.zeros_like(i), i) + seg(i, j) + seg(j, np.full_like(j, n))
     q = int(np.argmin(r2))
-    return float(r1.min()), (a + k1,), float(r2[q]), (a + int(i[q]), a + int(j[q]))
+    return float(r1.min()), a + int(ks[np.argmin(r1)]), float(r2[q]), (a + int(i[q]),
+                                                                          a + int(j[q]))
 
 
-def _level(S: np.ndarray, i: int, j: int) -> np.ndarray:
-    with np.errstate(invalid="ignore"):
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            return np.nanmean(S[:, i:j], axis=1)
+def _wmean(S: np.ndarray, W: np.ndarray, sel: np.ndarray) -> np.ndarray:
+    ok = np.isfinite(S) & sel[None, :]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(ok, W * S, 0.0).sum(1) / np.where(ok, W, 0.0).sum(1)
 
 
-def detect_series(S: np.ndarray, width_rad: float, lo_rad: float, cycle: int,
-                  config: DisturbedConfig | None = None, own: np.ndarray | None = None,
-                  ref_own: np.ndarray | None = None) -> dict[str, Any] | None:
-    """Change search on line series ``S`` (faces x lines); the result in lines and raw phi.
+def detect_series(S: np.ndarray, W: np.ndarray, width_rad: float, lo_rad: float,
+                  config: DisturbedConfig | None = None) -> dict[str, Any] | None:
+    """Change search on line series ``S`` (faces x lines) with inverse variances ``W``.
 
-    ``own``/``ref_own``: the scan's and the reference's own series (before differencing) for
-    the attribution of a change (module doc, step 5).
+    Returns the disturbed range in lines (``start``, ``end``) and raw phi (deg), its jump per
+    face, the statistic, or None when nothing significant and large enough is found.
     """
     cfg = config or DisturbedConfig()
     L = S.shape[1]
@@ -303,17 +297,17 @@ def detect_series(S: np.ndarray, width_rad: float, lo_rad: float, cycle: int,
     e = int(math.ceil(math.radians(cfg.edge_deg) / width_rad))
     if L < 2 * (w + e) + 2:
         return None
-    T, D, sig = _mosum(S, w)
+    T, D = _mosum(S, W, w)
     k = np.arange(L + 1)
     T = np.where((k >= w + e) & (k <= L - w - e) & np.isfinite(T), T, 0.0)
     big = np.max(np.where(np.isfinite(D), np.abs(D), 0.0), axis=0)
-    cand = (T > cfg.threshold) & (np.nan_to_num(big) > cfg.min_jump_m)
+    cand = (T > cfg.threshold) & (big > cfg.min_jump_m)
     if not cand.any():
         return None
-    # the strongest candidate and everything connected to it within 2 w: one event
+    # the strongest candidate and every candidate chained to it within 2 w: one event
     k0 = int(np.argmax(np.where(cand, T, 0.0)))
     hits = np.flatnonzero(cand)
-    lo_k, hi_k = k0, k0
+    lo_k = hi_k = k0
     for h in hits[hits < k0][::-1]:
         if lo_k - h <= 2 * w:
             lo_k = h
@@ -321,33 +315,27 @@ def detect_series(S: np.ndarray, width_rad: float, lo_rad: float, cycle: int,
         if h - hi_k <= 2 * w:
             hi_k = h
     a, b = max(0, lo_k - 2 * w), min(L, hi_k + 2 * w)
-    rss1, (c1,), rss2, (b1, b2) = _segment_fit(S, a, b)
-    s2 = float(np.nanmean(sig**2))
-    if (rss1 - rss2) / s2 > cfg.threshold**2 / 2:
-        kind, start, end = "box", b1, b2
+    chi1, c1, chi2, (b1, b2) = _segment_fit(S, W, a, b)
+    lines = np.arange(L)
+    if chi1 - chi2 > cfg.threshold**2 / 2:
+        kind, i0, i1 = "box", b1, b2
+        start, end = b1, b2
     else:
         kind = "step"
-        before, after = _level(S, 0, c1), _level(S, c1, L)
-        base = np.nanmedian(S, axis=1)
+        base = _wmean(S, W, np.ones(L, bool))
+        before, after = _wmean(S, W, lines < c1), _wmean(S, W, lines >= c1)
         if np.nanmean(np.abs(after - base)) >= np.nanmean(np.abs(before - base)):
-            start, end = c1, L
+            i0, i1, start, end = c1, L, c1, L
         else:
-            start, end = 0, c1
-        if start == 0:  # report the change (the end of a leading disturbed range) first
-            start, end = c1, 0
-    i0, i1 = sorted((start, end))
-    inside = _level(S, i0, i1)
-    outside = np.array([np.nanmedian(np.concatenate([s[:i0], s[i1:]])) for s in S])
-    jump_faces = inside - outside
-    jump = float(np.nanmedian(jump_faces))
-    if own is not None and ref_own is not None:
-        wj = [abs(float(np.nanmedian(_level(x, i0, i1) - np.array(
-            [np.nanmedian(np.concatenate([s[:i0], s[i1:]])) for s in x])))) for x in (own, ref_own)]
-        if wj[1] > wj[0]:
-            return None  # the reference scan is the disturbed one
-    return {"start": int(start), "end": int(end), "kind": kind, "statistic": float(T[k0]),
-            "jump_m": jump, "jump_faces_m": tuple(float(x) for x in jump_faces),
-            "sigma_line_m": float(np.sqrt(s2)), "window_lines": w,
+            i0, i1, start, end = 0, c1, c1, 0
+    inside = (lines >= i0) & (lines < i1)
+    jump_faces = _wmean(S, W, inside) - _wmean(S, W, ~inside)
+    jump = float(np.nanmean(jump_faces))
+    if abs(jump) < cfg.min_jump_m and np.nanmax(np.abs(jump_faces)) < cfg.min_jump_m:
+        return None
+    return {"start": int(start), "end": int(end), "i0": int(i0), "i1": int(i1), "kind": kind,
+            "statistic": float(T[k0]), "jump_m": jump,
+            "jump_faces_m": tuple(float(x) for x in jump_faces), "window_lines": w,
             "phi_deg": math.degrees(lo_rad + start * width_rad),
             "phi_end_deg": math.degrees(lo_rad + end * width_rad)}
 
@@ -383,24 +371,45 @@ def detect_disturbed_arrays(scan: str, position: str, cycle: int, phi: np.ndarra
     if cycle not in (0, 1, 2):
         return None
     own = _series_of(phi, theta, deviation_m, cycle, used, cfg)
-    S, ref_id, ref_own = own.med, None, None
+    c_own = noise_scale(own.med, own.count)
+    with np.errstate(divide="ignore"):
+        var = c_own[:, None] / own.count
+    S, ref_id, rs = own.med, None, None
     if reference is not None and {cycle, int(reference["cycle"])} == {1, 2}:
         rs = _series_of(reference["phi"], reference["theta"], reference["deviation_m"],
                         int(reference["cycle"]), reference.get("used"), cfg, width=own.width_rad)
         if rs.n_lines == own.n_lines:
-            # same dish half-lines: face 1 of this cycle <-> face 2 of the other, line by line
-            ref_own = rs.med[::-1]
-            S = own.med - ref_own
+            # the same dish half-lines: face 1 of this cycle <-> face 2 of the other, by line
+            rmed, rcnt = rs.med[::-1], rs.count[::-1]
+            c_ref = noise_scale(rmed, rcnt)
+            with np.errstate(divide="ignore"):
+                var = var + c_ref[:, None] / rcnt
+            S = own.med - rmed
             ref_id = str(reference["scan"])
-    r = detect_series(S, own.width_rad, own.lo_rad, cycle, cfg,
-                      own=own.med if ref_own is not None else None, ref_own=ref_own)
+        else:
+            rs = None
+    with np.errstate(divide="ignore", invalid="ignore"):
+        W = np.where(np.isfinite(var) & (var > 0), 1.0 / var, 0.0)
+    r = detect_series(S, W, own.width_rad, own.lo_rad, cfg)
     if r is None:
         return None
+    if rs is not None:
+        # attribution: the scan whose own line medians jump more over the range
+        sel = (np.arange(own.n_lines) >= r["i0"]) & (np.arange(own.n_lines) < r["i1"])
+        with np.errstate(divide="ignore"):
+            Wo = np.where(own.count > 0, own.count / c_own[:, None], 0.0)
+            Wr = np.where(rs.count[::-1] > 0, rs.count[::-1] / c_ref[:, None], 0.0)
+        jo = np.nanmean(np.abs(_wmean(own.med, Wo, sel) - _wmean(own.med, Wo, ~sel)))
+        jr = np.nanmean(np.abs(_wmean(rs.med[::-1], Wr, sel) - _wmean(rs.med[::-1], Wr, ~sel)))
+        if jr > jo:
+            return None
     phi_lines = np.degrees(own.phi_rad(np.arange(own.n_lines) + 0.5))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sig = float(np.sqrt(np.nanmedian(np.where(W > 0, 1 / W, np.nan))))
     return DisturbedReport(
         scan=scan, position=position, cycle=cycle, phi_deg=r["phi_deg"],
         phi_end_deg=r["phi_end_deg"], jump_m=r["jump_m"], jump_faces_m=r["jump_faces_m"],
-        statistic=r["statistic"], threshold=cfg.threshold, sigma_line_m=r["sigma_line_m"],
+        statistic=r["statistic"], threshold=cfg.threshold, sigma_line_m=sig,
         n_lines=own.n_lines, line_width_deg=math.degrees(own.width_rad), reference=ref_id,
         kind=r["kind"], series={"phi_deg": phi_lines, "series_m": S, "own_m": own.med})
 

@@ -21,7 +21,13 @@ from ._align import Alignment, mount_heading, north_alignment
 from ._campaign import Campaign, ScanData, ScanMeta, read_scan
 from ._geometry import face_of, paraboloid_deviation, pointing_elevation_deg, pointing_gravity, rot_z
 from ._ghm import GHResult, gauss_helmert_batch, robust_gauss_helmert
-from ._init import InitialValues, initial_distance, initial_values, quadric_initial_values
+from ._init import (
+    InitialValues,
+    initial_distance,
+    initial_values,
+    patch_initial_values,
+    quadric_initial_values,
+)
 from ._model import N_CONSTS, ParaboloidModel, make_model, parameter_unit
 from ._physics import INSTRUMENT
 
@@ -71,7 +77,15 @@ class ScanFit:
         return {n: (float(self.x[i]), float(self.sigma[i])) for i, n in enumerate(self.names)}
 
     def value(self, name: str) -> float:
-        return float(self.x[self.names.index(name)])
+        """Estimated or fixed value of a parameter (0 for a parameter not in the model)."""
+        if name in self.names:
+            return float(self.x[self.names.index(name)])
+        fixed = dict(zip(self.model.fixed_names, np.asarray(self.model.fixed_values)))
+        return float(fixed.get(name, 0.0))
+
+    def sigma_of(self, name: str) -> float:
+        """Standard deviation of an estimate (0 for a fixed parameter)."""
+        return float(self.sigma[self.names.index(name)]) if name in self.names else 0.0
 
     @property
     def correlation(self) -> np.ndarray:
@@ -93,9 +107,14 @@ class CampaignFit:
         rows = []
         for pos, fits in out.items():
             v = np.array([s.value("f") for s in fits])
-            w = np.array([1.0 / s.sigma[s.names.index("f")] ** 2 for s in fits])
-            mean = float(np.sum(w * v) / np.sum(w))
-            sig = float(1.0 / math.sqrt(np.sum(w)))
+            sg = np.array([s.sigma_of("f") for s in fits])
+            if np.all(sg > 0):
+                w = 1.0 / sg**2
+                mean = float(np.sum(w * v) / np.sum(w))
+                sig = float(1.0 / math.sqrt(np.sum(w)))
+            else:  # focal length held fixed
+                w = np.ones_like(v)
+                mean, sig = float(np.mean(v)), 0.0
             m = fits[0].meta
             row = {"position": pos}
             if m.ha_deg is not None:
@@ -106,7 +125,7 @@ class CampaignFit:
                        f={"value": mean, "sigma": sig},
                        gravity=[float(a) for a in fits[0].gravity],
                        scans=[s.meta.id for s in fits])
-            if len(fits) > 1:
+            if len(fits) > 1 and sig > 0:
                 chi2 = float(np.sum(w * (v - mean) ** 2))
                 row["f_consistency_chi2"] = chi2
             rows.append(row)
@@ -146,6 +165,9 @@ def choose_initial_values(campaign: Campaign, meta: ScanMeta, data: ScanData, g,
             return cands[-1]
     q = quadric_initial_values(data.range_m, data.phi_rad, data.theta_rad, seed=seed)
     cands.append(q)
+    if q.inlier_fraction < 0.5:  # a region too small for a quadric: use its curvature
+        cands.extend(patch_initial_values(data.range_m, data.phi_rad, data.theta_rad,
+                                          focal_length_m=tel.focal_length_m, seed=seed))
     return max(cands, key=lambda c: c.inlier_fraction)
 
 
@@ -215,7 +237,7 @@ def finish_scan_fit(
     used = np.asarray(res.weights) > 0
     l, c = scan_arrays(data)
     X_fit = np.asarray(jax.vmap(mdl.telescope_point, in_axes=(0, None, 0))(l, res.x, c))
-    p = dict(zip(names, x))
+    p = {k: float(v) for k, v in mdl.params(res.x).items()}
     f = p["f"]
     dev = np.asarray(paraboloid_deviation(jnp.asarray(X_fit), f))
     tel = campaign.telescope

@@ -199,7 +199,7 @@ def _gauss_helmert(condition, l, x0, sigma_l, consts, weights, v0, tol, *, max_i
     x = x + dx
     n_used = jnp.sum(weights > 0)
     red = n_used - u
-    sigma0 = jnp.sqrt(omega / jnp.maximum(red, 1))
+    sigma0 = jnp.sqrt(omega / jnp.maximum(red, 1).astype(omega.dtype))
     Ninv = _inverse(N)
     wmis = _pass_misclosure(condition, L, C, x)
     return GHResult(

@@ -261,3 +261,68 @@ def _rotation_axis_to_z(a: np.ndarray) -> np.ndarray:
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(a, e1)
     return np.stack([e1, e2, a])
+
+
+def patch_initial_values(
+    r: np.ndarray, phi: np.ndarray, theta: np.ndarray, *, focal_length_m: float,
+    n_sample: int = 20000, tol_m: float = 0.02, seed: int = 0,
+) -> list[InitialValues]:
+    """Initial values from a small region of a reflector of known focal length.
+
+    A region much smaller than the aperture does not determine a quadric, but its curvature
+    does determine where it sits on a paraboloid of known ``f``: at radius ``rho`` the sagittal
+    curvature is ``1 / (2 f sqrt(1 + s^2))`` with ``s = rho / 2f``, and the meridional (smaller)
+    curvature direction points along the radius. The axis is the surface normal tilted by
+    ``atan(s)`` within the meridional plane; the sign of that tilt is ambiguous, so both
+    candidates are returned, best first (by the share of points within ``tol_m``).
+    """
+    rng = np.random.default_rng(seed)
+    n = len(r)
+    idx = rng.choice(n, size=min(n, n_sample), replace=False) if n > n_sample else np.arange(n)
+    P = np.asarray(polar_to_cartesian(r[idx], phi[idx], theta[idx]))
+    keep = np.ones(len(P), bool)
+    for _ in range(4):  # trimmed local quadratic height field
+        c = np.mean(P[keep], axis=0)
+        _, _, Vt = np.linalg.svd(P[keep] - c, full_matrices=False)
+        e1, e2, nrm = Vt
+        if nrm @ (-c) < 0:  # normal towards the scanner (the focus side of the reflector)
+            nrm, e2 = -nrm, -e2
+        D = P - c
+        u, v, h = D @ e1, D @ e2, D @ nrm
+        A = np.column_stack([np.ones_like(u), u, v, u * u, u * v, v * v])
+        coef, *_ = np.linalg.lstsq(A[keep], h[keep], rcond=None)
+        res = h - A @ coef
+        keep = np.abs(res) < max(4 * 1.4826 * np.median(np.abs(res[keep])), 1e-3)
+    H = np.array([[2 * coef[3], coef[4]], [coef[4], 2 * coef[5]]])
+    w, E = np.linalg.eigh(H)
+    i_m = int(np.argmin(np.abs(w)))
+    k_s = float(np.abs(w[1 - i_m]))
+    f = focal_length_m
+    s2 = max(1.0 / (4 * f * f * k_s * k_s) - 1.0, 0.0)
+    s = np.sqrt(s2)
+    rho = 2 * f * s
+    # the surface at the centroid of the patch: offset and slope of the height field there
+    p0 = c + coef[0] * nrm
+    n0 = nrm - coef[1] * e1 - coef[2] * e2
+    n0 /= np.linalg.norm(n0)
+    t_m = E[0, i_m] * e1 + E[1, i_m] * e2  # meridional direction (sign unknown)
+    t_m = t_m - (t_m @ n0) * n0
+    t_m /= np.linalg.norm(t_m)
+    alpha = np.arctan(s)
+    out = []
+    for sign in (1.0, -1.0):
+        t = sign * t_m
+        a = np.cos(alpha) * n0 + np.sin(alpha) * t  # axis direction, towards the focus side
+        r_hat = t - (t @ a) * a
+        r_hat /= np.linalg.norm(r_hat)
+        V = p0 - rho * r_hat - (rho * rho / (4 * f)) * a
+        R = _rotation_axis_to_z(a)
+        kappa, ry, rx = (float(x) for x in decompose_zyx(R))
+        R2 = np.asarray(rot_y(ry) @ rot_x(rx))
+        tt = -R2 @ V
+        d = np.abs(_paraboloid_distance(P, a, V, f))
+        out.append(InitialValues(
+            x={"tx": float(tt[0]), "ty": float(tt[1]), "tz": float(tt[2]), "rx": rx, "ry": ry, "f": f},
+            kappa_rad=0.0, heading_rad=0.0, inlier_fraction=float(np.mean(d < tol_m)), tol_m=tol_m,
+        ))
+    return sorted(out, key=lambda c: -c.inlier_fraction)

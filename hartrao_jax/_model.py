@@ -171,11 +171,13 @@ def make_model(
 ) -> ParaboloidModel:
     """Build a model from parameter names (or ``"simplified"``/``"extended"``) and fixed values.
 
+    Object parameters are estimated unless given a fixed value (e.g. ``fixed={"f": 60.0}``).
+
     Raises :class:`ModelError` for unknown names and for pairs that cannot be separated
     (same column shape, e.g. ``x5z`` with ``x7``).
     """
-    names = parse_model(free)
-    fixed = {k: float(v) for k, v in (fixed or {}).items() if k not in names}
+    fixed = {k: float(v) for k, v in (fixed or {}).items()}
+    names = tuple(n for n in parse_model(free) if n not in fixed)  # a fixed value wins
     bad = [k for k in fixed if not known_parameter(k)]
     if bad:
         raise ModelError(f"fixed parameter(s) not in the catalog: {', '.join(bad)}")

@@ -407,8 +407,9 @@ def zernike_deviation(u: ArrayLike, psi: ArrayLike, coefficients_m: ArrayLike,
 def gravity_focal_length(f0_m: ArrayLike, df_dg_m: ArrayLike, g: ArrayLike) -> Array:
     """Focal length (m) linear in the gravity vector (telescope frame): ``f = f0 + c . g``.
 
-    ``df_dg_m`` (3,) is the change of focal length per unit gravity component; at the zenith
-    ``g = (0, 0, -1)``, so ``f0`` is the focal length with no load.
+    ``df_dg_m`` (3,) is the change of focal length per unit gravity component. ``f0`` is the
+    focal length without gravity load; at the zenith ``g = (0, 0, -1)`` and ``f = f0 - c_z``
+    (the simulator sets ``f0 = nominal + c_z`` so that the zenith gives the nominal value).
     """
     return f0_m + jnp.dot(jnp.asarray(df_dg_m), jnp.asarray(g))
 

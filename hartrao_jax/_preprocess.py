@@ -126,6 +126,8 @@ class PreprocessConfig:
         refine_iterations: total-least-squares refinements after RANSAC.
         min_patch_points: smaller patches (and planes with fewer inliers) are removed.
         max_patch_points: larger patches are cut into strips of at most this many points.
+        split_quantile: patches above the power of two covering this quantile of the patch
+            sizes are cut into strips too (fewer padded shapes, less padding).
         seed: seeds the RANSAC samples and the initial-value search: same seed, same result.
         use_initial_values: derive the windows and the "flat" frame from the initial values.
         geometry_window_m: half-width of the window about the initial paraboloid (vertical).
@@ -154,6 +156,7 @@ class PreprocessConfig:
     refine_iterations: int = 2
     min_patch_points: int = 10
     max_patch_points: int = 4096
+    split_quantile: float = 0.95
     seed: int = 0
     use_initial_values: bool = True
     geometry_window_m: float = 0.05
@@ -569,6 +572,25 @@ class PlaneCondition(eqx.Module):
 # --------------------------------------------------------------------------------------------
 
 
+def _size_buckets(counts: np.ndarray, ids: np.ndarray, min_share: float = 0.2) -> np.ndarray:
+    """log2 of the padded size of each patch: powers of two from 32, sparse buckets merged up.
+
+    Each bucket is one compiled shape; a bucket holding fewer than ``min_share`` of the patches
+    (at least 16) joins the next larger one, so a scan needs two or three compilations while
+    padding stays below ~2x for almost all patches.
+    """
+    b = np.maximum(5, np.ceil(np.log2(np.maximum(counts, 1))).astype(np.int64))
+    if len(ids) == 0:
+        return b
+    levels = np.unique(b[ids])
+    thresh = max(16, min_share * len(ids))
+    for lo, hi in zip(levels[:-1], levels[1:]):
+        sel = b == lo
+        if np.count_nonzero(sel[ids]) < thresh:
+            b[sel] = hi
+    return b
+
+
 def _segment(keys: np.ndarray, max_pp: int):
     """Sort points by patch; cut patches larger than ``max_pp`` into consecutive strips.
 
@@ -690,7 +712,13 @@ def preprocess_scan(
     eps = cfg.k_sigma * sigma_n + allowance if cfg.epsilon_m is None else float(cfg.epsilon_m)
 
     keys = _patch_keys(phi[idx], th[idx], meta.cycle, size, R_ref)
-    order, pid, counts, starts = _segment(keys, cfg.max_patch_points)
+    occ = np.bincount(keys) if len(keys) else np.zeros(1, np.int64)
+    occ = occ[occ >= cfg.min_patch_points]
+    cap = cfg.max_patch_points
+    if len(occ):  # the few outsized patches (near the nadir) become strips of the common size
+        q = float(np.quantile(occ, cfg.split_quantile))
+        cap = int(min(cap, max(64, _next_pow2(int(math.ceil(q))))))
+    order, pid, counts, starts = _segment(keys, cap)
     n_patches = len(counts)
     patch_of = np.full(n, -1, np.int32)
     patch_of[idx[order]] = pid
@@ -711,7 +739,7 @@ def preprocess_scan(
         rank = np.arange(len(pid)) - starts[pid]
         dt_ = np.float32 if cfg.ransac_float32 else np.float64
         # size buckets (powers of two): padding wastes at most half of a bucket
-        bucket = np.maximum(5, np.ceil(np.log2(np.maximum(counts, 1))).astype(np.int64))
+        bucket = _size_buckets(counts, big_ids)
         for b in np.unique(bucket[big_ids]):
             ids_b = big_ids[bucket[big_ids] == b]
             P = int(2**b)
@@ -758,7 +786,8 @@ def preprocess_scan(
         "rim_margin_m": cfg.rim_margin_m,
         "cone_margin_m": cfg.cone_margin_m, "ransac_iterations": cfg.ransac_iterations,
         "refine_iterations": cfg.refine_iterations, "min_patch_points": cfg.min_patch_points,
-        "max_patch_points": cfg.max_patch_points, "seed": cfg.seed,
+        "max_patch_points": cfg.max_patch_points,
+        "patch_points_cap": cap, "seed": cfg.seed,
         "initial_values": None if init is None else {
             **{k: float(v) for k, v in init.x.items()}, "kappa_rad": init.kappa_rad,
             "inlier_fraction": init.inlier_fraction},

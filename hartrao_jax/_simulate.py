@@ -11,9 +11,15 @@ re-evaluated between Newton passes. Gaussian noise is added afterwards.
 
 Scene (telescope frame, m): a central truncated cone on the axis, four quadrupod legs from the
 reflector surface to an apex beneath the sub-reflector, far terrain behind the rim. Only rays
-within ``rim angle + margin_deg`` of the dish axis are cast: the rest of the sphere holds the
-sub-reflector, its support and the sky, which return nothing useful. Every row is labelled with
+within ``rim angle + margin_deg`` of the dish axis are cast (the dish axis, not the nadir: the
+scanner's z axis follows gravity, so away from the zenith the reflector lies off the nadir);
+the rest of the sphere holds the sub-reflector, its support and the sky, which return nothing
+useful. The legs stand on the surface (``leg_foot_radius_m``), not at the rim: with the apex
+above the scanner, a leg from the rim would hide no reflector point. Every row is labelled with
 a class of :data:`CLASSES`.
+
+Scan table order is the scanner's: phi lines at a constant rate (``line_period_s``), theta
+through face 1 then face 2 within a line, ``time_s = (line + theta / 2 pi) line_period_s``.
 
 Units: metres, radians, seconds; ``_deg`` names are degrees.
 """
@@ -58,6 +64,7 @@ from ._physics import (
 )
 
 TRUTH_SCHEMA = "hartrao-truth/1"
+EXACT_M = 1e-9  # |condition| (m) every reflector point satisfies at the truth, before noise
 CLASSES: dict[str, int] = {"reflector": 0, "cone": 1, "quadrupod": 2, "background": 3,
                            "mixed": 4, "multipath": 5}
 """uint8 class codes of the truth tables: reflector surface, central cone, quadrupod legs, far
@@ -143,7 +150,8 @@ def parse_effects(items: Sequence[str]) -> dict[str, float | dict]:
             out[eid] = value
             continue
         if eid not in EFFECT_DEFAULTS:
-            raise EffectError(f"--effect {item!r}: unknown effect id {eid!r}; known: {_known_ids()}")
+            raise EffectError(f"--effect {item!r}: unknown effect id {eid!r}; known: "
+                              f"{_known_ids()}")
         key = key or next(iter(EFFECT_DEFAULTS[eid]))
         if key not in EFFECT_DEFAULTS[eid]:
             raise EffectError(f"--effect {item!r}: unknown key {key!r} of {eid}; known: "
@@ -635,7 +643,8 @@ def _block(phi, theta, time, ctx) -> dict[str, np.ndarray]:
     r_occ = np.minimum(r_cone, r_leg)
     cls = np.full(n, 255, np.uint8)  # 255: no return
     occl = r_occ < r_dish
-    refl = ok & ~occl & (rho >= Rb) & (rho <= R_rim)
+    exact = np.abs(F) < EXACT_M  # a ray whose Newton solve failed never becomes a truth point
+    refl = ok & exact & ~occl & (rho >= Rb) & (rho <= R_rim)
     cls[refl] = CLASSES["reflector"]
     hole = ok & ~occl & (rho < Rb)  # nothing but the cone inside its radius
     rr = np.where(refl, r, np.nan)
@@ -672,7 +681,8 @@ def _block(phi, theta, time, ctx) -> dict[str, np.ndarray]:
             "deviation_m": np.where(surf, dev, np.nan)[keep], "X": P[keep, 0], "Y": P[keep, 1],
             "Z": P[keep, 2], "incidence_rad": np.where(surf, np.arccos(np.clip(cos_inc, 0, 1)),
                                                        np.nan)[keep],
-            "condition_m": np.where(refl, F, np.nan)[keep]}
+            "condition_m": np.where(refl, F, np.nan)[keep],
+            "n_inexact": np.array([np.sum(ok & ~exact & ~occl & (rho >= Rb) & (rho <= R_rim))])}
 
 
 # ----------------------------------------------------------------------------------- one scan
@@ -695,6 +705,7 @@ def _add_noise(lab, cycle: int, scanner, rng, noise: bool):
 
 def _simulate(meta: ScanMeta, camp: Campaign, refl: Reflector, eff, cfg: SimConfig, scatter: bool,
               step: float, seed: int, scan_index: int, pose: Pose, extra) -> tuple:
+    """One scan: truth model, grid blocks cast and labelled, noise; ``(data, labels, truth)``."""
     tel = camp.telescope
     g = pose.g
     f, f_grav = refl.focal_length(g, meta.temperature_c)
@@ -727,7 +738,7 @@ def _simulate(meta: ScanMeta, camp: Campaign, refl: Reflector, eff, cfg: SimConf
     noise_rng = np.random.default_rng(np.random.SeedSequence([seed, 2, scan_index]))
     data = _add_noise(lab, meta.cycle, camp.scanner, noise_rng, cfg.noise)
     lab["row"] = np.arange(len(data))
-    cond = lab.pop("condition_m")
+    cond, n_inexact = lab.pop("condition_m"), int(lab.pop("n_inexact").sum())
     counts = {k: int(np.sum(lab["cls"] == v)) for k, v in CLASSES.items()}
     truth = {
         "id": meta.id, "position": meta.position, "cycle": meta.cycle,
@@ -743,6 +754,7 @@ def _simulate(meta: ScanMeta, camp: Campaign, refl: Reflector, eff, cfg: SimConf
         "g": g.tolist(), "step_rad": step, "line_period_s": grid.line_period_s,
         "n_lines": grid.n_phi, "n_rows": len(data), "class_counts": counts,
         "max_abs_condition_m": float(np.nanmax(np.abs(cond), initial=0.0)),
+        "n_rays_not_converged": n_inexact,
     }
     return data, lab, truth
 

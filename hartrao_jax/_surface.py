@@ -66,7 +66,8 @@ class SurfaceConfig:
     Attributes:
         margin_radial_m: points closer than this to a ring edge are masked.
         margin_tangential_m: points closer than this (arc length) to a panel's side are masked.
-        radius_m: radius of the averaging circles (paper: about 1 cm).
+        radius_m: radius of the averaging circles; None: the paper's 1 cm, or 0.75 times the
+            median point spacing when the scan is coarser (simulated test scans).
         min_points: a panel with fewer averaged points gets no deviation (null in the JSON).
         model: model of the adjustment when :func:`surface_campaign` fits the campaign.
         used_only: only points that entered the adjustment (``ScanFit.used``).
@@ -74,13 +75,13 @@ class SurfaceConfig:
 
     margin_radial_m: float = 0.02
     margin_tangential_m: float = 0.02
-    radius_m: float = 0.01
+    radius_m: float | None = None
     min_points: int = 3
     model: str = "extended"
     used_only: bool = True
 
     def __post_init__(self):
-        if self.radius_m <= 0:
+        if self.radius_m is not None and self.radius_m <= 0:
             raise ValueError(f"radius_m must be > 0, not {self.radius_m}")
         if self.margin_radial_m < 0 or self.margin_tangential_m < 0:
             raise ValueError("panel margins must be >= 0")
@@ -211,6 +212,7 @@ class PositionSurface:
     kind: str  # "cycle average" | "single cycle" | "one face"
     kappa_rad: dict[str, float] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    radius_m: float = 0.01  # averaging radius used
 
 
 @dataclass
@@ -480,6 +482,31 @@ def panel_statistics(X: np.ndarray, deviation_m: np.ndarray, panel: np.ndarray,
 # --------------------------------------------------------------------------------------------
 
 
+def point_spacing(X: np.ndarray, max_points: int = 200_000, seed: int = 0) -> float:
+    """Median nearest-neighbour distance (m) of points in the aperture plane.
+
+    Measured on a random subsample of ``max_points`` and scaled by ``sqrt(fraction)`` (the
+    spacing of a uniform subsample grows as ``1 / sqrt(fraction)``).
+    """
+    from scipy.spatial import cKDTree
+
+    X = np.asarray(X, float)
+    n = len(X)
+    if n < 3:
+        return float("nan")
+    q = min(1.0, max_points / n)
+    sub = X if q == 1.0 else X[np.random.default_rng(seed).random(n) < q]
+    d, _ = cKDTree(sub[:, :2]).query(sub[:, :2], k=2)
+    return float(np.median(d[:, 1]) * math.sqrt(q))
+
+
+def averaging_radius(cycles: Sequence[CyclePoints], paper_m: float = 0.01) -> float:
+    """The paper's 1 cm, or 0.75 x the median point spacing of the scans when that is larger."""
+    sp = [point_spacing(c.X[c.inside]) for c in cycles if c.inside.sum() > 2]
+    sp = [s for s in sp if np.isfinite(s)]
+    return max(paper_m, 0.75 * max(sp)) if sp else paper_m
+
+
 def position_surface(position: str, cycles: Sequence[CyclePoints], layout: PanelLayout | None,
                      config: SurfaceConfig | None = None, pointing: Mapping | None = None,
                      kappa_rad: Mapping[str, float] | None = None) -> PositionSurface:
@@ -505,13 +532,14 @@ def position_surface(position: str, cycles: Sequence[CyclePoints], layout: Panel
         return (np.concatenate([p.X for p in ps]), np.concatenate([p.deviation_m for p in ps]),
                 np.concatenate([p.panel for p in ps]))
 
-    avg = cycle_average(*cat(a), *cat(b), radius_m=cfg.radius_m)
+    radius = cfg.radius_m or averaging_radius(cycles)
+    avg = cycle_average(*cat(a), *cat(b), radius_m=radius)
     if kind == "cycle average" and len(avg):
         paired = int(avg.n1.sum() + avg.n2.sum())
         frac = avg.n_unpaired / max(paired + avg.n_unpaired, 1)
         if frac > 0.2:
             notes.append(f"{frac:.0%} of the points have no partner of the other cycle within "
-                         f"{cfg.radius_m * 100:g} cm (coarse scan or different grids): "
+                         f"{radius * 100:.3g} cm (coarse scan or different grids): "
                          "consider a larger radius_m")
     panels = cyc = None
     cyc = {}
@@ -520,7 +548,7 @@ def position_surface(position: str, cycles: Sequence[CyclePoints], layout: Panel
         for p in cycles:
             cyc[p.scan] = panel_statistics(p.X, p.deviation_m, p.panel, layout, cfg.min_points)
     return PositionSurface(position, dict(pointing or {}), list(cycles), avg, panels, cyc, kind,
-                           dict(kappa_rad or {}), notes)
+                           dict(kappa_rad or {}), notes, radius)
 
 
 def _pointing(meta) -> dict[str, Any]:
@@ -718,6 +746,7 @@ def surface_json(result: SurfaceResult) -> dict:
         rec = {"position": p.position, **p.pointing, "kind": p.kind,
                "scans": [c.scan for c in p.cycles],
                "n_points": len(a), "n_unpaired": int(a.n_unpaired), "rms_m": _num(a.rms_m),
+               "radius_m": p.radius_m,
                "face_difference_rms_m": _num(np.sqrt(np.nanmean(a.diff_m ** 2)))
                if np.isfinite(a.diff_m).any() else None,
                "points_file": f"points/{_safe(p.position)}.parquet",
@@ -778,10 +807,72 @@ def write_surface(out_dir, result: SurfaceResult, *, cycles: bool = True) -> Pat
     return write_surface_json(out / "surface.json", result)
 
 
+
+
+def read_surface(out_dir) -> SurfaceResult:
+    """Load what :func:`write_surface` wrote (``surface.json`` + the Parquet point tables)."""
+    import pyarrow.parquet as pq
+
+    out = Path(out_dir)
+    doc = json.loads((out / "surface.json").read_text())
+    if doc.get("schema") != SURFACE_SCHEMA:
+        raise ValueError(f"{out / 'surface.json'}: schema: expected {SURFACE_SCHEMA!r}, found "
+                         f"{doc.get('schema')!r}")
+    lay = doc.get("layout")
+    layout = PanelLayout(lay["ring_edges_m"], lay["panels_per_ring"]) if lay else None
+    known = SurfaceConfig.__dataclass_fields__
+    cfg = SurfaceConfig(**{k: v for k, v in (doc.get("config") or {}).items() if k in known})
+
+    def table(recs):
+        if not recs:
+            return None
+        cols = {k: np.array([np.nan if r.get(k) is None else r[k] for r in recs], float)
+                for k in ("deviation_m", "sigma_m", "tilt_rad", "tilt_radial_rad",
+                          "tilt_tangential_rad", "mean_m", "rms_m", "rms_plane_m")}
+        return PanelTable(panel=np.array([r["panel"] for r in recs]),
+                          ring=np.array([r.get("ring", -1) for r in recs]),
+                          n=np.array([r["n"] for r in recs]), **cols)
+
+    positions = []
+    for p in doc["positions"]:
+        cycles, cyc_tabs, kap = [], {}, {}
+        for c in p.get("cycles", []):
+            f = out / c["points_file"]
+            if f.exists():
+                tb = pq.read_table(f)
+                t = {k: v.to_numpy() for k, v in zip(tb.column_names, tb.columns)}
+                cycles.append(CyclePoints(c["scan"], int(c["cycle"]),
+                                          np.column_stack([t["X_m"], t["Y_m"], t["Z_m"]]),
+                                          t["deviation_m"], t["panel"].astype(np.int32),
+                                          t["face"].astype(np.int8), t["phi_rad"]))
+            cyc_tabs[c["scan"]] = table(c.get("panels"))
+            if c.get("kappa_rad") is not None:
+                kap[c["scan"]] = c["kappa_rad"]
+        f = out / p["points_file"]
+        if f.exists():
+            tb = pq.read_table(f)
+            t = {k: v.to_numpy() for k, v in zip(tb.column_names, tb.columns)}
+            avg = AveragedPoints(np.column_stack([t["X_m"], t["Y_m"], t["Z_m"]]),
+                                 t["deviation_m"], t["panel"].astype(np.int32), t["n1"], t["n2"],
+                                 t["diff_m"], int(p.get("n_unpaired", 0)))
+        else:
+            avg = AveragedPoints(np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int32),
+                                 np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+        pointing = {k: p[k] for k in ("ha_deg", "dec_deg", "elevation_deg", "azimuth_deg")
+                    if p.get(k) is not None}
+        positions.append(PositionSurface(p["position"], pointing, cycles, avg,
+                                         table(p.get("panels")), cyc_tabs, p.get("kind", ""),
+                                         kap, list(p.get("notes", [])),
+                                         float(p.get("radius_m") or 0.01)))
+    return SurfaceResult(cfg, layout, positions, dict(doc.get("source") or {}),
+                         list(doc.get("disturbed") or []))
+
+
 __all__ = [
     "SURFACE_SCHEMA", "AveragedPoints", "CyclePoints", "PanelLayout", "PanelTable",
     "PositionSurface", "SurfaceConfig", "SurfaceResult", "cycle_average", "cycle_points",
-    "layout_for", "panel_mask", "panel_statistics", "position_surface", "read_residuals",
+    "averaging_radius", "layout_for", "panel_mask", "panel_statistics", "point_spacing",
+    "position_surface", "read_residuals", "read_surface",
     "surface_campaign", "surface_from_fit", "surface_from_fit_dir", "surface_json",
     "write_surface", "write_surface_json",
 ]

@@ -29,13 +29,9 @@ def _user_errors():
     from ._model import ModelError
 
     errs = (CampaignError, ModelError, UserError, FileNotFoundError)
-    try:
-        from ._simulate import SimulationError  # type: ignore[attr-defined]
+    from ._simulate import EffectError
 
-        errs = errs + (SimulationError,)
-    except Exception:  # noqa: BLE001
-        pass
-    return errs
+    return errs + (EffectError,)
 
 
 def command(fn):
@@ -119,7 +115,7 @@ def print_fit_table(cf, title="fit") -> None:
 
     for s in cf.scans:
         est = s.estimates
-        f, sf = est["f"]
+        f, sf = s.value("f"), s.sigma_of("f")
         row = [
             s.meta.id, f"{f:.5f}", f"{sf * 1e3:.3f}", f"{s.sigma0:.3f}", f"{s.n_points}",
             f"{s.n_rejected}", f"{s.iterations}{'' if s.converged else '!'}",

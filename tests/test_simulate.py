@@ -81,7 +81,7 @@ def test_reflector_points_satisfy_truth_model(cycle):
     F = condition(model_from_truth(truth), lab, refl)
     assert refl.sum() > 10000
     assert np.max(np.abs(F)) < 1e-9
-    assert truth["max_abs_condition_m"] < 1e-9
+    assert truth["max_abs_condition_m"] < 1e-9 and truth["n_rays_not_converged"] == 0
     # every effect is really in the model
     mp = truth["model_parameters"]
     assert {"shift_x", "osc_sy", "osc_cy", "drift_tx", "drift_rx", "x1n", "range_scale"} <= set(mp)
@@ -109,6 +109,16 @@ def test_gimbal_misalignment_and_fixed_position():
     assert not np.allclose(np.asarray(truth["R_full"])[:, 2], truth["g"], atol=1e-4)
     F = condition(model_from_truth(truth), lab, lab["cls"] == 0)
     assert np.max(np.abs(F)) < 1e-9
+
+
+def test_extra_deviation_enters_the_truth():
+    bump = lambda X: 2e-4 * jnp.cos(X[0] / 3.0)  # noqa: E731  (telescope frame, m)
+    _, l0, _ = sim(1)
+    _, l1, t1 = sim(1, extra_deviation=bump)
+    s = l1["cls"] == 0
+    np.testing.assert_allclose(l1["deviation_m"][s], 2e-4 * np.cos(l1["X"][s] / 3.0), atol=1e-12)
+    assert np.max(np.abs(condition(model_from_truth(t1), l1, s))) < 1e-9
+    assert not np.array_equal(l0["range_true_m"][:100], l1["range_true_m"][:100])
 
 
 def test_fit_recovers_truth(demo_c1):

@@ -195,76 +195,85 @@ def make_hand_linearize(hand):
 
 
 # --------------------------------------------------------------------------------------------
-# Gauss-Helmert loops
+# Gauss-Helmert loop: one linearisation per point and iteration
 # --------------------------------------------------------------------------------------------
 
 
-def _chunk(a, chunk):
-    n = a.shape[0]
-    nc = -(-n // chunk)
-    pad = nc * chunk - n
-    if pad:
-        a = jnp.concatenate([a, jnp.broadcast_to(a[-1:], (pad,) + a.shape[1:])])
-    return a.reshape((nc, chunk) + a.shape[1:])
-
-
 def _solve(N, rhs):
+    """``N^-1 rhs`` and ``N^-1`` with Jacobi scaling and Cholesky (as ``_ghm._solve_normal``)."""
     d = 1.0 / jnp.sqrt(jnp.where(jnp.diagonal(N) > 0, jnp.diagonal(N), 1.0))
     Ns = N * d[:, None] * d[None, :]
     L = jnp.linalg.cholesky(Ns)
-    y = jax.scipy.linalg.cho_solve((L, True), rhs * d)
     Li = jax.scipy.linalg.solve_triangular(L, jnp.eye(N.shape[0], dtype=N.dtype), lower=True)
-    Ninv = (Li.T @ Li) * d[:, None] * d[None, :]
-    return y * d, Ninv
+    Ninv_s = Li.T @ Li
+    return (Ninv_s @ (rhs * d)) * d, Ninv_s * d[:, None] * d[None, :]
 
 
-@partial(jax.jit, static_argnames=("lin", "chunk", "max_iter", "compute_dtype", "store_dtype",
-                                   "trig"))
-def gh_one_pass(condition, l, x0, sigma_l, consts, weights, on, tol=1e-6, *, lin, chunk=1 << 16,
-                max_iter=30, compute_dtype=jnp.float64, store_dtype=jnp.float32, trig=True):
-    """Rigorous GH with one linearisation per point and iteration.
+def _window(i, chunk, n):
+    """Start of chunk ``i`` (the last one is shifted back to end at ``n``: no padding copy) and
+    the mask of its points not already covered by chunk ``i - 1``."""
+    start = jnp.minimum(i * chunk, n - chunk)
+    fresh = start + jnp.arange(chunk) >= i * chunk
+    return start, fresh
 
-    Pass k (one ``lax.scan`` over the chunks), per chunk:
+
+@partial(jax.jit, static_argnames=("lin", "chunk", "max_iter", "store_dtype", "trig"))
+def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *, lin,
+                chunk=1 << 16, max_iter=30, store_dtype=jnp.float32, trig=True):
+    """Rigorous Gauss-Helmert adjustment with ONE linearisation per point and iteration.
+
+    Pass k (a ``fori_loop`` over chunks), per chunk:
 
     1. residuals of iteration k-1 from the stored ``a, b, w, m`` and ``dx_{k-1}``:
-       ``k = -(a.dx + w) / m``, ``v = Sigma b k`` (``dx_{-1} = 0`` and ``b = 0`` at start: v = 0);
-    2. linearise at ``(l + v, x_k)``: ``F, a, b``; ``w = F - b.v``; ``m = b Sigma b``;
-    3. accumulate ``N``, ``n`` and store ``a, b, w, m`` (``store_dtype``) for the next pass.
+       ``k = -(a.dx + w) / m``, ``v = Sigma b k``;
+    2. linearise at ``(l + v, x_k)`` -> ``F, a, b``; ``w = F - b.v``; ``m = b Sigma b``;
+    3. accumulate ``N``, ``n`` and overwrite the chunk's stored ``a, b, w, m`` in place.
 
-    ``dx_k = -N^-1 n``. After convergence one last cheap sweep gives ``v`` at the solution.
-    ``w`` and ``m`` are stored in float64 (they set the residuals at the fixed point); ``a`` and
-    ``b`` may be float32: they only scale the correction ``a.dx`` (-> 0 at convergence) and ``v``
-    to 1e-7 relative, which changes the solution by < 1e-10 relative.
+    ``dx_k = -N^-1 n``. After convergence one sweep over the store gives ``v``, ``k`` at the
+    solution (no further linearisation). The start store encodes ``v0``: ``a = 0``,
+    ``b = v0 / sigma^2``, ``w = -1``, ``m = 1`` gives ``k = 1``, ``v = v0``.
 
-    Returns ``(x, N^-1, v, omega, iterations, converged)``.
+    ``a`` and ``b`` are stored in ``store_dtype`` (float32: 48 instead of 96 bytes per point):
+    they only enter the correction ``a.dx`` (-> 0 at convergence) and ``v = Sigma b k`` (to
+    1e-7 relative, ~1e-10 m); ``w``, ``m`` stay float64. The observations are never copied
+    or padded: the last chunk overlaps the previous one, its repeated points masked.
+
+    Returns ``(x, N, N^-1, v (n, 3), k (n,), m (n,), omega, iterations, converged)``.
     """
-    n_pts, u = l.shape[0], x0.shape[0]
-    cd = compute_dtype
-    s2 = jnp.asarray(sigma_l, l.dtype) ** 2  # (3,): per-column sigmas are not broadcast to (n, 3)
-    L, C = _chunk(l, chunk), _chunk(consts, chunk)
-    W = _chunk(weights, chunk)
-    W = W.reshape(-1).at[n_pts:].set(0.0).reshape(W.shape)  # padding: weight 0
-    nc = L.shape[0]
-    store0 = (jnp.zeros((nc, chunk, u), store_dtype), jnp.zeros((nc, chunk, 3), store_dtype),
-              jnp.zeros((nc, chunk), l.dtype), jnp.ones((nc, chunk), l.dtype))
+    n, u = l.shape[0], x0.shape[0]
+    nc = -(-n // chunk)
+    f = l.dtype
+    s2 = jnp.asarray(sigma_l, f) ** 2  # (3,) or (n, 3)
+    per_point_s2 = s2.ndim == 2
+    def sl(a, start):
+        return lax.dynamic_slice_in_dim(a, start, chunk, axis=0)
 
-    def residuals(st, dx, w8):
-        a, b, wm, m = st
-        k = -((a.astype(l.dtype) @ dx) + wm) / m
-        v = s2 * b.astype(l.dtype) * k[:, None]
-        return k, v
+    def chunk_s2(start):
+        return sl(s2, start) if per_point_s2 else s2
+
+    if v0 is None:
+        b_start = jnp.zeros((nc, chunk, 3), store_dtype)
+    else:
+        b0 = (v0 / s2).astype(store_dtype)
+        b_start = jax.vmap(lambda i: sl(b0, _window(i, chunk, n)[0]))(jnp.arange(nc))
+    store0 = (jnp.zeros((nc, chunk, u), store_dtype), b_start,
+              -jnp.ones((nc, chunk), f), jnp.ones((nc, chunk), f))
+
+    def residuals(st, i, dx, s2c):
+        a, b, wm, m = (s[i] for s in st)
+        k = -((a.astype(f) @ dx) + wm) / m
+        return k, s2c * b.astype(f) * k[:, None], m
 
     def one_pass(x, dx_prev, store):
-        def body(carry, ch):
-            N, nv, omega = carry
-            lc, cc, w8, st = ch
-            k, v = residuals(st, dx_prev, w8)
-            omega = omega + jnp.sum(jnp.where(w8 > 0, w8 * k * k * st[3], 0.0))
-            F, a, b = lin(condition, (lc + v).astype(cd), x.astype(cd), cc.astype(cd),
-                          on if trig else None)
-            F, a, b = F.astype(l.dtype), a.astype(l.dtype), b.astype(l.dtype)
+        def body(i, carry):
+            N, nv, store = carry
+            start, fresh = _window(i, chunk, n)
+            s2c = chunk_s2(start)
+            w8 = jnp.where(fresh, sl(weights, start), 0.0)
+            _, v, _ = residuals(store, i, dx_prev, s2c)
+            F, a, b = lin(condition, sl(l, start) + v, x, sl(consts, start), on if trig else None)
             wm = F - jnp.sum(b * v, axis=-1)
-            m = jnp.sum(b * b * s2, axis=-1)
+            m = jnp.sum(b * b * s2c, axis=-1)
             ok = (w8 > 0) & (m > 0)
             q = jnp.where(ok, w8 / jnp.where(ok, m, 1.0), 0.0)
             a0 = jnp.where(ok[:, None], a, 0.0)
@@ -272,31 +281,53 @@ def gh_one_pass(condition, l, x0, sigma_l, consts, weights, on, tol=1e-6, *, lin
             N = N + aq.T @ a0
             nv = nv + aq.T @ jnp.where(ok, wm, 0.0)
             new = (a.astype(store_dtype), b.astype(store_dtype), wm, jnp.where(m > 0, m, 1.0))
-            return (N, nv, omega), new
+            store = tuple(s.at[i].set(v_) for s, v_ in zip(store, new))
+            return N, nv, store
 
-        init = (jnp.zeros((u, u), l.dtype), jnp.zeros((u,), l.dtype), jnp.zeros((), l.dtype))
-        (N, nv, omega), new = lax.scan(body, init, (L, C, W, store))
-        return N, nv, omega, new
+        init = (jnp.zeros((u, u), f), jnp.zeros((u,), f), store)
+        return lax.fori_loop(0, nc, body, init)
 
     def step(state):
         x, dx_prev, store, it, _, _, _ = state
-        N, nv, _, store = one_pass(x, dx_prev, store)
+        N, nv, store = one_pass(x, dx_prev, store)
         dx, Ninv = _solve(N, -nv)
         ratio = jnp.max(jnp.abs(dx) / jnp.sqrt(jnp.where(jnp.diagonal(Ninv) > 0, jnp.diagonal(Ninv), 1.0)))
-        return x + dx, dx, store, it + 1, Ninv, ratio < tol, ratio
+        return x + dx, dx, store, it + 1, N, Ninv, ratio < tol
 
     def cond(state):
-        return (state[3] < max_iter) & ~state[5]
+        return (state[3] < max_iter) & ~state[6]
 
-    state = (x0, jnp.zeros_like(x0), store0, jnp.array(0), jnp.zeros((u, u), l.dtype),
-             jnp.array(False), jnp.array(jnp.inf, l.dtype))
-    x, dx, store, it, Ninv, done, _ = lax.while_loop(cond, step, state)
+    zu = jnp.zeros((u, u), f)
+    state = (x0, jnp.zeros_like(x0), store0, jnp.array(0), zu, zu, jnp.array(False))
+    x, dx, store, it, N, Ninv, done = lax.while_loop(cond, step, state)
 
-    # final residuals at the solution (no relinearisation: k from the last pass and dx)
-    def fin(omega, ch):
-        w8, st = ch
-        k, v = residuals(st, dx, w8)
-        return omega + jnp.sum(jnp.where(w8 > 0, w8 * k * k * st[3], 0.0)), v
+    # residuals at the solution: one sweep over the store, no linearisation
+    def fin(i, carry):
+        omega, V, K, M = carry
+        start, fresh = _window(i, chunk, n)
+        w8 = jnp.where(fresh, sl(weights, start), 0.0)
+        k, v, m = residuals(store, i, dx, chunk_s2(start))
+        omega = omega + jnp.sum(jnp.where(w8 > 0, w8 * k * k * m, 0.0))
+        # rows of the overlapped last chunk already written by chunk i-1 keep their value
+        V = lax.dynamic_update_slice_in_dim(V, jnp.where(fresh[:, None], v, sl(V, start)), start, 0)
+        K = lax.dynamic_update_slice_in_dim(K, jnp.where(fresh, k, sl(K, start)), start, 0)
+        M = lax.dynamic_update_slice_in_dim(M, jnp.where(fresh, m, sl(M, start)), start, 0)
+        return omega, V, K, M
 
-    omega, V = lax.scan(fin, jnp.zeros((), l.dtype), (W, store))
-    return x, Ninv, V.reshape(-1, 3)[:n_pts], omega, it, done
+    omega, V, K, M = lax.fori_loop(
+        0, nc, fin, (jnp.zeros((), f), jnp.zeros((n, 3), f), jnp.zeros((n,), f), jnp.ones((n,), f)))
+    return x, N, Ninv, V, K, M, omega, it, done
+
+
+def fit(condition, l, x0, sigma_l, consts=None, weights=None, v0=None, *, lin=None,
+        chunk_size=1 << 16, tol=1e-6, max_iter=30, store_dtype=jnp.float32, trig=True):
+    """Python wrapper: defaults, chunk size, the runtime ``on`` flag (must be an argument)."""
+    l = jnp.asarray(l, jnp.float64)
+    n = l.shape[0]
+    consts = jnp.zeros((n, 0), l.dtype) if consts is None else jnp.asarray(consts, l.dtype)
+    weights = jnp.ones((n,), l.dtype) if weights is None else jnp.asarray(weights, l.dtype)
+    v0 = None if v0 is None else jnp.asarray(v0, l.dtype)
+    chunk = int(min(chunk_size, n))
+    return gh_one_pass(condition, l, jnp.asarray(x0, l.dtype), jnp.asarray(sigma_l, l.dtype),
+                       consts, weights, v0, jnp.ones((), bool), tol, lin=lin or linearize_rev,
+                       chunk=chunk, max_iter=max_iter, store_dtype=store_dtype, trig=trig)

@@ -1,0 +1,360 @@
+"""Preprocessing throughput: the JAX pipeline against NumPy RANSAC and open3d per patch.
+
+One simulated scan (demo scene: reflector, cone, quadrupod, background, mixed pixels, multipath)
+per size, cached as ``.npz``. Every method runs the *same* pipeline
+(:func:`hartrao_jax._preprocess.preprocess_scan`: initial values, range and geometry windows,
+angular patches) and differs only in the plane stage, swapped in for
+``_preprocess.fit_planes``:
+
+* ``jax``: the package (RANSAC vmapped over padded patches, ``lax.map`` chunks, float32 scoring,
+  TLS refinement in float64), first call (with compilation) and warm call;
+* ``numpy``: the same algorithm with NumPy on chunks of padded patches (same samples: it must
+  agree with ``jax`` to round-off);
+* ``open3d``: ``PointCloud.segment_plane`` called once per patch (a Python loop, open3d's own
+  RANSAC, same threshold and number of hypotheses), the usual way of doing this step.
+
+Each method runs in its own subprocess, so its peak memory (``ru_maxrss``) is its own; the
+baseline (Python + JAX + the scan in memory) is reported separately.
+
+    python benchmarks/bench_preprocess.py [--sizes 1e6,1.3e7] [--methods jax,numpy,open3d]
+
+Writes ``benchmarks/results/preprocess.md`` and ``.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(HERE))
+
+CACHE = Path(os.environ.get("HARTRAO_BENCH_CACHE", "/tmp/hartrao-bench-cache"))
+ROWS_AT_6MRAD = 211_722  # rows of the demo r23c1 scan at 0.006 rad (grid step -> size)
+
+
+def peak_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+# --------------------------------------------------------------------------------------------
+# Data
+# --------------------------------------------------------------------------------------------
+
+
+def step_for(n_rows: float) -> float:
+    return 0.006 * math.sqrt(ROWS_AT_6MRAD / n_rows)
+
+
+def scan_file(n_rows: float) -> Path:
+    return CACHE / f"scan_{int(n_rows):d}.npz"
+
+
+def make_scan(n_rows: float) -> Path:
+    p = scan_file(n_rows)
+    if p.exists():
+        return p
+    import hartrao_jax  # noqa: F401
+    from hartrao_jax._simulate import simulate_scan
+
+    CACHE.mkdir(parents=True, exist_ok=True)
+    t = time.perf_counter()
+    data, lab, truth = simulate_scan(step_rad=step_for(n_rows), seed=0)
+    print(f"simulated {len(data):,} rows in {time.perf_counter() - t:.0f} s", flush=True)
+    np.savez(p, range_m=data.range_m, phi_rad=data.phi_rad, theta_rad=data.theta_rad,
+             intensity=data.intensity, time_s=data.time_s, row=data.row, cls=lab["cls"],
+             step=step_for(n_rows))
+    return p
+
+
+def load_scan(n_rows: float):
+    from hartrao_jax._campaign import ScanData
+
+    z = np.load(scan_file(n_rows))
+    data = ScanData(z["range_m"], z["phi_rad"], z["theta_rad"], z["intensity"], z["time_s"],
+                    z["row"])
+    return data, z["cls"], float(z["step"])
+
+
+# --------------------------------------------------------------------------------------------
+# Peers of the plane stage (same signature and outputs as _preprocess.fit_planes)
+# --------------------------------------------------------------------------------------------
+
+
+def _three_distinct_np(u, n):
+    n = n[:, None]
+    i1 = np.minimum((u[..., 0] * n).astype(np.int64), n - 1)
+    i2 = (i1 + 1 + np.minimum((u[..., 1] * (n - 1)).astype(np.int64), n - 2)) % n
+    a, b = np.minimum(i1, i2), np.maximum(i1, i2)
+    k = np.minimum((u[..., 2] * (n - 2)).astype(np.int64), n - 3)
+    k = k + (k >= a)
+    k = k + (k >= b)
+    return np.stack([i1, i2, k], axis=-1)
+
+
+def numpy_fit_planes(pts, n, eps, *, seed=0, ransac_iterations=64, refine_iterations=2,
+                     ransac_float32=True, batch_size=None, memory_mb=96.0, ids=None, **_):
+    """The package's algorithm in NumPy, chunk by chunk of padded patches."""
+    from hartrao_jax._preprocess import ransac_uniforms
+
+    pts = np.asarray(pts)
+    n_p, P = pts.shape[:2]
+    H = int(ransac_iterations)
+    n = np.asarray(n, np.int64)
+    eps = np.broadcast_to(np.asarray(eps, float), (n_p,))
+    ids = np.arange(n_p) if ids is None else np.asarray(ids)
+    U = ransac_uniforms(seed, ids, H)
+    good = n >= 3
+    nr = np.where(good, np.minimum(n, P), 3)
+    ct = np.float32 if ransac_float32 else np.float64
+    chunk = int(max(1, memory_mb * 2**20 // (P * H * np.dtype(ct).itemsize * 3)))
+    inl_all = np.zeros((n_p, P), bool)
+    normal_all, d_all = np.zeros((n_p, 3)), np.zeros(n_p)
+    nin_all, rms_all, nr_all = np.zeros(n_p, np.int32), np.zeros(n_p), np.zeros(n_p, np.int32)
+    ar = np.arange(P)
+    for s in range(0, n_p, chunk):
+        e = min(s + chunk, n_p)
+        q = pts[s:e].astype(ct)
+        B = e - s
+        k = nr[s:e]
+        valid = ar[None, :] < k[:, None]
+        idx = _three_distinct_np(U[s:e], k)  # (B, H, 3)
+        tri = np.take_along_axis(q, idx.reshape(B, H * 3)[..., None], axis=1).reshape(B, H, 3, 3)
+        nrm = np.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0])
+        ln = np.sqrt(np.sum(nrm * nrm, -1))
+        scale = np.abs(q).max(axis=(1, 2))[:, None] + ct(1e-12)
+        ok = ln > ct(1e-6) * scale * scale
+        nh = nrm / np.where(ok, ln, 1)[..., None]
+        d = np.sum(nh * tri[:, :, 0], -1)
+        dist = q @ nh.transpose(0, 2, 1) - d[:, None, :]  # (B, P, H)
+        ee = eps[s:e].astype(ct)[:, None, None]
+        cost = np.sum(np.where(valid[..., None], np.minimum(dist * dist, ee * ee), 0), axis=1)
+        cost = np.where(ok, cost, np.inf)
+        best = np.argmin(cost, axis=1)
+        db = np.take_along_axis(dist, best[:, None, None], axis=2)[..., 0]
+        nr_all[s:e] = np.sum(valid & (np.abs(db) <= ee[:, :, 0]), axis=1)
+        p64 = pts[s:e].astype(np.float64)
+        normal = nh[np.arange(B), best].astype(np.float64)
+        d0 = d[np.arange(B), best].astype(np.float64)
+        ep = eps[s:e][:, None]
+        for _ in range(refine_iterations):
+            r = np.einsum("bpk,bk->bp", p64, normal) - d0[:, None]
+            w = (valid & (np.abs(r) <= ep)).astype(float)
+            sw = np.maximum(w.sum(1), 1.0)
+            c = np.einsum("bp,bpk->bk", w, p64) / sw[:, None]
+            y = p64 - c[:, None, :]
+            M = np.einsum("bp,bpi,bpj->bij", w, y, y)
+            a_, b_, c_ = M[:, 0, 0], M[:, 0, 1], M[:, 0, 2]
+            d_, e_, f_ = M[:, 1, 1], M[:, 1, 2], M[:, 2, 2]
+            adj = np.stack([np.stack([d_ * f_ - e_ * e_, c_ * e_ - b_ * f_, b_ * e_ - c_ * d_], -1),
+                            np.stack([c_ * e_ - b_ * f_, a_ * f_ - c_ * c_, b_ * c_ - a_ * e_], -1),
+                            np.stack([b_ * e_ - c_ * d_, b_ * c_ - a_ * e_, a_ * d_ - b_ * b_], -1)],
+                           1)
+            v = normal
+            for _ in range(2):
+                u = np.einsum("bij,bj->bi", adj, v)
+                nu = np.linalg.norm(u, axis=1)
+                v = np.where((nu > 0)[:, None], u / np.where(nu > 0, nu, 1)[:, None], v)
+            v = np.where((np.sum(v * normal, 1) < 0)[:, None], -v, v)
+            enough = w.sum(1) >= 3
+            normal = np.where(enough[:, None], v, normal)
+            d0 = np.where(enough, np.sum(v * c, 1), d0)
+        r = np.einsum("bpk,bk->bp", p64, normal) - d0[:, None]
+        inl = valid & (np.abs(r) <= ep)
+        nin = inl.sum(1)
+        inl_all[s:e], normal_all[s:e], d_all[s:e], nin_all[s:e] = inl, normal, d0, nin
+        rms_all[s:e] = np.sqrt(np.sum(np.where(inl, r * r, 0), 1) / np.maximum(nin - 3, 1))
+    inl_all &= good[:, None]
+    return {"inlier": inl_all, "normal": np.where(good[:, None], normal_all, np.nan),
+            "d": np.where(good, d_all, np.nan), "n_inliers": np.where(good, nin_all, 0),
+            "rms": np.where(good, rms_all, np.nan), "ransac_inliers": np.where(good, nr_all, 0)}
+
+
+def open3d_fit_planes(pts, n, eps, *, seed=0, ransac_iterations=64, **_):
+    """``open3d.geometry.PointCloud.segment_plane`` once per patch (no refinement)."""
+    import open3d as o3d
+
+    o3d.utility.random.seed(int(seed))
+    pts = np.asarray(pts)
+    n_p, P = pts.shape[:2]
+    n = np.asarray(n, np.int64)
+    eps = np.broadcast_to(np.asarray(eps, float), (n_p,))
+    inl_all = np.zeros((n_p, P), bool)
+    normal_all, d_all = np.full((n_p, 3), np.nan), np.full(n_p, np.nan)
+    nin_all, rms_all = np.zeros(n_p, np.int64), np.full(n_p, np.nan)
+    for i in range(n_p):
+        k = int(n[i])
+        if k < 3:
+            continue
+        q = pts[i, :k].astype(np.float64)
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(q))
+        model, inl = pc.segment_plane(distance_threshold=float(eps[i]), ransac_n=3,
+                                      num_iterations=int(ransac_iterations))
+        m = np.asarray(model, float)
+        nn = np.linalg.norm(m[:3])
+        nrm, dd = m[:3] / nn, -m[3] / nn
+        idx = np.asarray(inl, np.int64)
+        inl_all[i, idx] = True
+        r = q[idx] @ nrm - dd
+        normal_all[i], d_all[i], nin_all[i] = nrm, dd, len(idx)
+        rms_all[i] = np.sqrt(np.sum(r * r) / max(len(idx) - 3, 1))
+    return {"inlier": inl_all, "normal": normal_all, "d": d_all, "n_inliers": nin_all,
+            "rms": rms_all, "ransac_inliers": nin_all}
+
+
+# --------------------------------------------------------------------------------------------
+# Worker: one method on one scan, in its own process
+# --------------------------------------------------------------------------------------------
+
+
+def worker(method: str, n_rows: float) -> dict:
+    import jax
+
+    import hartrao_jax  # noqa: F401
+    from hartrao_jax import _preprocess as pp
+    from hartrao_jax._campaign import ScanMeta, default_campaign
+
+    data, cls, step = load_scan(n_rows)
+    import dataclasses
+
+    camp = default_campaign()
+    camp = dataclasses.replace(camp, scanner=dataclasses.replace(camp.scanner,
+                                                                 angular_step_rad=step))
+    meta = ScanMeta("r23c1", "r23", 1, "", ha_deg=-35.0, dec_deg=-64.0)
+    base = peak_mib()
+    if method == "numpy":
+        pp.fit_planes = numpy_fit_planes
+    elif method == "open3d":
+        pp.fit_planes = open3d_fit_planes
+    cfg = pp.PreprocessConfig()
+    out = {"method": method, "n_rows": len(data), "step_rad": step, "baseline_mib": base}
+    t = time.perf_counter()
+    res = pp.preprocess_scan(camp, meta, data, cfg)
+    out["first_s"] = time.perf_counter() - t
+    out["first_plane_s"] = res.stats["timing_s"]["ransac"]
+    if method == "jax":  # warm call: compiled shapes reused
+        t = time.perf_counter()
+        res = pp.preprocess_scan(camp, meta, data, cfg)
+        out["warm_s"] = time.perf_counter() - t
+        out["warm_plane_s"] = res.stats["timing_s"]["ransac"]
+    out["timing_s"] = res.stats["timing_s"]
+    out["peak_mib"] = peak_mib()
+    out["n_patches"] = res.stats["n_patches_fitted"]
+    out["points_per_patch"] = res.stats["points_per_patch"]
+    out["patch_size_m"] = res.params["patch_size_m"]
+    out["epsilon_m"] = res.params["epsilon_m"]
+    refl = cls == 0
+    scatter = cls != 0
+    out["reflector_kept"] = float(res.keep[refl].mean())
+    out["scatter_removed"] = float(1 - res.keep[scatter].mean())
+    np.save(CACHE / f"keep_{method}_{int(n_rows)}.npy", res.keep)
+    out["jax_devices"] = str(jax.devices())
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Driver
+# --------------------------------------------------------------------------------------------
+
+
+def run_worker(method: str, n_rows: float, timeout: float) -> dict:
+    cmd = [sys.executable, __file__, "--worker", method, "--size", repr(n_rows)]
+    try:
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return {"method": method, "error": f"timeout after {timeout:.0f} s"}
+    if p.returncode != 0:
+        tail = (p.stderr or p.stdout).strip().splitlines()[-3:]
+        return {"method": method, "error": " | ".join(tail)}
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--sizes", default="1e6,1.3e7")
+    ap.add_argument("--methods", default="jax,numpy,open3d")
+    ap.add_argument("--timeout", type=float, default=3600.0)
+    ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--size", type=float, default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.worker:
+        print(json.dumps(worker(args.worker, args.size), default=float))
+        return
+    from _common import machine_info, md_table, write_results
+
+    sizes = [float(s) for s in args.sizes.split(",")]
+    methods = args.methods.split(",")
+    rows = []
+    for n in sizes:
+        make_scan(n)
+        for m in methods:
+            print(f"size {n:.3g}: {m} ...", flush=True)
+            r = run_worker(m, n, args.timeout)
+            r["size"] = n
+            if "error" not in r:
+                ref = CACHE / f"keep_jax_{int(n)}.npy"
+                mine = CACHE / f"keep_{m}_{int(n)}.npy"
+                if ref.exists() and mine.exists():
+                    r["agree_with_jax"] = float(np.mean(np.load(ref) == np.load(mine)))
+                r["throughput_Mpts_s"] = r["n_rows"] / r.get("warm_s", r["first_s"]) / 1e6
+                r["plane_s"] = r.get("warm_plane_s", r["first_plane_s"])
+                r["total_s"] = r.get("warm_s", r["first_s"])
+            print(json.dumps(r, default=float), flush=True)
+            rows.append(r)
+    info = machine_info()
+    try:
+        import open3d
+
+        info["open3d"] = open3d.__version__
+    except Exception as e:  # pragma: no cover
+        info["open3d"] = f"not available ({type(e).__name__}: {e})"
+    cols = [("n_rows", "rows", ",d"), ("method", "plane stage", ""),
+            ("n_patches", "patches", ",d"), ("patch_size_m", "patch m", ".2f"),
+            ("plane_s", "plane stage s", ".2f"), ("total_s", "total s", ".2f"),
+            ("first_s", "first call s", ".2f"), ("throughput_Mpts_s", "Mpts/s", ".2f"),
+            ("baseline_mib", "baseline MiB", ".0f"), ("peak_mib", "peak MiB", ".0f"),
+            ("reflector_kept", "reflector kept", ".4f"), ("scatter_removed", "scatter removed", ".4f"),
+            ("agree_with_jax", "same mask as jax", ".6f"), ("error", "error", "")]
+    full = [r for r in rows if r.get("size") == max(sizes) and "error" not in r]
+    jx = next((r for r in full if r["method"] == "jax"), None)
+    o3 = next((r for r in full if r["method"] == "open3d"), None)
+    verdict = []
+    if jx:
+        verdict.append(f"- full-resolution scan ({jx['n_rows']:,} rows): whole preprocessing "
+                       f"{jx['total_s']:.1f} s warm, {jx['first_s']:.1f} s first call "
+                       f"(target < 60 s: {'met' if jx['first_s'] < 60 else 'NOT met'})")
+    if jx and o3:
+        verdict.append(f"- plane stage: JAX {jx['plane_s']:.2f} s vs open3d per patch "
+                       f"{o3['plane_s']:.2f} s ({o3['plane_s'] / jx['plane_s']:.1f}x); whole "
+                       f"pipeline {jx['total_s']:.1f} s vs {o3['total_s']:.1f} s")
+    md = (
+        "# Preprocessing throughput\n\n"
+        "`python benchmarks/bench_preprocess.py` -- one simulated demo scan per size (reflector, "
+        "cone, quadrupod, background, mixed pixels, multipath), the same pipeline "
+        "(initial values, range and geometry windows, angular patches) for every method; "
+        "only the plane stage differs. *plane stage*: RANSAC + refinement of all patches; "
+        "*total*: `preprocess_scan` end to end (warm for jax: the second call, compiled "
+        "shapes reused; *first call* includes compilation). Peak memory is the worker "
+        "process's `ru_maxrss`; *baseline* is its peak after loading the scan (Python, JAX, "
+        "the scan's columns). *same mask as jax*: fraction of rows with the same keep flag.\n\n"
+        + md_table(rows, cols) + "\n" + "\n".join(verdict) + "\n\n"
+        + "Machine: " + ", ".join(f"{k}={v}" for k, v in info.items()) + "\n"
+    )
+    p_md, _ = write_results("preprocess", md, {"machine": info, "rows": rows})
+    print(md)
+    print(f"wrote {p_md}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1011 @@
+"""Discrepancy engine: compare recordings with the model, locate the mismatch, explain it with the
+catalog, model it and show the fit improve (``hartrao-jax diagnose``).
+
+The model is the simulator: with the fitted parameters, the condition ``F(l, x, c)`` of a
+recorded point is the mismatch between the recording and the simulation of that point (zero for
+a perfect simulation). It is reported in observation space (range-equivalent, ``F / (dF/dr)``)
+and as surface deviation (``-F / sqrt(1 + rho^2/4f^2)``, m along the normal, positive towards
+the focus).
+
+One step of the loop (``physics.md``, "Statistics"):
+
+1. *Locate.* Per scan, the mismatch is reduced to time bins (the scan's phi clock) by the
+   derivatives of the condition with respect to a small scanner translation and rotation: a box
+   search over windows (change points: impulsive shift) and a periodogram (oscillation) follow;
+   binned structure along theta, range, incidence angle, intensity, dish radius, azimuth and time
+   (per face) and within-panel structure on the dish (after panel planes) are measured.
+2. *Explain.* One augmented model per scan holds every catalog parameter not yet in the model,
+   free at value 0 (instrument parameters, the shift with the window found, the oscillation with
+   the period found, drift, Zernike modes); :func:`~hartrao_jax._ghm.normal_equations` gives its
+   normal equations at the current solution, with one offset per panel (common to all scans)
+   as nuisance. The scans' equations are summed into one joint system (separate object
+   parameters per scan, instrument parameters shared by all scans, motion per scan, Zernike
+   coefficients linear in gravity across positions) and the panel offsets are eliminated
+   (Schur complement). For every candidate the score statistic, its one-step estimate, the
+   predicted improvement in metres and its multiple correlation with the model follow from the
+   partitioned system; candidates inseparable from the model are reported as ``confounded``.
+3. *Decide.* The candidate (or unexplained structure) with the largest equivalent normal score
+   that is significant (Bonferroni over candidates and searched windows/periods) and large
+   enough (``min_effect_m``) and has its family's signature (instrument: one value explains
+   every scan; motion: not common to the other cycle) is accepted.
+4. *Model.* It is added to the functional model (shared instrument parameter, motion parameters
+   of one scan with their window or period, panel planes or an empirical map as known deviation,
+   gravity Zernike coefficients, a cut of the affected time range) and every scan is refitted.
+
+Units: metres, radians, seconds; ``_deg`` keys are degrees.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy import stats
+
+from ._campaign import Campaign, ScanData, ScanMeta, load_campaign
+from ._geometry import face_of, panel_geometry, panel_ids, paraboloid_normal_scale
+from ._ghm import gauss_helmert, normal_equations, robust_gauss_helmert
+from ._model import DRIFT, OSCILLATION, SHIFT, ZERNIKE_PREFIX, make_model, parse_model
+from ._physics import EFFECTS, INSTRUMENT, OBJECT_PARAMETERS, inseparable_pairs
+
+log = logging.getLogger("hartrao_jax")
+
+DIAGNOSIS_SCHEMA = "hartrao-diagnosis/1"
+
+MOTION: dict[str, tuple[str, ...]] = {
+    "impulsive_shift": SHIFT, "oscillation": OSCILLATION, "drift": DRIFT,
+}
+ZERNIKE_TESTED: tuple[int, ...] = (5, 6, 7, 8, 9, 10, 11)  # Noll; defocus (4) is the focal length
+PROBE = ("shift_x", "shift_y", "shift_z", "osc_cx", "osc_cy")  # translation (3), rotation x, y
+COVARIATES = ("theta", "range", "incidence_angle", "intensity", "rho", "psi", "time")
+
+
+@dataclass(frozen=True)
+class DiagnoseConfig:
+    """Decision thresholds and search settings of :func:`diagnose`.
+
+    Attributes:
+        alpha: family-wise false-alarm probability of one step; divided among the candidates
+            (and the windows and periods searched for motion) by Bonferroni.
+        min_effect_m: practical effect size: the predicted rms change of the fit (m) a finding
+            must reach, however significant.
+        confounded_correlation: multiple correlation with the model above which a parameter is
+            inseparable (reported under ``confounded``, never tested).
+        max_steps: at most this many findings are accepted.
+        robust_k: rejection threshold of the refits (a-posteriori sigmas; None: off).
+        max_time_bins / min_points_per_bin: time bins of the motion search.
+        max_window_fraction: longest impulsive-shift window searched (fraction of the scan).
+        covariate_bins: quantile bins per covariate and face.
+        panel_cells: sub-cells per panel (radial, azimuthal) of the within-panel search.
+        scan_consistency: a shared (instrument) candidate is refused when freeing it per scan
+            improves the fit by more than this fraction of its own statistic (and
+            significantly): its structure then belongs to one scan, not to the instrument.
+        common_slope: a motion candidate is refused when the other cycle shows the same
+            deviation in the same dish cells (regression slope above this and significant).
+        effects: effect ids to test (None: all of the catalog).
+    """
+
+    alpha: float = 1e-6
+    min_effect_m: float = 1.0e-5
+    confounded_correlation: float = 0.995
+    max_steps: int = 10
+    robust_k: float | None = 4.0
+    max_time_bins: int = 1024
+    min_points_per_bin: int = 120
+    max_window_fraction: float = 0.3
+    covariate_bins: int = 16
+    panel_cells: tuple[int, int] = (3, 3)
+    scan_consistency: float = 0.3
+    common_slope: float = 0.5
+    effects: tuple[str, ...] | None = None
+
+
+# ============================================================================================
+# per-scan state
+# ============================================================================================
+
+
+@dataclass
+class _Scan:
+    """One scan under diagnosis: fixed geometry from the start fit and the current solution."""
+
+    meta: ScanMeta
+    data: ScanData
+    g: np.ndarray
+    init_x: dict[str, float]
+    window: np.ndarray  # points inside the geometry window (and the preprocessing mask)
+    l: np.ndarray
+    kappa: float
+    elevation_deg: float
+    X_tel: np.ndarray
+    rho: np.ndarray
+    psi: np.ndarray
+    panel: np.ndarray  # panel id (-1: none), from the start fit
+    s_rho: np.ndarray  # sqrt(1 + rho^2/4f^2): d condition / d normal offset
+    face: np.ndarray
+    incidence: np.ndarray
+    known: np.ndarray  # modelled normal deviation (m): panels and empirical maps
+    extra_known: np.ndarray  # the empirical (unexplained) part of it
+    cut: np.ndarray  # points cut from the adjustment (bool)
+    # current solution
+    names: tuple[str, ...] = ()
+    x: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    sigma0: float = float("nan")
+    omega: float = 0.0
+    redundancy: int = 0
+    v: np.ndarray | None = None
+    used: np.ndarray | None = None
+    F: np.ndarray | None = None  # misclosure at the observations (m, condition units)
+    m: np.ndarray | None = None  # b Sigma b^T
+    b0: np.ndarray | None = None  # dF/dr
+    probe: np.ndarray | None = None  # dF/d(translation x y z, rotation x y), (n, 5)
+    converged: bool = True
+    window_s: tuple[float, float] | None = None  # shift window found by the search (s)
+    window_stat: float = 0.0
+    period_s: float | None = None  # oscillation period found by the periodogram (s)
+    period_stat: float = 0.0
+    search: dict = field(default_factory=dict)  # curves of the searches (for figures)
+
+    @property
+    def id(self) -> str:
+        return self.meta.id
+
+    def value(self, name: str) -> float:
+        return float(self.x[self.names.index(name)])
+
+    @property
+    def mismatch_m(self) -> np.ndarray:
+        """Recording minus simulation as normal surface deviation (m, towards the focus)."""
+        return -self.F / self.s_rho
+
+    @property
+    def mismatch_range_m(self) -> np.ndarray:
+        """Recording minus simulation in observation space: the range error (m)."""
+        b0 = np.where(np.abs(self.b0) > 1e-12, self.b0, 1e-12)
+        return self.F / b0
+
+    def consts(self) -> np.ndarray:
+        return np.column_stack([self.data.time_s, self.known, self.s_rho])
+
+
+@dataclass
+class _Spec:
+    """The functional model being grown (what is common to all scans and what is per scan)."""
+
+    start: tuple[str, ...]
+    shared: dict[str, float] = field(default_factory=dict)  # accepted instrument parameters
+    shared_sigma: dict[str, float] = field(default_factory=dict)
+    zern_C: np.ndarray | None = None  # (K, 3) gravity Zernike coefficients, modes ZERNIKE_TESTED
+    motion: dict[str, dict] = field(default_factory=dict)  # scan id -> names, window_s, period_s
+    panels: dict[str, np.ndarray] | None = None  # offset, tilt_r, tilt_t per panel
+    accepted: list[str] = field(default_factory=list)
+
+    def names(self) -> list[str]:
+        out = list(self.start) + list(self.shared)
+        for m in self.motion.values():
+            out += [n for n in m["names"] if n not in out]
+        if self.zern_C is not None:
+            out += [f"{ZERNIKE_PREFIX}{j}" for j in ZERNIKE_TESTED]
+        if self.panels is not None:
+            out.append("panel_offset")
+        for a in self.accepted:
+            if a.startswith("unexplained") and "unexplained" not in out:
+                out.append("unexplained")
+        return out
+
+
+def _fixed(sc: _Scan, spec: _Spec) -> dict[str, float]:
+    fixed = dict(spec.shared)
+    if spec.zern_C is not None:
+        for k, j in enumerate(ZERNIKE_TESTED):
+            fixed[f"{ZERNIKE_PREFIX}{j}"] = float(spec.zern_C[k] @ sc.g)
+    return fixed
+
+
+def _scan_model(sc: _Scan, spec: _Spec, aperture: float, extra: Sequence[str] = (),
+                window_s=None, period_s=None):
+    mot = spec.motion.get(sc.id, {})
+    names = list(spec.start) + [n for n in mot.get("names", ()) if n not in spec.start]
+    names += [n for n in extra if n not in names]
+    window = mot.get("window_s") or window_s or (0.0, 0.0)
+    period = mot.get("period_s") or period_s or 1.0
+    return make_model(names, _fixed(sc, spec), shift_window_s=window, osc_period_s=period,
+                      kappa_rad=sc.kappa, aperture_radius_m=aperture, check_separable=False)
+
+
+@eqx.filter_jit
+def _pointwise(model, probe, l, x, xp, c, s2):
+    """Per point: ``m = b Sigma b^T``, ``dF/dr`` and the probe derivatives (translation, rotation)."""
+    k = len(PROBE)
+
+    def one(args):
+        ll, cc = args
+        b = jax.grad(lambda l0: model(l0, x, cc))(ll)
+        m = jnp.sum(b * b * s2)
+        ap = jax.jacfwd(lambda p: probe(ll, jnp.concatenate([xp, p]), cc))(jnp.zeros(k, ll.dtype))
+        return m, b[0], ap
+
+    return jax.lax.map(one, (l, c), batch_size=8192)
+
+
+_misclosure = eqx.filter_jit(
+    lambda model, l, x, c: jax.lax.map(lambda a: model(a[0], x, a[1]), (l, c), batch_size=8192)
+)
+
+
+class _Context:
+    """Campaign-level constants of one diagnosis."""
+
+    def __init__(self, campaign: Campaign, config: DiagnoseConfig):
+        self.campaign = campaign
+        self.config = config
+        tel = campaign.telescope
+        self.aperture = tel.diameter_m / 2
+        s = campaign.scanner
+        self.sigma = np.array([s.sigma_range_m, s.sigma_angle_rad, s.sigma_angle_rad])
+        if tel.ring_edges_m and tel.panels_per_ring:
+            self.edges, self.counts = list(tel.ring_edges_m), list(tel.panels_per_ring)
+        else:  # no panel layout: rings of ~1.6 m, cells of ~1 m, as nuisance groups
+            r0 = tel.cone_radius_m or 0.0
+            nr = max(1, round((self.aperture - r0) / 1.6))
+            self.edges = list(np.linspace(r0, self.aperture, nr + 1))
+            self.counts = [max(6, round(2 * np.pi * 0.5 * (a + b) / 1.0))
+                           for a, b in zip(self.edges[:-1], self.edges[1:])]
+        self.geo = panel_geometry(self.edges, self.counts)
+        self.n_panels = int(sum(self.counts))
+
+
+# --------------------------------------------------------------------------------------------
+# fitting
+# --------------------------------------------------------------------------------------------
+
+
+def _start_scans(ctx: _Context, start: tuple[str, ...], keep, scans: Sequence[str] | None,
+                 progress: bool) -> list[_Scan]:
+    """Fit every scan with the start model (the project's ``fit``) and freeze its geometry."""
+    from ._fit import fit_campaign
+
+    cf = fit_campaign(ctx.campaign, start, scans=scans, keep=keep,
+                      robust_k=ctx.config.robust_k, progress=progress)
+    out = []
+    for f in cf.scans:
+        X = f.X_tel
+        rho = np.hypot(X[:, 0], X[:, 1])
+        psi = np.mod(np.arctan2(X[:, 1], X[:, 0]), 2 * np.pi)
+        pid = panel_ids(rho, psi, ctx.edges, ctx.counts)
+        fval = f.value("f")
+        s_rho = np.asarray(paraboloid_normal_scale(rho, fval))
+        # incidence angle: beam (from the scanner origin, fitted frame) against the normal
+        from ._geometry import rot_z
+
+        t = np.array([f.value("tx"), f.value("ty"), f.value("tz")]) @ np.asarray(
+            rot_z(f.alignment.kappa_rad)).T
+        d = X - t
+        nrm = np.column_stack([-X[:, 0] / (2 * fval), -X[:, 1] / (2 * fval), np.ones(len(X))])
+        cosi = np.abs(np.sum(d * nrm, 1)) / (np.linalg.norm(d, axis=1) * np.linalg.norm(nrm, axis=1)
+                                             + 1e-300)
+        window = np.isfinite(f.deviation_m) & (np.abs(f.deviation_m) < 0.10)
+        if keep is not None:
+            window &= np.asarray(keep(f.meta, f.data), bool)
+        window |= f.used
+        n = len(f.data)
+        sc = _Scan(
+            meta=f.meta, data=f.data, g=np.asarray(f.gravity), init_x=dict(f.init.x),
+            window=window, l=np.column_stack([f.data.range_m, f.data.phi_rad,
+                                                      f.data.theta_rad]),
+            kappa=float(f.alignment.kappa_rad), elevation_deg=float(f.elevation_deg), X_tel=X,
+            rho=rho, psi=psi, panel=pid, s_rho=s_rho, face=face_of(f.data.theta_rad),
+            incidence=np.arccos(np.clip(cosi, 0, 1)), known=np.zeros(n), extra_known=np.zeros(n),
+            cut=np.zeros(n, bool),
+        )
+        sc.names, sc.x, sc.cov, sc.sigma0 = f.names, f.x, f.cov, f.sigma0
+        sc.v, sc.used, sc.converged = f.v, f.used, f.converged
+        out.append(sc)
+    return out
+
+
+def _refit(ctx: _Context, sc: _Scan, spec: _Spec, x_hint: dict[str, float] | None = None) -> None:
+    """Adjust one scan with the current model (rigorous GH, robust rejection from scratch)."""
+    model = _scan_model(sc, spec, ctx.aperture)
+    prev = dict(zip(sc.names, sc.x))
+    hint = x_hint or {}
+    x0 = np.array([hint.get(n, prev.get(n, sc.init_x.get(n, 0.0))) for n in model.free])
+    w = (sc.window & ~sc.cut).astype(float)
+    c = sc.consts()
+    k = ctx.config.robust_k
+    if k is None:
+        res = gauss_helmert(model, sc.l, x0, ctx.sigma, c, w)
+    else:
+        res = robust_gauss_helmert(model, sc.l, x0, ctx.sigma, c, w, k=k)
+    sc.names = model.free
+    sc.x, sc.cov, sc.sigma0 = np.asarray(res.x), np.asarray(res.cov), float(res.sigma0)
+    sc.v, sc.used = np.asarray(res.v), np.asarray(res.weights) > 0
+    sc.converged = bool(res.converged)
+    _evaluate(ctx, sc, spec, model)
+
+
+def _evaluate(ctx: _Context, sc: _Scan, spec: _Spec, model=None) -> None:
+    """Misclosures, ``m``, ``dF/dr`` and probe derivatives at the current solution."""
+    model = model or _scan_model(sc, spec, ctx.aperture)
+    c = sc.consts()
+    x = jnp.asarray(sc.x)
+    sc.F = np.asarray(_misclosure(model, jnp.asarray(sc.l), x, jnp.asarray(c)))
+    base = [n for n in model.free if n not in SHIFT + OSCILLATION]
+    probe = make_model(base + list(PROBE), _fixed(sc, spec), shift_window_s=(-1e9, 1e18),
+                       osc_period_s=1e18, kappa_rad=sc.kappa, aperture_radius_m=ctx.aperture,
+                       check_separable=False)
+    xp = np.array([sc.value(n) for n in probe.free[: len(probe.free) - len(PROBE)]])
+    m, b0, ap = _pointwise(model, probe, jnp.asarray(sc.l), x, jnp.asarray(xp), jnp.asarray(c),
+                           jnp.asarray(ctx.sigma**2))
+    sc.m, sc.b0, sc.probe = np.asarray(m), np.asarray(b0), np.asarray(ap)
+    u = sc.used
+    sc.omega = float(np.sum(sc.F[u] ** 2 / sc.m[u]))
+    sc.redundancy = int(u.sum() - len(sc.x))
+
+
+def _global_sigma0(scans: Sequence[_Scan]) -> float:
+    return math.sqrt(sum(s.omega for s in scans) / max(1, sum(s.redundancy for s in scans)))
+
+
+def _rms(scans: Sequence[_Scan]) -> float:
+    v = np.concatenate([s.mismatch_m[s.used] for s in scans])
+    return float(np.sqrt(np.mean(v**2)))
+
+
+# ============================================================================================
+# locate: time (change points, periodogram), covariates, dish
+# ============================================================================================
+
+
+def _time_bins(sc: _Scan, cfg: DiagnoseConfig):
+    u = sc.used & (sc.m > 0)
+    t = sc.data.time_s
+    nb = int(np.clip(u.sum() // cfg.min_points_per_bin, 16, cfg.max_time_bins))
+    t0, t1 = float(t[u].min()), float(t[u].max())
+    edges = np.linspace(t0, t1 + 1e-9 * max(1.0, abs(t1)), nb + 1)
+    b = np.clip(np.searchsorted(edges, t, side="right") - 1, 0, nb - 1)
+    q = np.where(u, 1.0 / np.where(sc.m > 0, sc.m, 1.0), 0.0)
+    a = sc.probe
+    Nb = np.zeros((nb, 5, 5))
+    nbv = np.zeros((nb, 5))
+    qa = a * q[:, None]
+    for i in range(5):
+        nbv[:, i] = np.bincount(b, qa[:, i] * sc.F, minlength=nb)
+        for j in range(i, 5):
+            Nb[:, i, j] = Nb[:, j, i] = np.bincount(b, qa[:, i] * a[:, j], minlength=nb)
+    return edges, b, Nb, nbv
+
+
+def _box_search(edges, Nb, nbv, cfg: DiagnoseConfig):
+    """Best window of a translation (impulsive shift) over the time bins: ``(i, j, T, profile)``.
+
+    ``T = n_W^T S_W^-1 n_W`` with ``S_W = N_W - N_W N^-1 N_W`` (the constant translation is
+    the object parameters'). Windows up to ``max_window_fraction`` of the scan.
+    """
+    B = len(nbv)
+    Nt, nt = Nb[:, :3, :3], nbv[:, :3]
+    CN = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(Nt, 0)])
+    Cn = np.concatenate([np.zeros((1, 3)), np.cumsum(nt, 0)])
+    Ntot = CN[-1]
+    Ninv = np.linalg.pinv(Ntot)
+    best = (0, 1, 0.0)
+    Lmax = max(1, int(cfg.max_window_fraction * B))
+    profile = np.zeros(B)
+    eye = 1e-9 * np.trace(Ntot) / 3 * np.eye(3)
+    for L in range(1, Lmax + 1):
+        NW = CN[L:] - CN[:-L]
+        nW = Cn[L:] - Cn[:-L]
+        S = NW - NW @ Ninv @ NW + eye
+        ok = np.trace(NW, axis1=1, axis2=2) > 0
+        T = np.zeros(len(nW))
+        if ok.any():
+            sol = np.linalg.solve(S[ok], nW[ok][..., None])[..., 0]
+            T[ok] = np.sum(nW[ok] * sol, 1)
+        k = int(np.argmax(T))
+        if T[k] > best[2]:
+            best = (k, k + L, float(T[k]))
+        np.maximum.at(profile, np.arange(len(T)), T)
+    return best[0], best[1], best[2], profile, Lmax
+
+
+def _periodogram(edges, Nb, nbv, cfg: DiagnoseConfig):
+    """Score statistic of a rotation ``a sin(wt) + b cos(wt)`` about scanner x and y vs period.
+
+    Returns ``(periods, T)``; the constant rotation (object parameters) is eliminated.
+    """
+    B = len(nbv)
+    tb = 0.5 * (edges[:-1] + edges[1:])
+    span = edges[-1] - edges[0]
+    Nr, nr = Nb[:, 3:, 3:], nbv[:, 3:]
+    live = np.trace(Nr, axis1=1, axis2=2) > 0
+    tb, Nr, nr = tb[live], Nr[live], nr[live]
+    fmin = 2.0 / span
+    fmax = 0.25 * B / span  # half the bins' Nyquist frequency
+    if fmax <= fmin:
+        return np.zeros(0), np.zeros(0)
+    nf = int(min(4000, max(50, 4 * (fmax - fmin) * span)))
+    freqs = np.linspace(fmin, fmax, nf)
+    Ntot = Nr.sum(0)
+    Ntot_inv = np.linalg.pinv(Ntot)
+    T = np.zeros(nf)
+    for lo in range(0, nf, 256):
+        f = freqs[lo: lo + 256]
+        ph = 2 * np.pi * f[:, None] * tb[None, :]
+        H = np.stack([np.sin(ph), np.cos(ph)], -1)  # (F, B, 2)
+        M = np.einsum("fbp,fbq,bij->fpiqj", H, H, Nr).reshape(len(f), 4, 4)
+        K = np.einsum("fbp,bij->fpij", H, Nr).reshape(len(f), 4, 2)
+        u = np.einsum("fbp,bi->fpi", H, nr).reshape(len(f), 4)
+        S = M - K @ Ntot_inv @ np.swapaxes(K, 1, 2)
+        S = S + 1e-12 * np.trace(S, axis1=1, axis2=2)[:, None, None] * np.eye(4)
+        sol = np.linalg.solve(S, u[..., None])[..., 0]
+        T[lo: lo + 256] = np.sum(u * sol, 1)
+    return 1.0 / freqs, T
+
+
+def _locate_time(sc: _Scan, cfg: DiagnoseConfig) -> None:
+    """Window of the strongest box (change points) and the strongest period of one scan."""
+    edges, b, Nb, nbv = _time_bins(sc, cfg)
+    i, j, T, profile, Lmax = _box_search(edges, Nb, nbv, cfg)
+    sc.window_s = (float(edges[i]), float(edges[j] - edges[i]))
+    sc.window_stat = T
+    periods, P = _periodogram(edges, Nb, nbv, cfg)
+    if len(P):
+        k = int(np.argmax(P))
+        per = periods[k]
+        if 0 < k < len(P) - 1:  # parabolic refinement in frequency
+            f = 1.0 / periods[k - 1: k + 2]
+            y = P[k - 1: k + 2]
+            den = y[0] - 2 * y[1] + y[2]
+            if den < 0:
+                d = 0.5 * (y[0] - y[2]) / den
+                per = 1.0 / (f[1] + d * (f[2] - f[1]))
+        sc.period_s, sc.period_stat = float(per), float(P[k])
+    B = len(nbv)
+    sc.search = {
+        "edges": edges, "box_profile": profile, "n_windows": B * Lmax,
+        "periods": periods, "periodogram": P, "n_periods": max(1, len(P)),
+        "translation": _bin_solutions(Nb[:, :3, :3], nbv[:, :3]),
+    }
+
+
+def _bin_solutions(N, n):
+    """Per-bin least-squares estimates (regularised), for plots."""
+    tr = np.trace(N, axis1=1, axis2=2)[:, None, None]
+    reg = 1e-6 * np.where(tr > 0, tr, 1.0) * np.eye(N.shape[-1])
+    return -np.linalg.solve(N + reg, n[..., None])[..., 0]
+
+
+def _covariate_values(sc: _Scan) -> dict[str, np.ndarray]:
+    th = np.mod(sc.data.theta_rad, 2 * np.pi)
+    return {
+        "theta": np.where(th > np.pi, 2 * np.pi - th, th),
+        "range": sc.data.range_m,
+        "incidence_angle": sc.incidence,
+        "intensity": sc.data.intensity.astype(float),
+        "rho": sc.rho,
+        "psi": sc.psi,
+        "time": sc.data.time_s,
+        "phi": sc.data.phi_rad,
+    }
+
+
+def _covariate_tests(sc: _Scan, cfg: DiagnoseConfig, sigma0: float, names=COVARIATES):
+    """Binned structure of the range-equivalent mismatch along each covariate, per face.
+
+    A range error per (face, quantile bin) is the alternative: ``T = sum_bins (sum q b0 F)^2 /
+    sum q b0^2 / sigma0^2`` (chi-square with one dof per bin under the null; conservative, the
+    object parameters are not eliminated). Returns ``{covariate: (T, dof, bin ids, bin means)}``.
+    """
+    u = sc.used & (sc.m > 0)
+    q = np.where(u, 1.0 / np.where(sc.m > 0, sc.m, 1.0), 0.0)
+    vals = _covariate_values(sc)
+    out = {}
+    nb = cfg.covariate_bins
+    for name in names:
+        v = vals[name]
+        ids = np.full(len(v), -1)
+        for fc in (1, 2):
+            sel = u & (sc.face == fc)
+            if sel.sum() < 4 * nb:
+                continue
+            qs = np.quantile(v[sel], np.linspace(0, 1, nb + 1)[1:-1])
+            ids[sel] = (fc - 1) * nb + np.searchsorted(qs, v[sel], side="right")
+        ok = ids >= 0
+        G = 2 * nb
+        num = np.bincount(ids[ok], (q * sc.b0 * sc.F)[ok], minlength=G)
+        den = np.bincount(ids[ok], (q * sc.b0**2)[ok], minlength=G)
+        live = den > 0
+        T = float(np.sum(num[live] ** 2 / den[live])) / sigma0**2
+        means = np.where(live, num / np.where(live, den, 1.0), 0.0)  # range error per bin (m)
+        out[name] = (T, int(live.sum()), ids, means)
+    return out
+
+
+def _panel_cells(ctx: _Context, sc: _Scan) -> np.ndarray:
+    """Sub-cell of each point within its panel (``panel * nr * na + cell``; -1: none)."""
+    nr, na = ctx.config.panel_cells
+    p = sc.panel
+    ok = p >= 0
+    k = np.where(ok, p, 0)
+    g = ctx.geo
+    fr = np.clip((sc.rho - g["rho_in"][k]) / (g["rho_out"][k] - g["rho_in"][k]), 0, 0.999999)
+    dpsi = np.mod(sc.psi - g["psi_start"][k], 2 * np.pi)
+    fa = np.clip(dpsi / (g["psi_end"][k] - g["psi_start"][k]), 0, 0.999999)
+    cell = (fr * nr).astype(int) * na + (fa * na).astype(int)
+    return np.where(ok, k * nr * na + cell, -1)
+
+
+def _panel_columns(ctx: _Context, sc: _Scan) -> np.ndarray:
+    """Normal-deviation columns of a panel plane (offset, radial tilt, tangential tilt)."""
+    k = np.where(sc.panel >= 0, sc.panel, 0)
+    g = ctx.geo
+    dpsi = np.mod(sc.psi - g["psi_c"][k] + np.pi, 2 * np.pi) - np.pi
+    return np.column_stack([np.ones_like(sc.rho), sc.rho - g["rho_c"][k], g["rho_c"][k] * dpsi])
+
+
+def _dish_test(ctx: _Context, scans: Sequence[_Scan], sigma0: float):
+    """Within-panel structure common to all scans: cell offsets after one plane per panel.
+
+    Returns per panel ``(T, dof)``, the per-cell deviation estimates (m) and the cell ids.
+    """
+    nr, na = ctx.config.panel_cells
+    C = nr * na
+    G = ctx.n_panels
+    # normal-deviation regression: condition change = s * dev, so dev column = -s (F = ... + dev s)
+    Mcc = np.zeros(G * C)
+    Mcp = np.zeros((G * C, 3))
+    Mpp = np.zeros((G, 3, 3))
+    uc = np.zeros(G * C)
+    up = np.zeros((G, 3))
+    cells = []
+    for sc in scans:
+        u = sc.used & (sc.m > 0) & (sc.panel >= 0)
+        q = np.where(u, 1.0 / np.where(sc.m > 0, sc.m, 1.0), 0.0)
+        cell = _panel_cells(ctx, sc)
+        cells.append(cell)
+        P = _panel_columns(ctx, sc)
+        s = sc.s_rho
+        r = -sc.F / s  # mismatch along the normal
+        w = q * s * s
+        ci, pi_ = cell[u], sc.panel[u]
+        Mcc += np.bincount(ci, w[u], minlength=G * C)
+        uc += np.bincount(ci, (w * r)[u], minlength=G * C)
+        for a in range(3):
+            Mcp[:, a] += np.bincount(ci, (w * P[:, a])[u], minlength=G * C)
+            up[:, a] += np.bincount(pi_, (w * r * P[:, a])[u], minlength=G)
+            for b in range(3):
+                Mpp[:, a, b] += np.bincount(pi_, (w * P[:, a] * P[:, b])[u], minlength=G)
+    Tg = np.zeros(G)
+    dof = np.zeros(G, int)
+    est = np.zeros(G * C)
+    for g in range(G):
+        sl = slice(g * C, (g + 1) * C)
+        live = Mcc[sl] > 0
+        if live.sum() <= 3:
+            continue
+        mcc = Mcc[sl][live]
+        mcp = Mcp[sl][live]
+        ucg = uc[sl][live]
+        # cells (indicators) reduced by the plane: S = diag(mcc) - mcp Mpp^-1 mcp^T
+        Pinv = np.linalg.pinv(Mpp[g])
+        S = np.diag(mcc) - mcp @ Pinv @ mcp.T
+        m = ucg - mcp @ Pinv @ up[g]
+        w_, V = np.linalg.eigh(S)
+        keep = w_ > 1e-9 * w_.max()
+        proj = V[:, keep].T @ m
+        Tg[g] = float(np.sum(proj**2 / w_[keep])) / sigma0**2
+        dof[g] = int(keep.sum())
+        sol = V[:, keep] @ (proj / w_[keep])
+        e = np.zeros(C)
+        e[live] = sol
+        est[sl] = e
+    return Tg, dof, est, cells
+
+
+# ============================================================================================
+# explain: augmented normal equations, joint system, tests
+# ============================================================================================
+
+
+@dataclass
+class _Candidate:
+    """A catalog effect (or a group of parameters) to test, in joint indices."""
+
+    effect: str
+    family: str
+    idx: np.ndarray  # joint indices of its (local) parameters
+    H: np.ndarray  # (len(idx), q): the tested parameters -> local columns
+    names: list[str]  # names of the tested parameters
+    scans: list[str]
+    penalty: float = 1.0  # Bonferroni factor of searches (windows, periods)
+    info: dict = field(default_factory=dict)
+    per_scan: np.ndarray | None = None  # H of the per-scan alternative (shared candidates)
+
+
+@dataclass
+class _Test:
+    cand: _Candidate
+    T: float
+    dof: int
+    p: float
+    z: float
+    effect_m: float
+    estimate: np.ndarray
+    sigma: np.ndarray
+    correlation: float
+    with_: list[str]
+    corr_with: list[float]
+    confounded: bool
+    T_diff: float = 0.0
+    dof_diff: int = 0
+    notes: list[str] = field(default_factory=list)
+
+
+def _z_of(T: float, dof: int) -> float:
+    """Equivalent standard-normal score of a chi-square value (Wilson-Hilferty)."""
+    if dof <= 0:
+        return 0.0
+    k = float(dof)
+    return ((max(T, 0.0) / k) ** (1 / 3) - (1 - 2 / (9 * k))) / math.sqrt(2 / (9 * k))
+
+
+def _p_of(T: float, dof: int) -> float:
+    return float(stats.chi2.sf(max(T, 0.0), max(dof, 1)))
+
+
+class _Joint:
+    """The scans' normal equations summed into one system, panel offsets eliminated."""
+
+    def __init__(self, ctx: _Context, scans: Sequence[_Scan], spec: _Spec, candidates_local):
+        self.ctx = ctx
+        self.scans = scans
+        cfg = ctx.config
+        G = ctx.n_panels
+        # ---- joint layout: x blocks per scan, accepted shared, then per-scan candidate slots
+        self.labels: list[str] = []
+        self.xidx: dict[str, np.ndarray] = {}
+        maps = []
+        self.local_names = {}
+        for sc in scans:
+            model = _scan_model(sc, spec, ctx.aperture)
+            x_names = list(model.free)
+            self.xidx[sc.id] = np.arange(len(self.labels), len(self.labels) + len(x_names))
+            self.labels += [f"{n}@{sc.id}" for n in x_names]
+            maps.append(x_names)
+        # accepted shared parameters (instrument; Zernike through gravity)
+        self.shared_names = list(spec.shared)
+        zern_acc = spec.zern_C is not None
+        self.sidx = np.arange(len(self.labels), len(self.labels) + len(self.shared_names)
+                              + (3 * len(ZERNIKE_TESTED) if zern_acc else 0))
+        self.labels += self.shared_names
+        if zern_acc:
+            self.labels += [f"C{j}{a}" for j in ZERNIKE_TESTED for a in "xyz"]
+        # candidate slots: per scan
+        self.cidx: dict[tuple[str, str], int] = {}
+        for sc in scans:
+            for n in candidates_local[sc.id]:
+                self.cidx[(sc.id, n)] = len(self.labels)
+                self.labels.append(f"{n}@{sc.id}")
+        D = len(self.labels)
+        self.D = D
+        N = np.zeros((D, D))
+        n = np.zeros(D)
+        wMw = 0.0
+        S = np.zeros(G)
+        sg = np.zeros((G, D))
+        tg = np.zeros(G)
+        self.n_used = 0
+        self.sum_q = 0.0
+        t0 = time.time()
+        for sc, x_names in zip(scans, maps):
+            cands = candidates_local[sc.id]
+            extra = list(self.shared_names) + (
+                [f"{ZERNIKE_PREFIX}{j}" for j in ZERNIKE_TESTED] if zern_acc else [])
+            extra += [c for c in cands if c not in extra]
+            mot = spec.motion.get(sc.id, {})
+            model = _scan_model(sc, spec, ctx.aperture, extra=extra,
+                                window_s=None if mot.get("window_s") else sc.window_s,
+                                period_s=None if mot.get("period_s") else sc.period_s)
+            fixed = _fixed(sc, spec)
+            prev = dict(zip(sc.names, sc.x))
+            x = np.array([prev.get(k, fixed.get(k, 0.0)) for k in model.free])
+            P = np.zeros((len(model.free), D))
+            for i, name in enumerate(model.free):
+                if name in x_names:
+                    P[i, self.xidx[sc.id][x_names.index(name)]] = 1.0
+                elif name in self.shared_names:
+                    P[i, self.sidx[self.shared_names.index(name)]] = 1.0
+                elif zern_acc and name.startswith(ZERNIKE_PREFIX) and int(
+                        name[len(ZERNIKE_PREFIX):]) in ZERNIKE_TESTED:
+                    k = ZERNIKE_TESTED.index(int(name[len(ZERNIKE_PREFIX):]))
+                    base = self.sidx[len(self.shared_names) + 3 * k]
+                    P[i, base: base + 3] = sc.g
+                else:
+                    P[i, self.cidx[(sc.id, name)]] = 1.0
+            w = (sc.used & (sc.m > 0)).astype(float)
+            ne = normal_equations(model, sc.l, x, ctx.sigma, sc.consts(), w, sc.v,
+                                  groups=np.where(sc.panel >= 0, sc.panel, -1), n_groups=G,
+                                  offset_column=2)
+            Ns, ns = np.asarray(ne.N), np.asarray(ne.n)
+            N += P.T @ Ns @ P
+            n += P.T @ ns
+            wMw += float(ne.wMw)
+            S += np.asarray(ne.S)
+            sg += np.asarray(ne.s) @ P
+            tg += np.asarray(ne.t)
+            self.n_used += int(w.sum())
+            self.sum_q += float(np.sum(w / np.where(sc.m > 0, sc.m, 1.0)))
+        log.debug("joint normal equations: %d unknowns, %.1f s", D, time.time() - t0)
+        self.N_raw, self.n_raw, self.wMw_raw = N, n, wMw
+        live = S > 0
+        Si = np.where(live, 1.0 / np.where(live, S, 1.0), 0.0)
+        self.G_live = int(live.sum())
+        self.N = N - (sg.T * Si) @ sg
+        self.n = n - sg.T @ (Si * tg)
+        self.wMw = wMw - float(np.sum(Si * tg**2))
+        self.group = (S, sg, tg)
+        # ---- null system: x blocks and accepted shared
+        self.I0 = np.concatenate([*self.xidx.values(), self.sidx]).astype(int)
+        K = self.N[np.ix_(self.I0, self.I0)]
+        self.K_scale = 1.0 / np.sqrt(np.where(np.diag(K) > 0, np.diag(K), 1.0))
+        Ks = K * self.K_scale[:, None] * self.K_scale[None, :]
+        self.K_inv = np.linalg.pinv(Ks, rcond=1e-13) * self.K_scale[:, None] * self.K_scale[None, :]
+        n0 = self.n[self.I0]
+        self.omega0 = self.wMw - float(n0 @ self.K_inv @ n0)
+        self.dof0 = self.n_used - len(self.I0) - self.G_live
+        self.sigma0 = math.sqrt(max(self.omega0, 1e-300) / max(self.dof0, 1))
+        # null without panel elimination (for the panel test)
+        Kr = self.N_raw[np.ix_(self.I0, self.I0)]
+        Kr_s = Kr * self.K_scale[:, None] * self.K_scale[None, :]
+        Kr_inv = np.linalg.pinv(Kr_s, rcond=1e-13) * self.K_scale[:, None] * self.K_scale[None, :]
+        n0r = self.n_raw[self.I0]
+        self.omega0_raw = self.wMw_raw - float(n0r @ Kr_inv @ n0r)
+        self.cfg = cfg
+
+    # ----------------------------------------------------------------------------------
+    def null_step(self) -> np.ndarray:
+        """Increment of all null unknowns (x blocks, accepted shared) with panels eliminated."""
+        d = np.zeros(self.D)
+        d[self.I0] = -self.K_inv @ self.n[self.I0]
+        return d
+
+    def panel_step(self, dz: np.ndarray) -> np.ndarray:
+        """Panel offsets (m, normal) of the joint solution given the other increments ``dz``."""
+        S, sg, tg = self.group
+        live = S > 0
+        return np.where(live, -(tg + sg @ dz) / np.where(live, S, 1.0), 0.0)
+
+    def test(self, cand: _Candidate, sigma0: float | None = None) -> _Test:
+        """Score statistic, one-step estimate, effect size and correlation of a candidate."""
+        cfg = self.cfg
+        s0 = sigma0 or self.sigma0
+        H = cand.H
+        J = cand.idx
+        B = self.N[np.ix_(self.I0, J)] @ H
+        Z = self.K_inv @ B
+        S = H.T @ self.N[np.ix_(J, J)] @ H - B.T @ Z
+        m = H.T @ self.n[J] - Z.T @ self.n[self.I0]
+        Draw = H.T @ self.N_raw[np.ix_(J, J)] @ H
+        S = 0.5 * (S + S.T)
+        # canonical directions: S v = lam Draw v; lam = 1 - rho^2
+        d = np.sqrt(np.where(np.diag(Draw) > 0, np.diag(Draw), 1.0))
+        Dn = Draw / np.outer(d, d)
+        Sn = S / np.outer(d, d)
+        L = np.linalg.cholesky(Dn + 1e-14 * np.eye(len(Dn)))
+        Li = np.linalg.inv(L)
+        lam, V = np.linalg.eigh(Li @ Sn @ Li.T)
+        U = (Li.T @ V) / d[:, None]  # directions in parameter space with U^T Draw U = I
+        lam = np.clip(lam, 0.0, 1.0)
+        thr = 1.0 - cfg.confounded_correlation**2
+        keep = lam > thr
+        rho = float(math.sqrt(max(0.0, 1.0 - lam.min()))) if len(lam) else 0.0
+        proj = U[:, keep].T @ m
+        T = float(np.sum(proj**2 / lam[keep])) / s0**2 if keep.any() else 0.0
+        dof = int(keep.sum())
+        delta = -U[:, keep] @ (proj / lam[keep]) if keep.any() else np.zeros(len(m))
+        cov = (U[:, keep] / lam[keep]) @ U[:, keep].T * s0**2 if keep.any() else np.zeros((len(m),) * 2)
+        sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        effect = math.sqrt(max(T, 0.0) * s0**2 / max(self.sum_q, 1e-300))
+        # correlation of each tested parameter with the null unknowns (for "with")
+        with_, cw = [], []
+        if len(m) == 1:
+            Sv = float(S[0, 0]) if S[0, 0] > 0 else 1e-300
+            kd = np.diag(self.K_inv)
+            corr = (-Z[:, 0] / Sv) / np.sqrt((1 / Sv) * (kd + Z[:, 0] ** 2 / Sv))
+            order = np.argsort(-np.abs(corr))
+            for i in order[:4]:
+                if abs(corr[i]) >= 0.5 or not with_:
+                    with_.append(self.labels[self.I0[i]].split("@")[0])
+                    cw.append(float(corr[i]))
+        p = _p_of(T, dof)
+        return _Test(cand, T, dof, p, _z_of(T, dof), effect, delta, sig, rho, with_, cw,
+                     confounded=dof < len(m) if len(m) == 1 else dof == 0)
+
+    def scan_difference(self, cand: _Candidate, test: _Test) -> tuple[float, int]:
+        """``T`` of freeing a shared candidate per scan, beyond the shared value."""
+        if cand.per_scan is None or cand.per_scan.shape[1] <= cand.H.shape[1]:
+            return 0.0, 0
+        alt = _Candidate(cand.effect, cand.family, cand.idx, cand.per_scan, cand.names, cand.scans)
+        t = self.test(alt, test_sigma0 := self.sigma0)
+        del test_sigma0
+        return max(0.0, t.T - test.T), t.dof - test.dof
+
+
+def _local_candidates(ctx: _Context, scans: Sequence[_Scan], spec: _Spec) -> dict[str, list[str]]:
+    """Per scan: the catalog parameters not in the model, free at value 0 in the test."""
+    cfg = ctx.config
+    wanted = set(cfg.effects) if cfg.effects else None
+    in_model = set(spec.start) | set(spec.shared)
+    inst = []
+    for k in INSTRUMENT:
+        if k in in_model or (wanted is not None and k not in wanted):
+            continue
+        if inseparable_pairs(list(in_model) + [k]):
+            continue  # same shape as a model parameter: reported as confounded elsewhere
+        inst.append(k)
+    positions = {sc.meta.position for sc in scans}
+    gs = np.array([sc.g for sc in scans])
+    grav = (len(positions) >= 2 and spec.zern_C is None and np.linalg.matrix_rank(
+        gs - gs.mean(0), tol=1e-3) >= 1 and (wanted is None or "gravity_deformation" in wanted))
+    out = {}
+    for sc in scans:
+        mot = spec.motion.get(sc.id, {})
+        names = list(inst)
+        if grav:
+            names += [f"{ZERNIKE_PREFIX}{j}" for j in ZERNIKE_TESTED]
+        if sc.meta.cycle != 0 or True:
+            if "window_s" not in mot and sc.window_s and _want(wanted, "impulsive_shift"):
+                names += list(SHIFT)
+            if "period_s" not in mot and sc.period_s and _want(wanted, "oscillation"):
+                names += list(OSCILLATION)
+            if not any(n in DRIFT for n in mot.get("names", ())) and _want(wanted, "drift"):
+                names += list(DRIFT)
+        out[sc.id] = names
+    return out
+
+
+def _want(wanted, eid):
+    return wanted is None or eid in wanted
+
+
+def _candidates(joint: _Joint, scans: Sequence[_Scan], local: dict[str, list[str]]):
+    """The candidates of the joint system: shared instrument, per-scan motion, gravity."""
+    out: list[_Candidate] = []
+    ids = [sc.id for sc in scans]
+    first = local[ids[0]]
+    for k in INSTRUMENT:
+        if k not in first:
+            continue
+        idx = np.array([joint.cidx[(s, k)] for s in ids])
+        out.append(_Candidate(k, "instrument", idx, np.ones((len(ids), 1)), [k], ids,
+                              per_scan=np.eye(len(ids))))
+    for sc in scans:
+        for eff, pnames in MOTION.items():
+            present = [n for n in pnames if n in local[sc.id]]
+            if not present:
+                continue
+            idx = np.array([joint.cidx[(sc.id, n)] for n in present])
+            penalty = 1.0
+            info = {}
+            if eff == "impulsive_shift":
+                penalty = float(sc.search.get("n_windows", 1))
+                info = {"window_s": sc.window_s, "search_T": sc.window_stat}
+            elif eff == "oscillation":
+                penalty = float(sc.search.get("n_periods", 1))
+                info = {"period_s": sc.period_s, "search_T": sc.period_stat}
+            out.append(_Candidate(eff, "motion", idx, np.eye(len(idx)), present, [sc.id],
+                                  penalty=penalty, info=info))
+    zern = [f"{ZERNIKE_PREFIX}{j}" for j in ZERNIKE_TESTED]
+    if all(z in first for z in zern):
+        idx, rows = [], []
+        for sc in scans:
+            for z in zern:
+                idx.append(joint.cidx[(sc.id, z)])
+                k = zern.index(z)
+                row = np.zeros(3 * len(zern))
+                row[3 * k: 3 * k + 3] = sc.g
+                rows.append(row)
+        out.append(_Candidate("gravity_deformation", "reflector", np.array(idx), np.array(rows),
+                              [f"C{j}{a}" for j in ZERNIKE_TESTED for a in "xyz"], ids))
+    return out
+
+
+# ============================================================================================
+# results
+# ============================================================================================
+
+
+@dataclass
+class Finding:
+    """One accepted effect (a ``findings[]`` entry of ``hartrao-diagnosis/1``)."""
+
+    effect: str
+    family: str
+    scans: list[str]
+    where: dict[str, Any]
+    estimate: dict[str, dict[str, float]]
+    statistic: float
+    dof: int
+    p_value: float
+    sigma0_before: float
+    sigma0_after: float
+    rms_before_m: float
+    rms_after_m: float
+    explanation: str
+    effect_size_m: float = 0.0
+    z: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        d = {
+            "effect": self.effect, "family": self.family, "scans": self.scans,
+            "where": self.where, "estimate": self.estimate,
+            "statistic": _num(self.statistic), "dof": int(self.dof),
+            "p_value": _num(self.p_value),
+            "sigma0_before": _num(self.sigma0_before), "sigma0_after": _num(self.sigma0_after),
+            "rms_before_m": _num(self.rms_before_m), "rms_after_m": _num(self.rms_after_m),
+            "explanation": self.explanation, "effect_size_m": _num(self.effect_size_m),
+        }
+        d.update(self.extra)
+        return d
+
+
+@dataclass
+class Diagnosis:
+    """Result of :func:`diagnose`; ``to_json()`` gives the ``hartrao-diagnosis/1`` document."""
+
+    campaign: str
+    start_model: list[str]
+    final_model: list[str]
+    sigma0_start: float
+    sigma0_final: float
+    rms_start_m: float
+    rms_final_m: float
+    findings: list[Finding]
+    confounded: list[dict]
+    comparison: list[dict]
+    candidates: list[dict]
+    timing_s: dict[str, float]
+    notes: list[str] = field(default_factory=list)
+    scans_final: dict[str, dict] = field(default_factory=dict)
+    history: list[dict] = field(default_factory=list)
+
+    def to_json(self) -> dict:
+        return {
+            "schema": DIAGNOSIS_SCHEMA,
+            "campaign": self.campaign,
+            "start_model": self.start_model,
+            "final_model": self.final_model,
+            "sigma0_start": _num(self.sigma0_start),
+            "sigma0_final": _num(self.sigma0_final),
+            "rms_start_m": _num(self.rms_start_m),
+            "rms_final_m": _num(self.rms_final_m),
+            "findings": [f.to_json() for f in self.findings],
+            "confounded": self.confounded,
+            "comparison": self.comparison,
+            "last_candidates": self.candidates,
+            "scans": self.scans_final,
+            "timing_s": self.timing_s,
+            "notes": self.notes,
+        }
+
+    def effects(self) -> list[str]:
+        return [f.effect for f in self.findings]
+
+
+def _num(v):
+    if v is None:
+        return None
+    v = float(v)
+    return v if math.isfinite(v) else None

@@ -217,6 +217,71 @@ def _window(i, chunk, n):
     return start, fresh
 
 
+def make_pass(condition, l, consts, weights, sigma_l, on, *, lin, chunk, trig=True,
+              store_dtype=jnp.float32):
+    """The per-iteration pass of :func:`gh_one_pass`: ``one_pass(x, dx_prev, store)``.
+
+    Returns ``(one_pass, residuals, store0(v0), nc)``; ``one_pass`` gives ``(N, n, store)``.
+    """
+    n = l.shape[0]
+    nc = -(-n // chunk)
+    f = l.dtype
+    s2 = jnp.asarray(sigma_l, f) ** 2  # (3,) or (n, 3)
+    per_point_s2 = s2.ndim == 2
+
+    def sl(a, start):
+        return lax.dynamic_slice_in_dim(a, start, chunk, axis=0)
+
+    def chunk_s2(start):
+        return sl(s2, start) if per_point_s2 else s2
+
+    def store0(u, v0=None):
+        if v0 is None:
+            b_start = jnp.zeros((nc, chunk, 3), store_dtype)
+        else:
+            b0 = (v0 / s2).astype(store_dtype)
+            b_start = jax.vmap(lambda i: sl(b0, _window(i, chunk, n)[0]))(jnp.arange(nc))
+        return (jnp.zeros((nc, chunk, u), store_dtype), b_start,
+                -jnp.ones((nc, chunk), f), jnp.ones((nc, chunk), f))
+
+    def residuals(st, i, dx, start):
+        # materialise the chunk's slice of the store before it is overwritten in place: else
+        # XLA fuses the slice into several consumers and, unable to order them before the
+        # in-place update, copies the WHOLE store every chunk (O(n^2 / chunk) traffic). The
+        # runtime cond is a fusion boundary (an optimization_barrier is not: XLA drops it).
+        a, b, wm, m = lax.cond(on, lambda st: tuple(s[i] for s in st),
+                               lambda st: tuple(jnp.zeros(s.shape[1:], s.dtype) for s in st), st)
+        k = -((a.astype(f) @ dx) + wm) / m
+        return k, chunk_s2(start) * b.astype(f) * k[:, None], m
+
+    def one_pass(x, dx_prev, store):
+        u = x.shape[0]
+
+        def body(i, carry):
+            N, nv, store = carry
+            start, fresh = _window(i, chunk, n)
+            s2c = chunk_s2(start)
+            w8 = jnp.where(fresh, sl(weights, start), 0.0)
+            _, v, _ = residuals(store, i, dx_prev, start)
+            F, a, b = lin(condition, sl(l, start) + v, x, sl(consts, start), on if trig else None)
+            wm = F - jnp.sum(b * v, axis=-1)
+            m = jnp.sum(b * b * s2c, axis=-1)
+            ok = (w8 > 0) & (m > 0)
+            q = jnp.where(ok, w8 / jnp.where(ok, m, 1.0), 0.0)
+            a0 = jnp.where(ok[:, None], a, 0.0)
+            aq = a0 * q[:, None]
+            N = N + aq.T @ a0
+            nv = nv + aq.T @ jnp.where(ok, wm, 0.0)
+            new = (a.astype(store_dtype), b.astype(store_dtype), wm, jnp.where(m > 0, m, 1.0))
+            store = tuple(s.at[i].set(v_) for s, v_ in zip(store, new))
+            return N, nv, store
+
+        init = (jnp.zeros((u, u), f), jnp.zeros((u,), f), store)
+        return lax.fori_loop(0, nc, body, init)
+
+    return one_pass, residuals, store0, nc
+
+
 @partial(jax.jit, static_argnames=("lin", "chunk", "max_iter", "store_dtype", "trig"))
 def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *, lin,
                 chunk=1 << 16, max_iter=30, store_dtype=jnp.float32, trig=True):
@@ -241,51 +306,11 @@ def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *,
     Returns ``(x, N, N^-1, v (n, 3), k (n,), m (n,), omega, iterations, converged)``.
     """
     n, u = l.shape[0], x0.shape[0]
-    nc = -(-n // chunk)
     f = l.dtype
-    s2 = jnp.asarray(sigma_l, f) ** 2  # (3,) or (n, 3)
-    per_point_s2 = s2.ndim == 2
-    def sl(a, start):
-        return lax.dynamic_slice_in_dim(a, start, chunk, axis=0)
-
-    def chunk_s2(start):
-        return sl(s2, start) if per_point_s2 else s2
-
-    if v0 is None:
-        b_start = jnp.zeros((nc, chunk, 3), store_dtype)
-    else:
-        b0 = (v0 / s2).astype(store_dtype)
-        b_start = jax.vmap(lambda i: sl(b0, _window(i, chunk, n)[0]))(jnp.arange(nc))
-    store0 = (jnp.zeros((nc, chunk, u), store_dtype), b_start,
-              -jnp.ones((nc, chunk), f), jnp.ones((nc, chunk), f))
-
-    def residuals(st, i, dx, s2c):
-        a, b, wm, m = (s[i] for s in st)
-        k = -((a.astype(f) @ dx) + wm) / m
-        return k, s2c * b.astype(f) * k[:, None], m
-
-    def one_pass(x, dx_prev, store):
-        def body(i, carry):
-            N, nv, store = carry
-            start, fresh = _window(i, chunk, n)
-            s2c = chunk_s2(start)
-            w8 = jnp.where(fresh, sl(weights, start), 0.0)
-            _, v, _ = residuals(store, i, dx_prev, s2c)
-            F, a, b = lin(condition, sl(l, start) + v, x, sl(consts, start), on if trig else None)
-            wm = F - jnp.sum(b * v, axis=-1)
-            m = jnp.sum(b * b * s2c, axis=-1)
-            ok = (w8 > 0) & (m > 0)
-            q = jnp.where(ok, w8 / jnp.where(ok, m, 1.0), 0.0)
-            a0 = jnp.where(ok[:, None], a, 0.0)
-            aq = a0 * q[:, None]
-            N = N + aq.T @ a0
-            nv = nv + aq.T @ jnp.where(ok, wm, 0.0)
-            new = (a.astype(store_dtype), b.astype(store_dtype), wm, jnp.where(m > 0, m, 1.0))
-            store = tuple(s.at[i].set(v_) for s, v_ in zip(store, new))
-            return N, nv, store
-
-        init = (jnp.zeros((u, u), f), jnp.zeros((u,), f), store)
-        return lax.fori_loop(0, nc, body, init)
+    one_pass, residuals, store0_fn, nc = make_pass(
+        condition, l, consts, weights, sigma_l, on, lin=lin, chunk=chunk, trig=trig,
+        store_dtype=store_dtype)
+    store0 = store0_fn(u, v0)
 
     def step(state):
         x, dx_prev, store, it, _, _, _ = state
@@ -305,13 +330,14 @@ def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *,
     def fin(i, carry):
         omega, V, K, M = carry
         start, fresh = _window(i, chunk, n)
-        w8 = jnp.where(fresh, sl(weights, start), 0.0)
-        k, v, m = residuals(store, i, dx, chunk_s2(start))
+        w8 = jnp.where(fresh, lax.dynamic_slice_in_dim(weights, start, chunk), 0.0)
+        k, v, m = residuals(store, i, dx, start)
         omega = omega + jnp.sum(jnp.where(w8 > 0, w8 * k * k * m, 0.0))
         # rows of the overlapped last chunk already written by chunk i-1 keep their value
-        V = lax.dynamic_update_slice_in_dim(V, jnp.where(fresh[:, None], v, sl(V, start)), start, 0)
-        K = lax.dynamic_update_slice_in_dim(K, jnp.where(fresh, k, sl(K, start)), start, 0)
-        M = lax.dynamic_update_slice_in_dim(M, jnp.where(fresh, m, sl(M, start)), start, 0)
+        sl = partial(lax.dynamic_slice_in_dim, start_index=start, slice_size=chunk)
+        V = lax.dynamic_update_slice_in_dim(V, jnp.where(fresh[:, None], v, sl(V)), start, 0)
+        K = lax.dynamic_update_slice_in_dim(K, jnp.where(fresh, k, sl(K)), start, 0)
+        M = lax.dynamic_update_slice_in_dim(M, jnp.where(fresh, m, sl(M)), start, 0)
         return omega, V, K, M
 
     omega, V, K, M = lax.fori_loop(

@@ -97,7 +97,7 @@ class DiagnoseConfig:
 
     alpha: float = 1e-6
     min_effect_m: float = 1.0e-5
-    confounded_correlation: float = 0.995
+    confounded_correlation: float = 0.9995
     max_steps: int = 10
     robust_k: float | None = 4.0
     max_time_bins: int = 1024
@@ -220,7 +220,8 @@ def _scan_model(sc: _Scan, spec: _Spec, aperture: float, extra: Sequence[str] = 
     names += [n for n in extra if n not in names]
     window = mot.get("window_s") or window_s or (0.0, 0.0)
     period = mot.get("period_s") or period_s or 1.0
-    return make_model(names, _fixed(sc, spec), shift_window_s=window, osc_period_s=period,
+    fixed = {k: v for k, v in _fixed(sc, spec).items() if k not in names}  # free wins here
+    return make_model(names, fixed, shift_window_s=window, osc_period_s=period,
                       kappa_rad=sc.kappa, aperture_radius_m=aperture, check_separable=False)
 
 
@@ -342,7 +343,8 @@ def _evaluate(ctx: _Context, sc: _Scan, spec: _Spec, model=None) -> None:
     x = jnp.asarray(sc.x)
     sc.F = np.asarray(_misclosure(model, jnp.asarray(sc.l), x, jnp.asarray(c)))
     base = [n for n in model.free if n not in SHIFT + OSCILLATION]
-    probe = make_model(base + list(PROBE), _fixed(sc, spec), shift_window_s=(-1e9, 1e18),
+    fixed = {k: v for k, v in _fixed(sc, spec).items() if k not in base}
+    probe = make_model(base + list(PROBE), fixed, shift_window_s=(-1e9, 1e18),
                        osc_period_s=1e18, kappa_rad=sc.kappa, aperture_radius_m=ctx.aperture,
                        check_separable=False)
     xp = np.array([sc.value(n) for n in probe.free[: len(probe.free) - len(PROBE)]])
@@ -824,9 +826,12 @@ class _Joint:
             kd = np.diag(self.K_inv)
             corr = (-Z[:, 0] / Sv) / np.sqrt((1 / Sv) * (kd + Z[:, 0] ** 2 / Sv))
             order = np.argsort(-np.abs(corr))
-            for i in order[:4]:
-                if abs(corr[i]) >= 0.5 or not with_:
-                    with_.append(self.labels[self.I0[i]].split("@")[0])
+            for i in order:
+                name = self.labels[self.I0[i]].split("@")[0]
+                if name in with_:
+                    continue
+                if (abs(corr[i]) >= 0.5 and len(with_) < 3) or not with_:
+                    with_.append(name)
                     cw.append(float(corr[i]))
         p = _p_of(T, dof)
         return _Test(cand, T, dof, p, _z_of(T, dof), effect, delta, sig, rho, with_, cw,
@@ -1009,3 +1014,743 @@ def _num(v):
         return None
     v = float(v)
     return v if math.isfinite(v) else None
+
+
+# ============================================================================================
+# statistics helpers
+# ============================================================================================
+
+
+def _log_sf(T: float, dof: int) -> float:
+    """Natural log of the chi-square survival function, accurate far in the tail."""
+    from scipy import special
+
+    T = max(float(T), 0.0)
+    k = max(int(dof), 1)
+    p = float(special.gammaincc(k / 2.0, T / 2.0))
+    if p > 1e-300:
+        return math.log(p)
+    a, x = k / 2.0, T / 2.0  # asymptotic upper incomplete gamma: x^(a-1) e^-x / Gamma(a)
+    return (a - 1) * math.log(x) - x - special.gammaln(a) + math.log1p((a - 1) / x)
+
+
+# ============================================================================================
+# modelling helpers
+# ============================================================================================
+
+
+def _panel_known(ctx: _Context, sc: _Scan, panels: dict[str, np.ndarray] | None) -> np.ndarray:
+    if panels is None:
+        return np.zeros(len(sc.rho))
+    P = _panel_columns(ctx, sc)
+    k = np.where(sc.panel >= 0, sc.panel, 0)
+    dev = (panels["offset"][k] * P[:, 0] + panels["tilt_r"][k] * P[:, 1]
+           + panels["tilt_t"][k] * P[:, 2])
+    return np.where(sc.panel >= 0, dev, 0.0)
+
+
+def _estimate_panels(ctx: _Context, scans: Sequence[_Scan], spec: _Spec) -> dict[str, np.ndarray]:
+    """Panel planes (offset m, radial and tangential tilt rad) common to all scans, by weighted
+    least squares of the mismatch plus the currently modelled panel deviation."""
+    G = ctx.n_panels
+    M = np.zeros((G, 3, 3))
+    u = np.zeros((G, 3))
+    cnt = np.zeros(G)
+    for sc in scans:
+        ok = sc.used & (sc.m > 0) & (sc.panel >= 0)
+        q = np.where(ok, 1.0 / np.where(sc.m > 0, sc.m, 1.0), 0.0) * sc.s_rho**2
+        r = sc.mismatch_m + _panel_known(ctx, sc, spec.panels)
+        P = _panel_columns(ctx, sc)
+        pid = sc.panel[ok]
+        cnt += np.bincount(pid, minlength=G)
+        for a in range(3):
+            u[:, a] += np.bincount(pid, (q * r * P[:, a])[ok], minlength=G)
+            for b in range(3):
+                M[:, a, b] += np.bincount(pid, (q * P[:, a] * P[:, b])[ok], minlength=G)
+    sol = np.zeros((G, 3))
+    for g in range(G):
+        if cnt[g] >= 12:
+            sol[g] = np.linalg.lstsq(M[g], u[g], rcond=1e-10)[0]
+        elif cnt[g] > 0:
+            sol[g, 0] = u[g, 0] / M[g, 0, 0]
+    return {"offset": sol[:, 0], "tilt_r": sol[:, 1], "tilt_t": sol[:, 2], "n_points": cnt}
+
+
+def _set_known(ctx: _Context, sc: _Scan, spec: _Spec) -> None:
+    sc.known = _panel_known(ctx, sc, spec.panels) + sc.extra_known
+
+
+@eqx.filter_jit
+def _columns(model, l, x, c, idx):
+    """Per point derivatives of the condition w.r.t. the free parameters ``idx``."""
+
+    def one(args):
+        ll, cc = args
+        return jax.grad(lambda xx: model(ll, xx, cc))(x)[idx]
+
+    return jax.lax.map(one, (l, c), batch_size=8192)
+
+
+def _signature(ctx: _Context, sc: _Scan, spec: _Spec, names: Sequence[str], values: np.ndarray,
+               window_s=None, period_s=None) -> np.ndarray:
+    """Predicted change of the condition of every point (m) by ``names = values``."""
+    model = _scan_model(sc, spec, ctx.aperture, extra=list(names), window_s=window_s,
+                        period_s=period_s)
+    fixed = _fixed(sc, spec)
+    prev = dict(zip(sc.names, sc.x))
+    x = np.array([prev.get(k, fixed.get(k, 0.0)) for k in model.free])
+    idx = np.array([model.free.index(n) for n in names])
+    A = np.asarray(_columns(model, jnp.asarray(sc.l), jnp.asarray(x), jnp.asarray(sc.consts()),
+                            jnp.asarray(idx)))
+    return A @ np.asarray(values, float)
+
+
+def _where_of_signature(ctx: _Context, sc: _Scan, sig: np.ndarray, motion: bool) -> dict:
+    """Where a predicted signature lives: faces, phi range, panels, the covariate it follows."""
+    u = sc.used
+    dev = -sig / sc.s_rho
+    out: dict[str, Any] = {}
+    rms_face = {fc: float(np.sqrt(np.mean(dev[u & (sc.face == fc)] ** 2)))
+                if np.any(u & (sc.face == fc)) else 0.0 for fc in (1, 2)}
+    big = max(rms_face.values())
+    faces = [fc for fc in (1, 2) if rms_face[fc] > 0.25 * big]
+    if len(faces) == 1:
+        out["face"] = faces[0]
+    if motion:
+        out["cycle"] = sc.meta.cycle
+        amax = np.max(np.abs(dev[u])) if u.any() else 0.0
+        hit = u & (np.abs(dev) > 0.3 * amax)
+        if hit.any():
+            ph = np.degrees(sc.data.phi_rad[hit])
+            out["phi_deg"] = [float(ph.min()), float(ph.max())]
+            pn, cnt = np.unique(sc.panel[hit & (sc.panel >= 0)], return_counts=True)
+            out["panels"] = [int(p) for p in pn[np.argsort(-cnt)][:40]]
+    # covariate: the one whose binned means (per face) explain most of the signature variance
+    # left after the face means (the face flip of two-face effects is reported as face_split)
+    vals = _covariate_values(sc)
+    best, frac = None, -1.0
+    fc = sc.face[u]
+    d = dev[u].copy()
+    tot0 = float(np.sum(d**2)) or 1.0
+    for f in (1, 2):
+        if np.any(fc == f):
+            d[fc == f] -= d[fc == f].mean()
+    out["face_split"] = float(1.0 - np.sum(d**2) / tot0)
+    tot = float(np.sum(d**2)) or 1.0
+    for name in COVARIATES:
+        v = vals[name][u]
+        expl = 0.0
+        for f in (1, 2):
+            s = fc == f
+            if s.sum() < 64:
+                continue
+            qs = np.quantile(v[s], np.linspace(0, 1, 33)[1:-1])
+            ids = np.searchsorted(qs, v[s], side="right")
+            sums = np.bincount(ids, d[s], minlength=32)
+            cnt = np.bincount(ids, minlength=32)
+            expl += float(np.sum(sums[cnt > 0] ** 2 / cnt[cnt > 0]))
+        if expl / tot > frac:
+            best, frac = name, expl / tot
+    if best is not None:
+        out["covariate"] = best
+    return out
+
+
+def _dish_map(sc: _Scan, values: np.ndarray, n: int = 96, R: float = 13.0):
+    """Binned mean of ``values`` on an ``n x n`` grid of telescope X, Y (for figures)."""
+    u = sc.used
+    X, Y = sc.X_tel[u, 0], sc.X_tel[u, 1]
+    i = np.clip(((X + R) / (2 * R) * n).astype(int), 0, n - 1)
+    j = np.clip(((Y + R) / (2 * R) * n).astype(int), 0, n - 1)
+    k = i * n + j
+    s = np.bincount(k, values[u], minlength=n * n)
+    c = np.bincount(k, minlength=n * n)
+    out = np.full(n * n, np.nan)
+    out[c > 0] = s[c > 0] / c[c > 0]
+    return out.reshape(n, n)
+
+
+def _snapshot(scans: Sequence[_Scan]) -> dict[str, np.ndarray]:
+    return {sc.id: _dish_map(sc, sc.mismatch_m).astype(np.float32) for sc in scans}
+
+
+def _compare(sc: _Scan) -> dict:
+    """Recording minus simulation of one scan, summarised (m)."""
+    u = sc.used
+    d = sc.mismatch_m
+    rr = sc.mismatch_range_m
+    row = {"scan": sc.id, "position": sc.meta.position, "cycle": sc.meta.cycle,
+           "n_points": int(u.sum()), "sigma0": _num(sc.sigma0),
+           "rms_deviation_m": _num(np.sqrt(np.mean(d[u] ** 2))),
+           "rms_range_m": _num(np.sqrt(np.mean(rr[u] ** 2))), "faces": {}}
+    for fc in (1, 2):
+        s = u & (sc.face == fc)
+        if s.any():
+            row["faces"][str(fc)] = {"n_points": int(s.sum()),
+                                     "mean_deviation_m": _num(np.mean(d[s])),
+                                     "rms_deviation_m": _num(np.sqrt(np.mean(d[s] ** 2)))}
+    return row
+
+
+# ============================================================================================
+# the loop
+# ============================================================================================
+
+
+@dataclass
+class _Option:
+    """An eligible explanation of one step (catalog test or unexplained structure)."""
+
+    kind: str  # "catalog" | "panel" | "dish" | "covariate"
+    effect: str
+    family: str
+    log_p: float  # log of the Bonferroni-adjusted p-value
+    T: float
+    dof: int
+    effect_m: float
+    payload: Any
+    eligible: bool = True
+    reason: str = ""
+
+    def row(self) -> dict:
+        return {"kind": self.kind, "effect": self.effect, "family": self.family,
+                "statistic": _num(self.T), "dof": self.dof,
+                "log10_p_adjusted": _num(self.log_p / math.log(10)),
+                "effect_size_m": _num(self.effect_m), "eligible": self.eligible,
+                "reason": self.reason,
+                "scans": getattr(self.payload, "cand", None) and self.payload.cand.scans}
+
+
+def _static_confounded(start: Sequence[str], wanted) -> list[dict]:
+    """Catalog parameters with the same shape as a model parameter (no test possible)."""
+    out = []
+    for k in INSTRUMENT:
+        if k in start or (wanted is not None and k not in wanted):
+            continue
+        pairs = inseparable_pairs(list(start) + [k])
+        if pairs:
+            a, b, c = pairs[0]
+            other = b if a == k else a
+            out.append({"effect": k, "with": [other], "correlation": float(abs(c)),
+                        "reason": "same correction shape (physics catalog)"})
+    return out
+
+
+def diagnose(
+    campaign: Campaign | str | Path,
+    start: str | Iterable[str] = "extended",
+    *,
+    config: DiagnoseConfig | None = None,
+    scans: Sequence[str] | None = None,
+    keep: Callable[[ScanMeta, ScanData], np.ndarray] | None = None,
+    report_dir: str | Path | None = None,
+    progress: bool = False,
+) -> Diagnosis:
+    """Find, explain and model the mismatch between the recordings and the model.
+
+    Args:
+        campaign: a campaign (or its directory).
+        start: start model: ``"simplified"``, ``"extended"`` or parameter names.
+        config: thresholds and search settings (:class:`DiagnoseConfig`).
+        scans: scan ids to diagnose (default all: they are tested jointly).
+        keep: optional ``keep(meta, data) -> bool mask`` of points to consider (preprocessing).
+        report_dir: write figures and an HTML summary there.
+        progress: show progress bars of the start fit.
+
+    Returns:
+        a :class:`Diagnosis` (``to_json()``: schema ``hartrao-diagnosis/1``).
+    """
+    t_all = time.time()
+    camp = campaign if isinstance(campaign, Campaign) else load_campaign(campaign)
+    cfg = config or DiagnoseConfig()
+    ctx = _Context(camp, cfg)
+    start_names = parse_model(start)
+    timing: dict[str, float] = {}
+    t0 = time.time()
+    S = _start_scans(ctx, start_names, keep, scans, progress)
+    spec = _Spec(start=start_names)
+    for sc in S:
+        _evaluate(ctx, sc, spec)
+    timing["start_fit"] = time.time() - t0
+    sigma0_start, rms_start = _global_sigma0(S), _rms(S)
+    comparison = [_compare(sc) for sc in S]
+    wanted = set(cfg.effects) if cfg.effects else None
+    confounded: dict[str, dict] = {c["effect"]: c for c in _static_confounded(start_names, wanted)}
+    findings: list[Finding] = []
+    history: list[dict] = [{"step": 0, "label": "start", "maps": _snapshot(S)}]
+    notes: list[str] = []
+    last_rows: list[dict] = []
+    if any(sc.meta.cycle == 0 for sc in S):
+        notes.append("one-face scans: two-face instrument parameters are not separable there")
+    t_loop = time.time()
+    for step in range(1, cfg.max_steps + 1):
+        ts = time.time()
+        for sc in S:
+            _locate_time(sc, cfg)
+        local = _local_candidates(ctx, S, spec)
+        joint = _Joint(ctx, S, spec, local)
+        cands = _candidates(joint, S, local)
+        tests = [joint.test(c) for c in cands]
+        options = _options(ctx, S, spec, joint, tests, confounded, wanted)
+        best = None
+        for o in sorted((o for o in options if o.eligible), key=lambda o: o.log_p):
+            why = _signature_check(ctx, S, spec, joint, o)
+            if why:
+                o.eligible, o.reason = False, why
+                continue
+            best = o
+            break
+        last_rows = [o.row() for o in sorted(options, key=lambda o: o.log_p)]
+        log.info("step %d: %d candidates, best %s (%.1f s)", step, len(options),
+                 best.effect if best else "none", time.time() - ts)
+        if best is None:
+            break
+        before = (_global_sigma0(S), _rms(S))
+        f = _apply(ctx, S, spec, joint, best)
+        after = (_global_sigma0(S), _rms(S))
+        f.sigma0_before, f.rms_before_m = before
+        f.sigma0_after, f.rms_after_m = after
+        f.statistic, f.dof = best.T, best.dof
+        f.p_value = math.exp(max(_log_sf(best.T, best.dof), -745.0))
+        f.extra["log10_p_adjusted"] = _num(best.log_p / math.log(10))
+        f.effect_size_m = best.effect_m
+        findings.append(f)
+        spec.accepted.append(f.effect)
+        history.append({"step": step, "label": f.effect, "maps": _snapshot(S),
+                        "evidence": f.extra.pop("_evidence", None), "scans": f.scans})
+        log.info("accepted %s (%s): T=%.1f dof=%d, sigma0 %.3f -> %.3f, rms %.3f -> %.3f mm",
+                 f.effect, ",".join(f.scans), best.T, best.dof, before[0], after[0],
+                 1e3 * before[1], 1e3 * after[1])
+    timing["loop"] = time.time() - t_loop
+    scans_final = {}
+    for sc in S:
+        cv = np.sqrt(np.maximum(np.diag(sc.cov), 0.0)) if sc.cov.size else np.zeros(0)
+        scans_final[sc.id] = {
+            "model": list(sc.names),
+            "estimates": {n: {"value": float(sc.x[i]), "sigma": float(cv[i])}
+                          for i, n in enumerate(sc.names)},
+            "sigma0": _num(sc.sigma0), "n_points": int(sc.used.sum()),
+            "converged": sc.converged,
+            "cut_points": int(sc.cut.sum()),
+        }
+    if spec.shared:
+        notes.append("instrument parameters found are shared by all scans (joint estimate): "
+                     + ", ".join(f"{k}={v:.4g}" for k, v in spec.shared.items()))
+    timing["total"] = time.time() - t_all
+    diag = Diagnosis(
+        campaign=str(camp.root), start_model=list(start_names), final_model=spec.names(),
+        sigma0_start=sigma0_start, sigma0_final=_global_sigma0(S), rms_start_m=rms_start,
+        rms_final_m=_rms(S), findings=findings, confounded=list(confounded.values()),
+        comparison=comparison, candidates=last_rows, timing_s=timing, notes=notes,
+        scans_final=scans_final, history=history,
+    )
+    if report_dir is not None:
+        write_report(diag, report_dir)
+    return diag
+
+
+def _options(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint,
+             tests: Sequence[_Test], confounded: dict, wanted) -> list[_Option]:
+    """Every explanation of this step with its adjusted p-value, effect size and eligibility."""
+    cfg = ctx.config
+    s0 = joint.sigma0
+    do_unexp = _want(wanted, "unexplained")
+    m_tests = len(tests) + 2 + (len(S) * len(COVARIATES) if do_unexp else 0)
+    la = math.log(cfg.alpha)
+    lm = math.log(m_tests)
+    opts: list[_Option] = []
+
+    def add(o: _Option):
+        if o.log_p >= la:
+            o.eligible, o.reason = False, "not significant"
+        elif o.effect_m < cfg.min_effect_m:
+            o.eligible, o.reason = False, "below the practical effect size"
+        opts.append(o)
+
+    for t in tests:
+        c = t.cand
+        if c.family == "instrument" and t.confounded:
+            confounded.setdefault(c.effect, {
+                "effect": c.effect, "with": t.with_, "correlation": t.correlation,
+                "correlations": dict(zip(t.with_, t.corr_with)),
+                "statistic": _num(t.T if t.T else _raw_T(joint, c)),
+                "reason": "inseparable from the estimated parameters (augmented normal matrix)",
+            })
+            continue
+        if t.dof == 0:
+            continue
+        lp = _log_sf(t.T, t.dof) + lm + math.log(c.penalty)
+        add(_Option("catalog", c.effect, c.family, lp, t.T, t.dof, t.effect_m, t))
+    if spec.panels is None and _want(wanted, "panel_offset") and joint.G_live > 1:
+        T = (joint.omega0_raw - joint.omega0) / s0**2
+        dof = joint.G_live - 1
+        eff = math.sqrt(max(T, 0.0) * s0**2 / joint.sum_q)
+        add(_Option("panel", "panel_offset", "reflector", _log_sf(T, dof) + lm, T, dof, eff,
+                    None))
+    if do_unexp:
+        Tg, dofg, est, cells = _dish_test(ctx, S, s0)
+        G = ctx.n_panels
+        flagged = [g for g in range(G) if dofg[g] > 0
+                   and _log_sf(Tg[g], dofg[g]) + math.log(G) + lm < la]
+        if flagged:
+            T = float(np.sum(Tg[flagged]))
+            dof = int(np.sum(dofg[flagged]))
+            qf = sum(float(np.sum((1.0 / sc.m)[sc.used & np.isin(sc.panel, flagged)])) for sc in S)
+            eff = math.sqrt(T * s0**2 / max(qf, 1e-300))
+            add(_Option("dish", "unexplained", "generic", _log_sf(T, dof) + lm, T, dof, eff,
+                        {"flagged": flagged, "est": est, "cells": cells, "Tg": Tg}))
+        for i, sc in enumerate(S):
+            ct = _covariate_tests(sc, cfg, s0)
+            if not ct:
+                continue
+            name = min(ct, key=lambda k: _log_sf(ct[k][0], ct[k][1]))
+            T, dof, ids, means = ct[name]
+            qs = float(np.sum(1.0 / sc.m[sc.used]))
+            eff = math.sqrt(max(T, 0.0) * s0**2 / qs)
+            add(_Option("covariate", "unexplained", "generic", _log_sf(T, dof) + lm, T, dof, eff,
+                        {"scan": i, "covariate": name, "ids": ids, "means": means,
+                         "all": {k: (v[0], v[1]) for k, v in ct.items()}}))
+    return opts
+
+
+def _raw_T(joint: _Joint, cand: _Candidate) -> float:
+    """Statistic of a confounded candidate ignoring the confounding (for information)."""
+    m = cand.H.T @ joint.n[cand.idx]
+    Nj = cand.H.T @ joint.N[np.ix_(cand.idx, cand.idx)] @ cand.H
+    return float(m @ np.linalg.pinv(Nj) @ m) / joint.sigma0**2
+
+
+def _signature_check(ctx, S, spec, joint, o: _Option) -> str:
+    """The family's physics signature; returns a reason to refuse, or ``""``."""
+    cfg = ctx.config
+    if o.kind == "catalog" and o.family == "instrument":
+        t: _Test = o.payload
+        Td, dd = joint.scan_difference(t.cand, t)
+        t.T_diff, t.dof_diff = Td, dd
+        if dd > 0 and _log_sf(Td, dd) < math.log(cfg.alpha) and Td > cfg.scan_consistency * t.T:
+            return (f"not one instrument constant: freeing it per scan adds T={Td:.0f} "
+                    f"({dd} dof) to T={t.T:.0f}")
+        return ""
+    if o.kind == "catalog" and o.family == "motion":
+        t = o.payload
+        sc = next(s for s in S if s.id == t.cand.scans[0])
+        names = t.cand.names
+        sig = _signature(ctx, sc, spec, names, t.estimate, window_s=sc.window_s,
+                         period_s=sc.period_s)
+        t.notes.append("signature")
+        o.payload.cand.info["signature"] = sig
+        others = [s for s in S if s.meta.position == sc.meta.position and s.id != sc.id]
+        if not others:
+            return ""
+        slope, z = _common_slope(ctx, sc, others, sig / sc.s_rho)
+        o.payload.cand.info["common_slope"] = (slope, z)
+        if slope > cfg.common_slope and z > 4.0:
+            return (f"the other cycle shows the same deviation in the same dish cells "
+                    f"(slope {slope:.2f}, z {z:.1f}): a reflector effect, not motion")
+    return ""
+
+
+def _common_slope(ctx, sc: _Scan, others: Sequence[_Scan], pred: np.ndarray):
+    """Regression slope of the other scans' mismatch on the predicted deviation, per dish cell."""
+    cell = _panel_cells(ctx, sc)
+    u = sc.used & (cell >= 0)
+    nc = ctx.n_panels * ctx.config.panel_cells[0] * ctx.config.panel_cells[1]
+    cnt = np.bincount(cell[u], minlength=nc)
+    p = np.bincount(cell[u], pred[u], minlength=nc) / np.maximum(cnt, 1)
+    pmax = np.max(np.abs(p)) if len(p) else 0.0
+    hot = (cnt > 0) & (np.abs(p) > 0.5 * pmax)
+    so = np.zeros(nc)
+    co = np.zeros(nc)
+    ss = 0.0
+    n = 0
+    for o in others:
+        c2 = _panel_cells(ctx, o)
+        u2 = o.used & (c2 >= 0)
+        so += np.bincount(c2[u2], o.mismatch_m[u2], minlength=nc)
+        co += np.bincount(c2[u2], minlength=nc)
+        ss += float(np.sum(o.mismatch_m[u2] ** 2))
+        n += int(u2.sum())
+    hot &= co > 0
+    if hot.sum() < 3 or pmax == 0:
+        return 0.0, 0.0
+    om = so[hot] / co[hot]
+    w = co[hot]
+    pp = p[hot]
+    slope = float(np.sum(w * pp * om) / np.sum(w * pp * pp))
+    s2 = ss / max(n, 1)  # per-point variance of the other scans' mismatch
+    se = math.sqrt(s2 / float(np.sum(w * pp * pp)))
+    return slope, slope / se
+
+
+def _joint_step(joint: _Joint, t: _Test | None):
+    """Joint increments of the null unknowns with (optionally) a candidate at its estimate."""
+    n0 = joint.n[joint.I0].copy()
+    if t is not None:
+        c = t.cand
+        n0 = n0 + joint.N[np.ix_(joint.I0, c.idx)] @ (c.H @ t.estimate)
+    dz = np.zeros(joint.D)
+    dz[joint.I0] = -joint.K_inv @ n0
+    return dz
+
+
+def _update_shared(spec: _Spec, joint: _Joint, dz: np.ndarray) -> None:
+    for i, k in enumerate(joint.shared_names):
+        spec.shared[k] += float(dz[joint.sidx[i]])
+    if spec.zern_C is not None:
+        base = len(joint.shared_names)
+        d = dz[joint.sidx[base: base + 3 * len(ZERNIKE_TESTED)]].reshape(len(ZERNIKE_TESTED), 3)
+        spec.zern_C = spec.zern_C + d
+
+
+def _refit_all(ctx, S, spec, only: Sequence[_Scan] | None = None, hints=None, panels=True):
+    for sc in (only or S):
+        _set_known(ctx, sc, spec)
+        _refit(ctx, sc, spec, (hints or {}).get(sc.id))
+    if spec.panels is not None and panels:
+        # one alternating round: panel planes from the new residuals, then the misclosures
+        new = _estimate_panels(ctx, S, spec)
+        spec.panels = new
+        for sc in S:
+            _set_known(ctx, sc, spec)
+            _evaluate(ctx, sc, spec)
+
+
+def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Option) -> Finding:
+    """Model the accepted explanation, refit, and describe it as a finding."""
+    eff = EFFECTS.get(o.effect)
+    expl = eff.explanation if eff else o.effect
+    fam = o.family
+    where: dict[str, Any] = {}
+    estimate: dict[str, dict[str, float]] = {}
+    scans = [sc.id for sc in S]
+    extra: dict[str, Any] = {}
+    if o.kind == "catalog":
+        t: _Test = o.payload
+        c = t.cand
+        scans = list(c.scans)
+        dz = _joint_step(joint, t)
+        if fam == "instrument":
+            k = c.names[0]
+            _update_shared(spec, joint, dz)
+            spec.shared[k] = float(t.estimate[0])
+            spec.shared_sigma[k] = float(t.sigma[0])
+            estimate[k] = {"value": float(t.estimate[0]), "sigma": float(t.sigma[0])}
+            sig0 = _signature(ctx, S[0], spec, [k], t.estimate[:1] * 0 + 1.0)
+            where = {k2: v for k2, v in _where_of_signature(ctx, S[0], sig0, False).items()
+                     if k2 in ("covariate", "face_split")}
+            extra["scan_difference"] = {"statistic": _num(t.T_diff), "dof": t.dof_diff}
+            _refit_all(ctx, S, spec)
+            expl = (f"{expl}; {k} = {_fmt(k, t.estimate[0], t.sigma[0])}, one value for all "
+                    f"scans")
+        elif fam == "motion":
+            sc = next(s for s in S if s.id == c.scans[0])
+            # parameters individually separable from the model (drift has confounded ones)
+            names = [n for n, e in zip(c.names, t.estimate)
+                     if joint.test(_Candidate(c.effect, fam, np.array([c.idx[c.names.index(n)]]),
+                                              np.ones((1, 1)), [n], c.scans)).correlation
+                     < ctx.config.confounded_correlation]
+            mot = spec.motion.setdefault(sc.id, {"names": []})
+            mot["names"] = list(mot["names"]) + names
+            if c.effect == "impulsive_shift":
+                mot["window_s"] = sc.window_s
+            if c.effect == "oscillation":
+                mot["period_s"] = sc.period_s
+            sig = c.info.get("signature")
+            if sig is None:
+                sig = _signature(ctx, sc, spec, c.names, t.estimate, window_s=sc.window_s,
+                                 period_s=sc.period_s)
+            where = _where_of_signature(ctx, sc, sig, True)
+            if c.effect == "impulsive_shift":
+                where["covariate"] = "time"
+                where["time_s"] = [sc.window_s[0], sc.window_s[0] + sc.window_s[1]]
+                extra["_evidence"] = {"kind": "change_point", "scan": sc.id,
+                                      "edges": sc.search["edges"],
+                                      "profile": sc.search["box_profile"],
+                                      "translation": sc.search["translation"],
+                                      "window_s": sc.window_s}
+            elif c.effect == "oscillation":
+                where["covariate"] = "time"
+                where["period_s"] = sc.period_s
+                extra["_evidence"] = {"kind": "periodogram", "scan": sc.id,
+                                      "periods": sc.search["periods"],
+                                      "periodogram": sc.search["periodogram"],
+                                      "period_s": sc.period_s}
+            else:
+                where["covariate"] = "time"
+            if "common_slope" in c.info:
+                extra["other_cycle_slope"] = _num(c.info["common_slope"][0])
+            hint = {n: float(v) for n, v in zip(c.names, t.estimate) if n in names}
+            _refit_all(ctx, S, spec, only=[sc], hints={sc.id: hint})
+            for n in names:
+                estimate[n] = {"value": sc.value(n),
+                               "sigma": float(np.sqrt(sc.cov[sc.names.index(n)] [sc.names.index(n)]))}
+            if c.effect == "impulsive_shift":
+                d = np.array([estimate.get(n, {"value": 0.0})["value"] for n in SHIFT])
+                expl = (f"{expl}; cycle {sc.meta.cycle}, phi {where.get('phi_deg', [0, 0])[0]:.1f}"
+                        f"-{where.get('phi_deg', [0, 0])[1]:.1f} deg, {1e3 * np.linalg.norm(d):.2f} mm "
+                        f"for {sc.window_s[1]:.2f} s")
+            elif c.effect == "oscillation":
+                a = [estimate.get(n, {"value": 0.0})["value"] for n in OSCILLATION]
+                amp = max(math.hypot(a[0], a[1]), math.hypot(a[2], a[3]))
+                expl = f"{expl}; period {sc.period_s:.3f} s, amplitude {amp * 206264.8:.2f} arcsec"
+            else:
+                expl = f"{expl}; scan {sc.id}"
+        elif c.effect == "gravity_deformation":
+            _update_shared(spec, joint, dz)
+            C = t.estimate.reshape(len(ZERNIKE_TESTED), 3)
+            spec.zern_C = C
+            sg = t.sigma.reshape(len(ZERNIKE_TESTED), 3)
+            for i, j in enumerate(ZERNIKE_TESTED):
+                for a, ax in enumerate("xyz"):
+                    estimate[f"zern_{j}_per_g{ax}"] = {"value": float(C[i, a]),
+                                                       "sigma": float(sg[i, a])}
+            where = {"covariate": "gravity", "positions": sorted({s.meta.position for s in S})}
+            _refit_all(ctx, S, spec)
+            expl = f"{expl}; Zernike modes {', '.join(map(str, ZERNIKE_TESTED))} linear in g"
+    elif o.kind == "panel":
+        spec.panels = _estimate_panels(ctx, S, spec)
+        _refit_all(ctx, S, spec)
+        _refit_all(ctx, S, spec, panels=True)
+        P = spec.panels
+        live = P["n_points"] > 0
+        off = P["offset"]
+        order = np.argsort(-np.abs(np.where(live, off, 0.0)))
+        top = [int(g) for g in order[:12]]
+        where = {"panels": top, "covariate": "panel"}
+        estimate = {"offset_rms_m": {"value": float(np.sqrt(np.mean(off[live] ** 2))),
+                                     "sigma": float(_panel_sigma(S, P))}}
+        for g in top[:5]:
+            estimate[f"panel_{g}_offset_m"] = {"value": float(off[g]),
+                                               "sigma": float(_panel_sigma(S, P, g))}
+        extra["panels"] = {"offset_m": [float(v) for v in off],
+                           "tilt_radial_rad": [float(v) for v in P["tilt_r"]],
+                           "tilt_tangential_rad": [float(v) for v in P["tilt_t"]]}
+        expl = (f"{expl}; {int(live.sum())} panels, offsets {1e3 * estimate['offset_rms_m']['value']:.3f}"
+                f" mm rms")
+    elif o.kind == "dish":
+        pl = o.payload
+        flagged = pl["flagged"]
+        est = pl["est"]
+        amp = []
+        for sc, cell in zip(S, pl["cells"]):
+            inf = np.isin(sc.panel, flagged) & (cell >= 0)
+            add = np.where(inf, est[np.where(cell >= 0, cell, 0)], 0.0)
+            sc.extra_known = sc.extra_known + add
+            amp.append(add[sc.used & inf])
+        _refit_all(ctx, S, spec)
+        g = ctx.geo
+        rc = np.array([g["rho_c"][p] for p in flagged])
+        pc = np.array([g["psi_c"][p] for p in flagged])
+        wts = pl["Tg"][flagged]
+        psi_m = float(np.degrees(np.angle(np.sum(wts * np.exp(1j * pc)))) % 360)
+        where = {"panels": [int(p) for p in flagged], "rho_m": float(np.sum(wts * rc) / np.sum(wts)),
+                 "psi_deg": psi_m,
+                 "covariate": "rho" if np.ptp(rc) < np.ptp(pc) * np.mean(rc) else "psi"}
+        a = np.concatenate(amp) if amp else np.zeros(1)
+        estimate = {"amplitude_m": {"value": float(np.max(np.abs(a))) if a.size else 0.0,
+                                    "sigma": float(joint.sigma0 * 0.0008)},
+                    "rms_m": {"value": float(np.sqrt(np.mean(a**2))) if a.size else 0.0,
+                              "sigma": float(0.0)}}
+        expl = (f"structure within {len(flagged)} panel(s) common to all scans that neither panel "
+                f"offsets and tilts nor any catalog effect explain, near rho {where['rho_m']:.1f} m, "
+                f"psi {psi_m:.0f} deg; modelled as a measured deviation map")
+        fam = "generic"
+    elif o.kind == "covariate":
+        pl = o.payload
+        sc = S[pl["scan"]]
+        name = pl["covariate"]
+        ids, means = pl["ids"], pl["means"]
+        scans = [sc.id]
+        nb = ctx.config.covariate_bins
+        # significant bins
+        u = sc.used & (ids >= 0) & (sc.m > 0)
+        q = 1.0 / np.where(sc.m > 0, sc.m, 1.0)
+        den = np.bincount(ids[u], (q * sc.b0**2)[u], minlength=2 * nb)
+        se = joint.sigma0 / np.sqrt(np.where(den > 0, den, np.inf))
+        zb = np.where(den > 0, means / np.where(se > 0, se, 1.0), 0.0)
+        sig_bins = np.nonzero(np.abs(zb) > 4.0)[0]
+        hit = u & np.isin(ids, sig_bins)
+        where = {"cycle": sc.meta.cycle, "covariate": name}
+        faces = sorted({int(b // nb) + 1 for b in sig_bins})
+        if len(faces) == 1:
+            where["face"] = faces[0]
+        if hit.any():
+            ph = np.degrees(sc.data.phi_rad[hit])
+            where["phi_deg"] = [float(ph.min()), float(ph.max())]
+            v = _covariate_values(sc)[name][hit]
+            where[f"{name}_range"] = [float(v.min()), float(v.max())]
+            pn, cnt = np.unique(sc.panel[hit & (sc.panel >= 0)], return_counts=True)
+            where["panels"] = [int(p) for p in pn[np.argsort(-cnt)][:20]]
+        if name == "time":
+            sc.cut = sc.cut | (np.isin(ids, sig_bins) & (ids >= 0))
+            action = f"cut {int(sc.cut.sum())} points of the affected time range"
+        else:
+            ok = ids >= 0
+            corr = np.where(ok, -sc.b0 * means[np.where(ok, ids, 0)] / sc.s_rho, 0.0)
+            sc.extra_known = sc.extra_known + corr
+            action = f"modelled as a range correction per {name} bin"
+        _refit_all(ctx, S, spec, only=[sc])
+        estimate = {"range_error_rms_m": {"value": float(np.sqrt(np.mean(means[sig_bins] ** 2)))
+                                          if len(sig_bins) else 0.0,
+                                          "sigma": float(np.mean(se[sig_bins])) if len(sig_bins)
+                                          else 0.0}}
+        extra["covariate_statistics"] = {k: {"statistic": _num(v[0]), "dof": v[1]}
+                                         for k, v in pl["all"].items()}
+        expl = (f"residual structure in scan {sc.id} following {name.replace('_', ' ')} that no "
+                f"catalog effect explains; {action}")
+        fam = "generic"
+    return Finding(effect=o.effect, family=fam, scans=scans, where=where, estimate=estimate,
+                   statistic=o.T, dof=o.dof, p_value=0.0, sigma0_before=0.0, sigma0_after=0.0,
+                   rms_before_m=0.0, rms_after_m=0.0, explanation=expl, extra=extra)
+
+
+def _panel_sigma(S, P, g: int | None = None) -> float:
+    """Approximate standard deviation of a panel offset (m) from the points per panel."""
+    s = np.sqrt(np.mean([sc.sigma0 for sc in S])) * 0.0
+    n = P["n_points"]
+    sig_pt = float(np.median([np.sqrt(np.median(sc.m[sc.used])) / np.median(sc.s_rho[sc.used])
+                              for sc in S]))
+    if g is None:
+        return sig_pt / math.sqrt(max(float(np.mean(n[n > 0])), 1.0)) + s
+    return sig_pt / math.sqrt(max(float(n[g]), 1.0)) + s
+
+
+def _fmt(name: str, v: float, s: float) -> str:
+    from ._model import parameter_unit
+
+    unit = parameter_unit(name)
+    if unit == "rad":
+        return f"{v * 206264.806:.2f} ± {s * 206264.806:.2f} arcsec"
+    if unit == "m":
+        return f"{v * 1e3:.4f} ± {s * 1e3:.4f} mm"
+    return f"{v:.4g} ± {s:.2g} {unit}".strip()
+
+
+# ============================================================================================
+# outputs
+# ============================================================================================
+
+
+def write_json(diag: Diagnosis, path: str | Path) -> Path:
+    """Write the ``hartrao-diagnosis/1`` document."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text(json.dumps(diag.to_json(), indent=2, default=_json_default), encoding="utf-8")
+    return p
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.bool_):
+        return bool(o)
+    raise TypeError(type(o))
+
+
+def write_report(diag: Diagnosis, out_dir: str | Path) -> Path:
+    """Figures and an HTML summary of a diagnosis (placeholder, replaced below)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    return out

@@ -253,29 +253,38 @@ def _mosum(S: np.ndarray, W: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray
     return np.sqrt(T2), np.where(bad, np.nan, D)
 
 
-def _segment_fit(S: np.ndarray, W: np.ndarray, a: int, b: int):
-    """Best one-change and two-change (box) piecewise-constant fits of ``S[:, a:b]``.
-
-    Weighted residual sums of squares (chi-square units, summed over the faces); returns
-    ``(chi2_one, k, chi2_box, (k1, k2))`` with boundaries as line indices of ``S``.
-    """
-    cw, cs, cq = _cums(S[:, a:b], W[:, a:b])
-    n = b - a
-
-    def seg(i, j):
+def _chi2(cums, bounds: Sequence[int]) -> float:
+    """Weighted residual sum of squares (summed over faces) of a piecewise-constant model
+    with the given segment boundaries (0 and L included), from prefix sums."""
+    cw, cs, cq = cums
+    tot = 0.0
+    for i, j in zip(bounds[:-1], bounds[1:]):
         ww, ss, qq = cw[:, j] - cw[:, i], cs[:, j] - cs[:, i], cq[:, j] - cq[:, i]
         with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(ww > 0, qq - ss * ss / np.where(ww > 0, ww, 1.0), 0.0).sum(0)
+            tot += float(np.where(ww > 0, qq - ss * ss / np.where(ww > 0, ww, 1.0), 0.0).sum())
+    return tot
 
-    ks = np.arange(1, n)
-    r1 = seg(np.zeros_like(ks), ks) + seg(ks, np.full_like(ks, n))
-    i, j = np.triu_indices(n + 1, 1)
-    m = (i >= 1) & (j <= n - 1)
-    i, j = i[m], j[m]
-    r2 = seg(np.zeros_like(i), i) + seg(i, j) + seg(j, np.full_like(j, n))
-    q = int(np.argmin(r2))
-    return float(r1.min()), a + int(ks[np.argmin(r1)]), float(r2[q]), (a + int(i[q]),
-                                                                          a + int(j[q]))
+
+def _peaks(T: np.ndarray, D: np.ndarray, cand: np.ndarray, w: int) -> list[int]:
+    """Candidate boundaries that are the largest within +-w among those whose jump has the
+    same sign (the two edges of a short box are both kept)."""
+    sign = np.sign(np.nansum(np.where(np.isfinite(D), D, 0.0), axis=0))
+    out: list[int] = []
+    for k in np.flatnonzero(cand)[np.argsort(-T[cand], kind="stable")]:
+        if all(abs(k - j) > w or sign[k] != sign[j] for j in out):
+            out.append(int(k))
+    return out
+
+
+def _refine(cums, bounds: list[int], w: int, L: int) -> list[int]:
+    """Move each inner boundary within +-w to the least chi-square, the others held."""
+    b = list(bounds)
+    for _ in range(2):
+        for i in range(1, len(b) - 1):
+            lo, hi = max(b[i - 1] + 1, b[i] - w), min(b[i + 1] - 1, b[i] + w)
+            best = min(range(lo, hi + 1), key=lambda k: _chi2(cums, b[:i] + [k] + b[i + 1:]))
+            b[i] = best
+    return b
 
 
 def _wmean(S: np.ndarray, W: np.ndarray, sel: np.ndarray) -> np.ndarray:
@@ -285,7 +294,8 @@ def _wmean(S: np.ndarray, W: np.ndarray, sel: np.ndarray) -> np.ndarray:
 
 
 def detect_series(S: np.ndarray, W: np.ndarray, width_rad: float, lo_rad: float,
-                  config: DisturbedConfig | None = None) -> dict[str, Any] | None:
+                  config: DisturbedConfig | None = None, span_rad: float = math.pi
+                  ) -> dict[str, Any] | None:
     """Change search on line series ``S`` (faces x lines) with inverse variances ``W``.
 
     Returns the disturbed range in lines (``start``, ``end``) and raw phi (deg), its jump per
@@ -304,25 +314,25 @@ def detect_series(S: np.ndarray, W: np.ndarray, width_rad: float, lo_rad: float,
     cand = (T > cfg.threshold) & (big > cfg.min_jump_m)
     if not cand.any():
         return None
-    # the strongest candidate and every candidate chained to it within 2 w: one event
-    k0 = int(np.argmax(np.where(cand, T, 0.0)))
-    hits = np.flatnonzero(cand)
-    lo_k = hi_k = k0
-    for h in hits[hits < k0][::-1]:
-        if lo_k - h <= 2 * w:
-            lo_k = h
-    for h in hits[hits > k0]:
-        if h - hi_k <= 2 * w:
-            hi_k = h
-    a, b = max(0, lo_k - 2 * w), min(L, hi_k + 2 * w)
-    chi1, c1, chi2, (b1, b2) = _segment_fit(S, W, a, b)
+    peaks = _peaks(T, D, cand, w)
+    k0 = peaks[0]
+    cums = _cums(S, W)
+    step = _refine(cums, [0, k0, L], w, L)
+    chi_step = _chi2(cums, step)
+    box, chi_box = None, np.inf
+    for kj in peaks[1:]:
+        bb = _refine(cums, [0, min(k0, kj), max(k0, kj), L], w, L)
+        c = _chi2(cums, bb)
+        if c < chi_box:
+            box, chi_box = bb, c
     lines = np.arange(L)
-    if chi1 - chi2 > cfg.threshold**2 / 2:
-        kind, i0, i1 = "box", b1, b2
-        start, end = b1, b2
+    if box is not None and chi_step - chi_box > cfg.threshold**2 / 2:
+        kind, i0, i1 = "box", box[1], box[2]
+        start, end = i0, i1
     else:
-        kind = "step"
-        base = _wmean(S, W, np.ones(L, bool))
+        kind, c1 = "step", step[1]
+        with np.errstate(invalid="ignore"):
+            base = np.nanmedian(S, axis=1)
         before, after = _wmean(S, W, lines < c1), _wmean(S, W, lines >= c1)
         if np.nanmean(np.abs(after - base)) >= np.nanmean(np.abs(before - base)):
             i0, i1, start, end = c1, L, c1, L
@@ -336,8 +346,8 @@ def detect_series(S: np.ndarray, W: np.ndarray, width_rad: float, lo_rad: float,
     return {"start": int(start), "end": int(end), "i0": int(i0), "i1": int(i1), "kind": kind,
             "statistic": float(T[k0]), "jump_m": jump,
             "jump_faces_m": tuple(float(x) for x in jump_faces), "window_lines": w,
-            "phi_deg": math.degrees(lo_rad + start * width_rad),
-            "phi_end_deg": math.degrees(lo_rad + end * width_rad)}
+            "phi_deg": math.degrees(lo_rad + min(start * width_rad, span_rad)),
+            "phi_end_deg": math.degrees(lo_rad + min(end * width_rad, span_rad))}
 
 
 # --------------------------------------------------------------------------------------------
@@ -390,7 +400,7 @@ def detect_disturbed_arrays(scan: str, position: str, cycle: int, phi: np.ndarra
             rs = None
     with np.errstate(divide="ignore", invalid="ignore"):
         W = np.where(np.isfinite(var) & (var > 0), 1.0 / var, 0.0)
-    r = detect_series(S, W, own.width_rad, own.lo_rad, cfg)
+    r = detect_series(S, W, own.width_rad, own.lo_rad, cfg, _phi_start(cycle)[1])
     if r is None:
         return None
     if rs is not None:
@@ -419,19 +429,23 @@ def _arrays_of_fit(s) -> dict[str, Any]:
             "theta": s.data.theta_rad, "deviation_m": s.deviation_m, "used": s.used}
 
 
-def detect_disturbed(scan_fit, reference=None, config: DisturbedConfig | None = None
-                     ) -> DisturbedReport | None:
+def detect_disturbed(scan_fit, reference=None, config: DisturbedConfig | None = None, *,
+                     keep: np.ndarray | None = None) -> DisturbedReport | None:
     """Is this scan disturbed along one horizontal angle? (module doc)
 
     ``scan_fit``: a :class:`._fit.ScanFit`; ``reference``: optionally the ScanFit of the other
-    cycle of the same position (removes the dish's own structure). Returns None for a clean
-    scan.
+    cycle of the same position (removes the dish's own structure). Points near the surface are
+    used whether the adjustment kept them or not (a large jump gets the disturbed points
+    rejected); ``keep`` restricts them (e.g. to what preprocessing or a cut kept). Returns None
+    for a clean scan.
     """
     a = _arrays_of_fit(scan_fit)
     ref = _arrays_of_fit(reference) if reference is not None else None
+    dev = a["deviation_m"]
+    if keep is not None:
+        dev = np.where(np.asarray(keep, bool), dev, np.nan)
     return detect_disturbed_arrays(a["scan"], scan_fit.meta.position, a["cycle"], a["phi"],
-                                   a["theta"], a["deviation_m"], a["used"], reference=ref,
-                                   config=config)
+                                   a["theta"], dev, a["used"], reference=ref, config=config)
 
 
 def _pair(items: Sequence, position, cycle) -> dict:

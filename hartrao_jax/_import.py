@@ -26,9 +26,11 @@ What the importer does, and the choices it makes:
 * **Missing returns.** PTX cells ``0 0 0`` are dropped; each kept point keeps its grid
   ``(row, col)`` and cell index ``col * rows + row`` (`ImportedScan.row`). XYZ points at the
   origin are dropped too (counted). Non-finite points are dropped (counted).
-* **Scanner a priori** (`LEICA_EXPORT_SCANNER`): ``sigma_range_m = 0.002`` (exported points are
-  processed, a realistic range noise is 1-3 mm) and ``sigma_angle_rad = 4e-5`` (about 8", the
-  angular accuracy class of Leica terrestrial scanners). ``angular_step_rad`` is estimated from the
+* **Scanner a priori** (`LEICA_EXPORT_SCANNER`): ``sigma_range_m = 0.0008`` and
+  ``sigma_angle_rad = 1.5e-5`` (3"). Leica's phase/pulse scanners of the P class specify a range
+  noise of 0.4-0.5 mm rms at 10-50 m on good targets; a point of a real panelled reflector adds
+  its micro-roughness and the export's processing, and on the GBT scan 10 these values give
+  sigma0 = 0.94 (with 2 mm / 4e-5 rad sigma0 was 0.37, i.e. far too pessimistic). ``angular_step_rad`` is estimated from the
   data: PTX the median angle between grid neighbours; XYZ and E57 the median angle to the nearest
   neighbour (for a subsampled export this is the spacing of the points in the file, larger than
   the instrument's step); `DEFAULT_ANGULAR_STEP_RAD` when it cannot be estimated.
@@ -81,10 +83,10 @@ FORMATS = ("ptx", "xyz", "e57")
 FRAME_NOTE = "file: z up as exported, not flipped to the nadir"
 TWO_PI = 2 * math.pi
 
-LEICA_EXPORT_SCANNER = Scanner(sigma_range_m=0.002, sigma_angle_rad=4e-5,
+LEICA_EXPORT_SCANNER = Scanner(sigma_range_m=0.0008, sigma_angle_rad=1.5e-5,
                                angular_step_rad=DEFAULT_ANGULAR_STEP_RAD)
-"""A priori of one point of a processed Leica export: range 2 mm (1-3 mm is realistic for
-processed points), angle 4e-5 rad; the angular step is replaced by the estimate from the data."""
+"""A priori of one point of a processed Leica export: range 0.8 mm, angle 1.5e-5 rad (3");
+the angular step is replaced by the estimate from the data."""
 
 _PRESETS: dict[str, tuple[Site, Telescope]] = {
     "hartrao": (

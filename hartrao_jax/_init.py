@@ -212,6 +212,25 @@ def _paraboloid_distance(P: np.ndarray, a: np.ndarray, V: np.ndarray, f: float) 
     return (h - rho2 / (4 * f)) / np.sqrt(1 + rho2 / (4 * f * f))
 
 
+def _locally_planar(P: np.ndarray, k: int = 12, ratio: float = 0.05) -> np.ndarray:
+    """Points whose ``k`` nearest neighbours lie close to a plane (a surface, not scatter).
+
+    ``ratio``: largest allowed share of the smallest eigenvalue of the neighbourhood covariance;
+    isolated returns (background, scatter in mid-air) have round neighbourhoods and fail it.
+    """
+    from scipy.spatial import cKDTree
+
+    if len(P) <= k:
+        return np.ones(len(P), bool)
+    _, nb = cKDTree(P).query(P, k=k)
+    Q = P[nb] - P[nb].mean(axis=1, keepdims=True)
+    C = np.einsum("nki,nkj->nij", Q, Q)
+    w = np.linalg.eigvalsh(C)
+    share = w[:, 0] / np.maximum(w.sum(axis=1), 1e-30)
+    keep = share < ratio
+    return keep if keep.sum() > 0.2 * len(P) else np.ones(len(P), bool)
+
+
 def quadric_initial_values(
     r: np.ndarray, phi: np.ndarray, theta: np.ndarray, *, n_sample: int = 20000,
     tol_m: float = 0.05, rounds: int = 6, seed: int = 0,
@@ -228,20 +247,36 @@ def quadric_initial_values(
     n = len(r)
     idx = rng.choice(n, size=min(n, n_sample), replace=False) if n > n_sample else np.arange(n)
     P = np.asarray(polar_to_cartesian(r[idx], phi[idx], theta[idx]))
-    mu = np.median(P, axis=0)
-    scale = float(np.median(np.linalg.norm(P - mu, axis=1))) or 1.0
+    keep = _locally_planar(P)
+    mu = np.median(P[keep], axis=0)
+    scale = float(np.median(np.linalg.norm(P[keep] - mu, axis=1))) or 1.0
     Pn = (P - mu) / scale
-    keep = np.ones(len(P), bool)
-    a = V = None
-    f = np.nan
-    for i in range(rounds):
-        D = _quadric_design(Pn[keep])
-        _, _, Vt = np.linalg.svd(D, full_matrices=False)
+
+    def model(sel):
+        _, _, Vt = np.linalg.svd(_quadric_design(Pn[sel]), full_matrices=False)
         a, Vn, fn = _paraboloid_from_quadric(Vt[-1])
-        V, f = mu + Vn * scale, fn * scale
+        return a, mu + Vn * scale, fn * scale
+
+    # RANSAC over small random subsets (a few far returns ruin an algebraic fit), then trimming
+    cand = np.flatnonzero(keep)
+    best, best_score = None, np.inf
+    for _ in range(40):
+        sel = rng.choice(cand, size=min(len(cand), 40), replace=False)
+        a, V, f = model(sel)
+        if not (np.isfinite(f) and f > 0 and np.all(np.isfinite(V))):
+            continue
+        score = np.median(np.abs(_paraboloid_distance(P[keep], a, V, f)))
+        if score < best_score:
+            best, best_score = (a, V, f), score
+    if best is None:
+        best = model(keep)
+    a, V, f = best
+    for _ in range(rounds):
         d = np.abs(_paraboloid_distance(P, a, V, f))
-        cut = np.quantile(d, 0.7) if i == 0 else max(4 * 1.4826 * np.median(d[keep]), tol_m)
-        keep = d <= cut
+        sel = keep & (d <= max(4 * 1.4826 * np.median(d[keep]), tol_m))
+        if sel.sum() < 10:
+            break
+        a, V, f = model(sel)
     R = _rotation_axis_to_z(a)
     kappa, ry, rx = (float(v) for v in decompose_zyx(R))
     R2 = np.asarray(rot_y(ry) @ rot_x(rx))

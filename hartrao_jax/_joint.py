@@ -541,31 +541,39 @@ def fit_joint(
     return JointFit(campaign, names, shared, group, gmap, scans_out, start, sol)
 
 
+def joint_scan_fit(campaign: Campaign, s: ScanFit, x: np.ndarray, cov: np.ndarray, N: np.ndarray,
+                   sigma0: float, v: np.ndarray, e: np.ndarray, n_used: int, omega: float,
+                   u_object: int, iterations: int, converged: bool,
+                   heading_hint_rad: float | None) -> ScanFit:
+    """The :class:`ScanFit` of one scan of a joint solution (alignment, deviations redone)."""
+    res = GHResult(
+        x=jnp.asarray(x), cov=jnp.asarray(cov), N=jnp.asarray(N), sigma0=jnp.asarray(sigma0),
+        v=jnp.asarray(v), misclosure=jnp.zeros(len(v)), normalized=jnp.asarray(e) / sigma0,
+        weights=jnp.asarray(s.used.astype(float)), redundancy=jnp.asarray(n_used - u_object),
+        iterations=jnp.asarray(iterations), converged=jnp.asarray(converged))
+    f = finish_scan_fit(campaign, s.meta, s.model, s.data, res, s.gravity, s.init, s.used,
+                        heading_hint_rad=None if s.alignment.source == "gravity"
+                        else heading_hint_rad)
+    scan_sigma0 = math.sqrt(omega / max(n_used - u_object, 1))
+    return dataclasses.replace(
+        f, n_rejected=s.n_rejected, n_window=s.n_window, sigma0=sigma0,
+        notes=list(s.notes) + [f"joint adjustment; sigma0 of this scan's residuals "
+                               f"{scan_sigma0:.4f}"])
+
+
 def joint_scan_fits(campaign: Campaign, fits: Sequence[ScanFit], sol: SchurSolution,
                     residuals: Sequence[tuple[np.ndarray, np.ndarray]] | None) -> list[ScanFit]:
     """ScanFit objects of the joint solution (alignment and deviations recomputed)."""
     hint = _heading_hint(fits)
     out = []
-    for s_i, s in enumerate(fits):
+    for i, s in enumerate(fits):
         if residuals is not None:
-            v, e = residuals[s_i]
-        else:  # residuals stayed on the workers: keep the per-scan ones for the deviations
+            v, e = residuals[i]
+        else:  # residuals stayed elsewhere: keep the per-scan ones for the deviations
             v, e = s.v, s.normalized * s.sigma0
-        res = GHResult(
-            x=jnp.asarray(sol.xs[s_i]), cov=jnp.asarray(sol.cov(s_i)), N=jnp.asarray(sol.N[s_i]),
-            sigma0=jnp.asarray(sol.sigma0), v=jnp.asarray(v),
-            misclosure=jnp.zeros(len(v)), normalized=jnp.asarray(e) / sol.sigma0,
-            weights=jnp.asarray(s.used.astype(float)),
-            redundancy=jnp.asarray(sol.n_used[s_i] - len(sol.o_idx)),
-            iterations=jnp.asarray(sol.iterations), converged=jnp.asarray(sol.converged))
-        f = finish_scan_fit(campaign, s.meta, s.model, s.data, res, s.gravity, s.init, s.used,
-                            heading_hint_rad=None if s.alignment.source == "gravity" else hint)
-        scan_sigma0 = math.sqrt(sol.omega[s_i] / max(sol.n_used[s_i] - len(sol.o_idx), 1))
-        f = dataclasses.replace(f, n_rejected=s.n_rejected, n_window=s.n_window,
-                                sigma0=sol.sigma0,
-                                notes=list(s.notes) + [f"joint adjustment; sigma0 of this scan's "
-                                                       f"residuals {scan_sigma0:.4f}"])
-        out.append(f)
+        out.append(joint_scan_fit(campaign, s, sol.xs[i], sol.cov(i), sol.N[i], sol.sigma0, v, e,
+                                  sol.n_used[i], sol.omega[i], len(sol.o_idx), sol.iterations,
+                                  sol.converged, hint))
     return out
 
 
@@ -574,7 +582,7 @@ def joint_scan_fits(campaign: Campaign, fits: Sequence[ScanFit], sol: SchurSolut
 # --------------------------------------------------------------------------------------------
 
 
-def joint_json(jf: JointFit) -> dict:
+def joint_json(jf: JointFit, *, base: dict | None = None) -> dict:
     """``fit.json`` of a joint adjustment (schema ``hartrao-fit/1``).
 
     The scans' ``estimates`` hold the per-scan (object) parameters; the shared ones appear once
@@ -582,9 +590,10 @@ def joint_json(jf: JointFit) -> dict:
     ``value``/``sigma`` are its estimate; with several (``night``) they are the inverse-variance
     combination of the groups, whose own estimates are under ``by_group``. ``"joint"`` holds the
     precision gain (sigma_joint / sigma_per_scan), the drop of the correlation between the focal
-    length and the calibration, and the consistency of the per-scan estimates.
+    length and the calibration, and the consistency of the per-scan estimates. ``base``: the
+    ``fit.json`` of the joint scans when they were finished elsewhere (Dask workers).
     """
-    doc = fit_json(jf.campaign_fit())
+    doc = fit_json(jf.campaign_fit()) if base is None else base
     for rec in doc["scans"]:
         for n in jf.shared:
             rec["estimates"].pop(n, None)
@@ -662,6 +671,6 @@ def print_joint_summary(jf: JointFit, console=None) -> None:
 __all__ = [
     "DEFAULT_SHARED", "JointBackend", "JointFit", "LocalBackend", "ScanProblem", "SchurSolution",
     "bucket_size", "check_shared", "condition_number", "fit_joint", "group_of", "joint_json",
-    "joint_scan_fits", "print_joint_summary", "problems_from_fits", "residual_update",
+    "joint_scan_fit", "joint_scan_fits", "print_joint_summary", "problems_from_fits", "residual_update",
     "schur_iterate", "write_joint_fit",
 ]

@@ -85,7 +85,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._campaign import Campaign, ScanData, ScanMeta, read_scan
-from ._geometry import pointing_gravity, polar_to_cartesian, rot_x, rot_y
+from ._geometry import pointing_gravity, polar_to_cartesian
 from ._init import InitialValues, initial_values
 
 log = logging.getLogger("hartrao_jax")
@@ -123,6 +123,8 @@ class PreprocessConfig:
         k_sigma: sigmas of the automatic ``epsilon``.
         allowance_m: added to the automatic ``epsilon``; None: frame-dependent (module doc).
         ransac_iterations: minimal samples (hypotheses) per patch.
+        score_points: hypotheses are scored on this many points spread over the patch (all
+            points when the patch is smaller); refinement and inliers use every point.
         refine_iterations: total-least-squares refinements after RANSAC.
         min_patch_points: smaller patches (and planes with fewer inliers) are removed.
         max_patch_points: larger patches are cut into strips of at most this many points.
@@ -134,13 +136,15 @@ class PreprocessConfig:
         rim_margin_m, cone_margin_m: tolerances of the annulus test at the rim and at the
             cone (the spec: no reflector data inside ``cone_radius_m``; the simulator puts the
             cone's hole exactly on the paraboloid there, so only the radius separates them).
+        init_sample: random finite rows the initial-value search runs on.
         refine_pose: refine the initial pose (trimmed Gauss-Newton on ``pose_sample`` points
             inside the height window, :func:`refine_pose`) before the radius tests.
         frame: "flat", "scanner" or None (flat when initial values exist, else scanner).
         batch_size: patches per vmapped chunk of ``lax.map``; None: from ``memory_mb``.
-        memory_mb: budget of one chunk's largest intermediate (patches x points x hypotheses).
-        ransac_float32: score the hypotheses in float32 (centred coordinates; the refinement
-            and the final classification are float64).
+        memory_mb: budget of one vmapped chunk's intermediates (float64 copies of the padded
+            patches, the scoring points x hypotheses matrices).
+        ransac_float32: score the hypotheses in float32 (coordinates relative to the patch
+            centroid; the refinement and the final classification are float64).
     """
 
     d_min_m: float | None = None
@@ -153,6 +157,7 @@ class PreprocessConfig:
     k_sigma: float = 4.5
     allowance_m: float | None = None
     ransac_iterations: int = 64
+    score_points: int = 512
     refine_iterations: int = 2
     min_patch_points: int = 10
     max_patch_points: int = 4096
@@ -162,11 +167,12 @@ class PreprocessConfig:
     geometry_window_m: float = 0.05
     rim_margin_m: float = 0.05
     cone_margin_m: float = 0.01
+    init_sample: int = 20000
     refine_pose: bool = True
     pose_sample: int = 20000
     frame: str | None = None
     batch_size: int | None = None
-    memory_mb: float = 96.0
+    memory_mb: float = 64.0
     ransac_float32: bool = True
 
     def __post_init__(self):
@@ -178,6 +184,8 @@ class PreprocessConfig:
             raise ValueError("max_patch_points must be >= min_patch_points and >= 8")
         if self.ransac_iterations < 1:
             raise ValueError("ransac_iterations must be >= 1")
+
+
 
 
 @dataclass
@@ -231,19 +239,75 @@ class PreprocessResult:
 # --------------------------------------------------------------------------------------------
 
 
+
+
+# --------------------------------------------------------------------------------------------
+# Geometry helpers (NumPy)
+# --------------------------------------------------------------------------------------------
+
+CHUNK = 1 << 20
+"""Points per block of the per-point NumPy stages. Blocks keep every temporary below glibc's
+mmap threshold (32 MiB), so its memory is reused instead of page-faulted afresh for each
+operation: on the 2-core test VM a fresh 100-MB temporary cost ~0.5 s, more than the arithmetic.
+"""
+
+
+def _blocks(n: int, size: int = CHUNK):
+    for s in range(0, n, size):
+        yield s, min(s + size, n)
+
+
+def _rot(rx: float, ry: float) -> np.ndarray:
+    """``Ry(ry) Rx(rx)`` as NumPy (equals ``_geometry.scanner_to_telescope``)."""
+    cx, sx, cy, sy = math.cos(rx), math.sin(rx), math.cos(ry), math.sin(ry)
+    return np.array([[cy, sy * sx, sy * cx], [0.0, cx, -sx], [-sy, cy * sx, cy * cx]])
+
+
 def _pose(x: Mapping[str, float] | InitialValues) -> tuple[np.ndarray, np.ndarray, float]:
     """``(R, t, f)`` of object parameters (``tx ty tz rx ry f``): ``X = R x_s + t``."""
     x = x.x if isinstance(x, InitialValues) else x
-    R = np.asarray(rot_y(x["ry"]) @ rot_x(x["rx"]))
-    return R, np.array([x["tx"], x["ty"], x["tz"]]), float(x["f"])
+    return _rot(x["rx"], x["ry"]), np.array([x["tx"], x["ty"], x["tz"]]), float(x["f"])
 
 
-def _normal_distance(xs: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Approximate normal distance of scanner points from the paraboloid of ``p`` (6 values)."""
-    R = np.asarray(rot_y(p[4]) @ rot_x(p[3]))
-    X = xs @ R.T + p[:3]
-    q = X[:, 0] ** 2 + X[:, 1] ** 2
-    return (X[:, 2] - q / (4 * p[5])) / np.sqrt(1.0 + q / (4 * p[5] ** 2))
+def _cartesian(r: np.ndarray, phi: np.ndarray, theta: np.ndarray):
+    """Seed eq. (2) in NumPy as three arrays ``x, y, z`` (equals ``polar_to_cartesian``)."""
+    st = np.sin(theta)
+    st *= r
+    x = np.sin(phi)
+    x *= st
+    y = np.cos(phi)
+    y *= st
+    z = np.cos(theta)
+    z *= r
+    return x, y, z
+
+
+def _flat_coordinates(xs, x: Mapping[str, float]):
+    """Fitted-frame ``X, Y`` and the normal distance ``h`` from the paraboloid of ``x``; ``rho``.
+
+    ``xs`` are the scanner coordinates as three arrays. The vertical distance
+    ``Z - rho^2/4f`` (as :func:`._init.initial_distance`) is scaled by
+    ``1 / sqrt(1 + (rho/2f)^2)`` into a distance along the paraboloid's normal.
+    Returns ``(X, Y, h), rho``.
+    """
+    R, t, f = _pose(x)
+    a, b, c = xs
+    X = R[0, 0] * a + R[0, 1] * b + R[0, 2] * c + t[0]
+    Y = R[1, 0] * a + R[1, 1] * b + R[1, 2] * c + t[1]
+    Z = R[2, 0] * a + R[2, 1] * b + R[2, 2] * c + t[2]
+    q = X * X + Y * Y
+    Z -= q * (1.0 / (4 * f))
+    q *= 1.0 / (4 * f * f)
+    q += 1.0
+    np.sqrt(q, out=q)
+    Z /= q  # normal distance
+    rho = np.sqrt((q * q - 1.0) * (4 * f * f))
+    return (X, Y, Z), rho
+
+
+def _normal_distance(xs, p: np.ndarray) -> np.ndarray:
+    x = dict(zip(("tx", "ty", "tz", "rx", "ry", "f"), p))
+    return _flat_coordinates(xs, x)[0][2]
 
 
 def refine_pose(xs: np.ndarray, x: Mapping[str, float], *, iterations: int = 8,
@@ -253,22 +317,22 @@ def refine_pose(xs: np.ndarray, x: Mapping[str, float], *, iterations: int = 8,
     The initial values hold the rotation from the gravity vector and a heading found on a grid,
     so ``rx, ry`` can be off by 1e-2 rad, compensated by decimetres in ``tx, ty`` (the surface
     itself stays within a centimetre): good enough for a height window, not for the radius tests
-    at the cone and the rim. A few Gauss-Newton steps on (a sample of) the points inside the
-    height window, trimmed at 4 robust sigmas, fix that. NumPy, numerical Jacobian (7 passes).
+    at the cone and the rim. A few Gauss-Newton steps on a sample of the points inside the
+    height window, trimmed at 4 robust sigmas, fix that. NumPy, numerical Jacobian.
+    ``xs``: scanner coordinates as three arrays.
     """
     p = np.array([x["tx"], x["ty"], x["tz"], x["rx"], x["ry"], x["f"]], float)
-    keep = np.ones(len(xs), bool)
     h = np.array([1e-6, 1e-6, 1e-6, 1e-7, 1e-7, 1e-6])
     for _ in range(iterations):
         r0 = _normal_distance(xs, p)
         a = np.abs(r0)
-        tol = max(4 * 1.4826 * np.median(a[keep]), min_tol_m)
-        keep = a <= tol
+        keep = a <= max(4 * 1.4826 * np.median(a), min_tol_m)
         if keep.sum() < 50:
             break
-        J = np.stack([(_normal_distance(xs[keep], p + h[k] * np.eye(6)[k]) - r0[keep]) / h[k]
+        xk, rk = tuple(c[keep] for c in xs), r0[keep]
+        J = np.stack([(_normal_distance(xk, p + h[k] * np.eye(6)[k]) - rk) / h[k]
                       for k in range(6)], 1)
-        dp, *_ = np.linalg.lstsq(J, -r0[keep], rcond=None)
+        dp, *_ = np.linalg.lstsq(J, -rk, rcond=None)
         if not np.all(np.isfinite(dp)):
             break
         p = p + dp
@@ -284,9 +348,9 @@ def reflector_distance_range(
     """Smallest and largest distance (m) from a point to the annulus of ``Z = rho^2 / 4f``.
 
     The annulus is ``rho_min <= rho <= rho_max`` about the axis (for an offset reflector,
-    ``offset_m > 0``, the aperture circle centred ``offset_m`` off the axis along X, widened to
-    all azimuths). Evaluated on a dense polar grid (the extremes lie on the boundary or at a
-    smooth interior extremum; the grid error is far below any sensible margin).
+    ``offset_m > 0``, the aperture circle centred ``offset_m`` off the axis, widened to all
+    azimuths). Evaluated on a dense polar grid (the extremes lie on the boundary or at a smooth
+    interior extremum; the grid error is far below any sensible margin).
     """
     if offset_m:
         rho_min, rho_max = max(0.0, offset_m - rho_max), offset_m + rho_max
@@ -301,13 +365,18 @@ def reflector_distance_range(
 
 
 def default_range_window(
-    campaign: Campaign, init: InitialValues | None, config: PreprocessConfig | None = None
+    campaign: Campaign, pose: Mapping[str, float] | InitialValues | None,
+    config: PreprocessConfig | None = None,
 ) -> tuple[float, float]:
-    """``(D_min, D_max)`` (m) from the telescope geometry and the scanner pose (module doc)."""
+    """``(D_min, D_max)`` (m) from the telescope geometry and the scanner pose (module doc).
+
+    ``pose``: initial values (or refined object parameters); None: nominal geometry, the scanner
+    at the focus with ``nominal_range_margin_m``.
+    """
     cfg = config or PreprocessConfig()
     tel = campaign.telescope
-    if init is not None:
-        _, t, f = _pose(init)
+    if pose is not None:
+        _, t, f = _pose(pose)
         margin = cfg.range_margin_m
     else:  # nominal: the scanner hangs at the sub-reflector, near the focus
         t, f = np.array([0.0, 0.0, tel.focal_length_m]), tel.focal_length_m
@@ -316,39 +385,50 @@ def default_range_window(
     return max(0.0, lo - margin), hi + margin
 
 
-def _flat_coordinates(xs: np.ndarray, x: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray]:
-    """Fitted-frame ``X, Y`` and the normal distance from the paraboloid of ``x``; ``rho``."""
-    R, t, f = _pose(x)
-    X = xs @ R.T + t
-    q = X[:, 0] ** 2 + X[:, 1] ** 2
-    h = X[:, 2] - q / (4 * f)  # == _init.initial_distance (vertical)
-    X[:, 2] = h / np.sqrt(1.0 + q / (4 * f * f))
-    return X, np.sqrt(q)
+class _Bins:
+    """Angular discretisation: dense int32 patch key (face, theta band, phi bin) of a point."""
+
+    def __init__(self, cycle: int, size_m: float, range_m: float):
+        self.dth = size_m / range_m
+        self.n_band = int(math.ceil(math.pi / self.dth)) + 1
+        self.lo, self.span = (0.0, 2 * np.pi) if cycle == 0 else (
+            (0.0, np.pi) if cycle == 1 else (np.pi, np.pi))
+        centres = (np.arange(self.n_band) + 0.5) * self.dth
+        # phi bins per band: patches of about size_m across, also near the nadir
+        self.n_phi = np.maximum(1, np.round(self.span * range_m * np.sin(centres) / size_m)
+                                ).astype(np.int64)
+        self.J = int(self.n_phi.max())
+        self.n_keys = 2 * self.n_band * self.J
+        if self.n_keys >= 2**31:
+            raise ValueError(f"patch size {size_m} m is too small for this scan")
+
+    def keys(self, phi: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        face2 = theta >= np.pi
+        th0 = np.where(face2, 2 * np.pi - theta, theta)
+        band = np.minimum((th0 * (1.0 / self.dth)).astype(np.int64), self.n_band - 1)
+        nb = self.n_phi[band]
+        u = phi - self.lo
+        u = np.where(u < 0, u + 2 * np.pi, u)
+        j = np.minimum((u * (1.0 / self.span) * nb).astype(np.int64), nb - 1)
+        return ((face2 * self.n_band + band) * self.J + j).astype(np.int32)
 
 
-def _patch_keys(phi, theta, cycle: int, size_m: float, range_m: float) -> np.ndarray:
-    """Dense int64 patch key of every point (face, theta band, phi bin); see the module doc."""
-    face2 = theta >= np.pi
-    th0 = np.where(face2, 2 * np.pi - theta, theta)
-    dth = size_m / range_m
-    n_band = int(math.ceil(math.pi / dth)) + 1
-    band = np.clip((th0 / dth).astype(np.int64), 0, n_band - 1)
-    lo, span = (0.0, 2 * np.pi) if cycle == 0 else ((0.0, np.pi) if cycle == 1 else (np.pi, np.pi))
-    centres = (np.arange(n_band) + 0.5) * dth
-    n_phi = np.maximum(1, np.round(span * range_m * np.sin(centres) / size_m)).astype(np.int64)
-    nb = n_phi[band]
-    j = np.clip(((np.mod(phi - lo, 2 * np.pi) / span) * nb).astype(np.int64), 0, nb - 1)
-    J = int(n_phi.max())
-    return (face2.astype(np.int64) * n_band + band) * J + j
+def _keys(phi, theta, idx, bins: _Bins) -> np.ndarray:
+    out = np.empty(len(idx), np.int32)
+    for s, e in _blocks(len(idx)):
+        out[s:e] = bins.keys(phi[idx[s:e]], theta[idx[s:e]])
+    return out
 
 
-def _auto_patch_size(phi, theta, cycle, range_m: float, cfg: PreprocessConfig) -> tuple[float, float]:
-    """Patch side (m) so that a typical patch holds ``target_patch_points``; and that median."""
+def _auto_patch_size(phi, theta, idx, cycle, range_m: float, cfg: PreprocessConfig):
+    """Patch side (m) for about ``target_patch_points`` per patch; and the 0.3-m median."""
     s0 = 0.30
-    keys = _patch_keys(phi, theta, cycle, s0, range_m)
-    counts = np.bincount(keys) if len(keys) else np.zeros(1, np.int64)
-    counts = counts[counts > 0]
-    typical = float(np.median(counts)) if len(counts) else 0.0
+    bins = _Bins(cycle, s0, range_m)
+    occ = np.zeros(bins.n_keys, np.int64)
+    for s, e in _blocks(len(idx)):
+        occ += np.bincount(bins.keys(phi[idx[s:e]], theta[idx[s:e]]), minlength=bins.n_keys)
+    occ = occ[occ > 0]
+    typical = float(np.median(occ)) if len(occ) else 0.0
     if typical <= 0:
         return s0, typical
     return s0 * max(1.0, math.sqrt(cfg.target_patch_points / typical)), typical
@@ -394,8 +474,8 @@ def _tls_plane(p: Float[Array, "p 3"], w: Float[Array, " p"], n0: Float[Array, "
     """
     sw = jnp.maximum(jnp.sum(w), 1.0)
     c = jnp.sum(p * w[:, None], axis=0) / sw
-    q = (p - c) * w[:, None]
-    M = q.T @ (p - c)
+    y = p - c
+    M = (y * w[:, None]).T @ y
     adj = _adjugate_sym(M)
     v = n0
     for _ in range(2):
@@ -406,37 +486,46 @@ def _tls_plane(p: Float[Array, "p 3"], w: Float[Array, " p"], n0: Float[Array, "
     return v, v @ c
 
 
-def _patch_fit(pts, n, eps, u, *, n_refine: int, f32: bool):
+def _patch_fit(pts, n, eps, u, *, n_refine: int, f32: bool, n_score: int):
     """RANSAC (MSAC score) + TLS refinement of one padded patch.
 
     Args:
-        pts: (P, 3) centred coordinates (first ``n`` rows valid).
+        pts: (P, 3) local coordinates (first ``n`` rows valid; any origin within ~metres).
         n: number of valid points (>= 3).
         eps: inlier threshold (m).
         u: (H, 3) uniforms in [0, 1): the minimal samples of the H hypotheses.
-    Returns ``(inlier (P,) bool, normal (3,), d, n_inliers int32, rms, ransac_inliers int32)``.
+        n_score: hypotheses are scored on this many points spread over the patch (all of
+            them if the patch is smaller); the refinement and the inliers use every point.
+    Returns ``(inlier (P,) bool, normal (3,), d, centroid (3,), n_inliers, rms,
+    ransac_inliers)`` with the plane ``normal . (p - centroid) = d``.
     """
     P = pts.shape[0]
     valid = jnp.arange(P) < n
     ct = jnp.float32 if f32 else jnp.float64
+    p64 = pts.astype(jnp.float64)
+    cen = jnp.sum(jnp.where(valid[:, None], p64, 0.0), axis=0) / n
+    p64 = p64 - cen
+    q = p64.astype(ct)
     idx = _three_distinct(u, n)
-    q = pts.astype(ct)
     tri = q[idx]  # (H, 3, 3)
     nrm = jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     ln = jnp.sqrt(jnp.sum(nrm * nrm, axis=1))
-    scale = jnp.max(jnp.abs(q)) + jnp.asarray(1e-12, ct)
+    scale = jnp.max(jnp.where(valid[:, None], jnp.abs(q), 0)) + jnp.asarray(1e-12, ct)
     ok = ln > jnp.asarray(1e-6, ct) * scale * scale
     nh = nrm / jnp.where(ok, ln, 1.0)[:, None]
     d = jnp.sum(nh * tri[:, 0], axis=1)
     e = jnp.asarray(eps, ct)
-    dist = q @ nh.T - d[None, :]  # (P, H): the one large intermediate
-    cost = jnp.sum(jnp.where(valid[:, None], jnp.minimum(dist * dist, e * e), 0), axis=0)
+    S = min(P, n_score)
+    k = jnp.arange(S)
+    sub = jnp.where(n > S, (k * n) // S, k)  # spread over the patch when it is larger
+    qs = q[sub]
+    dist = qs @ nh.T - d[None, :]  # (S, H): the one large intermediate
+    cost = jnp.sum(jnp.where((sub < n)[:, None], jnp.minimum(dist * dist, e * e), 0), axis=0)
     cost = jnp.where(ok, cost, jnp.inf)
     best = jnp.argmin(cost)
-    n_ransac = jnp.sum(valid & (jnp.abs(dist[:, best]) <= e), dtype=jnp.int32)
-    p64 = pts.astype(jnp.float64)
     normal = nh[best].astype(jnp.float64)
     d0 = d[best].astype(jnp.float64)
+    n_ransac = jnp.sum(valid & (jnp.abs(p64 @ normal - d0) <= eps), dtype=jnp.int32)
     for _ in range(n_refine):
         r = p64 @ normal - d0
         w = (valid & (jnp.abs(r) <= eps)).astype(jnp.float64)
@@ -448,14 +537,15 @@ def _patch_fit(pts, n, eps, u, *, n_refine: int, f32: bool):
     inl = valid & (jnp.abs(r) <= eps)
     n_in = jnp.sum(inl, dtype=jnp.int32)
     rms = jnp.sqrt(jnp.sum(jnp.where(inl, r * r, 0.0)) / jnp.maximum(n_in - 3, 1))
-    return inl, normal, d0, n_in, rms, n_ransac
+    return inl, normal, d0, cen, n_in, rms, n_ransac
 
 
 @eqx.filter_jit
-def _fit_patches(pts, n, eps, u, *, n_refine: int, f32: bool, batch_size: int):
+def _fit_patches(pts, n, eps, u, *, n_refine: int, f32: bool, n_score: int, batch_size: int):
     """Padded patches: ``lax.map`` over chunks of ``batch_size`` vmapped :func:`_patch_fit`."""
-    return jax.lax.map(lambda a: _patch_fit(*a, n_refine=n_refine, f32=f32), (pts, n, eps, u),
-                       batch_size=batch_size)
+    return jax.lax.map(
+        lambda a: _patch_fit(*a, n_refine=n_refine, f32=f32, n_score=n_score),
+        (pts, n, eps, u), batch_size=batch_size)
 
 
 def _next_pow2(k: int) -> int:
@@ -479,62 +569,72 @@ def ransac_uniforms(seed: int, ids: np.ndarray, n_hyp: int) -> np.ndarray:
 def fit_planes(
     pts: np.ndarray, n: np.ndarray, eps: np.ndarray | float, *, seed: int = 0,
     ransac_iterations: int = 64, refine_iterations: int = 2, ransac_float32: bool = True,
-    batch_size: int | None = None, memory_mb: float = 96.0, ids: np.ndarray | None = None,
-    max_chunk: int = 8192,
+    score_points: int = 512, batch_size: int | None = None, memory_mb: float = 64.0,
+    ids: np.ndarray | None = None, max_chunk: int = 8192,
 ) -> dict[str, np.ndarray]:
     """RANSAC + TLS planes of padded patches (the JAX core, usable on its own).
 
     Args:
         pts: (n_patches, P, 3) coordinates; the first ``n[i]`` rows of patch ``i`` are valid.
-            Centre them per patch (the float32 scoring is done on these values).
+            Any origin within a few metres of the patch (float32 keeps ~0.1 um there).
         n: (n_patches,) valid points per patch (patches with ``n < 3`` give no plane).
         eps: inlier threshold (m), scalar or per patch.
         ids: integer id per patch for its random samples (default ``arange``): the result of a
             patch does not depend on the chunking or on the other patches.
+        score_points: points (spread over the patch) that score the hypotheses.
         batch_size: patches per vmapped step of ``lax.map``; None: as many as fit in
-            ``memory_mb`` for the (P x hypotheses) distance matrices (a few copies of it).
+            ``memory_mb`` (the (P, 3) float64 copies and the scoring matrices).
         max_chunk: patches per compiled call; calls use power-of-two patch counts up to this,
             so the same few shapes (and compilations) serve every scan.
     Returns a dict of NumPy arrays: ``inlier`` (n_patches, P) bool, ``normal`` (n_patches, 3),
-    ``d`` (plane ``normal . p = d``), ``n_inliers``, ``rms``, ``ransac_inliers``.
+    ``d`` and ``centroid`` (plane ``normal . (p - centroid) = d``, in the coordinates of
+    ``pts``), ``n_inliers``, ``rms`` (m), ``ransac_inliers``.
     """
     pts = np.asarray(pts)
     n_p, P = pts.shape[0], pts.shape[1]
     H = int(ransac_iterations)
+    S = int(min(P, score_points))
     n = np.asarray(n, np.int64)
     eps = np.broadcast_to(np.asarray(eps, np.float64), (n_p,))
     ids = np.arange(n_p) if ids is None else np.asarray(ids, np.int64)
     if batch_size is None:
-        per_patch = P * H * (4 if ransac_float32 else 8) * 3
+        per_patch = P * 3 * 8 * 4 + S * H * (4 if ransac_float32 else 8) * 3
         batch_size = int(max(1, min(1024, memory_mb * 2**20 // per_patch)))
-        batch_size = 1 << (batch_size.bit_length() - 1)  # power of two: stable shapes
+    batch_size = 1 << (int(batch_size).bit_length() - 1)  # power of two: stable shapes
     good = n >= 3
     n_run = np.where(good, np.minimum(n, P), 3).astype(np.int32)  # dummies: 3-point fits
     U = ransac_uniforms(seed, ids, H)
     dt_pts = np.float32 if ransac_float32 else np.float64
-    n_call = int(min(max_chunk, _next_pow2(max(n_p, 1))))
+    fit = int(max(1, memory_mb * 2**20 // (P * 3 * 8)))  # patches of float64 copies per call
+    per_call = max(batch_size, _next_pow2(fit + 1) // 2)
+    n_call = int(min(max_chunk, per_call, _next_pow2(max(n_p, 1))))
     bs = int(min(batch_size, n_call))
     outs = []
     for s in range(0, n_p, n_call):
         e = min(s + n_call, n_p)
         k = n_call - (e - s)
-        sl = lambda a, fill: a[s:e] if not k else np.concatenate(
-            [a[s:e], np.full((k,) + a.shape[1:], fill, a.dtype)])
+
+        def sl(a, fill, s=s, e=e, k=k):
+            return a[s:e] if not k else np.concatenate(
+                [a[s:e], np.full((k,) + a.shape[1:], fill, a.dtype)])
+
         out = _fit_patches(
             jnp.asarray(sl(pts, 0), dt_pts), jnp.asarray(sl(n_run, 3)),
             jnp.asarray(sl(eps, 1.0), jnp.float64), jnp.asarray(sl(U, 0.5)),
-            n_refine=int(refine_iterations), f32=bool(ransac_float32), batch_size=bs,
+            n_refine=int(refine_iterations), f32=bool(ransac_float32), n_score=S, batch_size=bs,
         )
         outs.append([np.asarray(a)[: e - s] for a in out])
     if not outs:
         z = np.zeros(0)
         return {"inlier": np.zeros((0, P), bool), "normal": np.zeros((0, 3)), "d": z,
-                "n_inliers": z.astype(np.int32), "rms": z, "ransac_inliers": z.astype(np.int32)}
-    inl, normal, d, n_in, rms, n_r = (np.concatenate(c) for c in zip(*outs))
+                "centroid": np.zeros((0, 3)), "n_inliers": z.astype(np.int32), "rms": z,
+                "ransac_inliers": z.astype(np.int32)}
+    inl, normal, d, cen, n_in, rms, n_r = (np.concatenate(c) for c in zip(*outs))
     inl = inl & good[:, None]
     return {"inlier": inl, "normal": np.where(good[:, None], normal, np.nan),
-            "d": np.where(good, d, np.nan), "n_inliers": np.where(good, n_in, 0),
-            "rms": np.where(good, rms, np.nan), "ransac_inliers": np.where(good, n_r, 0)}
+            "d": np.where(good, d, np.nan), "centroid": cen,
+            "n_inliers": np.where(good, n_in, 0), "rms": np.where(good, rms, np.nan),
+            "ransac_inliers": np.where(good, n_r, 0)}
 
 
 class PlaneCondition(eqx.Module):
@@ -576,7 +676,7 @@ def _size_buckets(counts: np.ndarray, ids: np.ndarray, min_share: float = 0.2) -
     """log2 of the padded size of each patch: powers of two from 32, sparse buckets merged up.
 
     Each bucket is one compiled shape; a bucket holding fewer than ``min_share`` of the patches
-    (at least 16) joins the next larger one, so a scan needs two or three compilations while
+    (at least 16) joins the next larger one, so a scan needs one to three compilations while
     padding stays below ~2x for almost all patches.
     """
     b = np.maximum(5, np.ceil(np.log2(np.maximum(counts, 1))).astype(np.int64))
@@ -591,26 +691,30 @@ def _size_buckets(counts: np.ndarray, ids: np.ndarray, min_share: float = 0.2) -
     return b
 
 
-def _segment(keys: np.ndarray, max_pp: int):
+def _segment(keys: np.ndarray, n_keys: int, max_pp: int):
     """Sort points by patch; cut patches larger than ``max_pp`` into consecutive strips.
 
-    Returns ``(order, pid_sorted, counts, starts)``: ``order`` indexes the input points in patch
-    order (stable: file order inside a patch), ``pid_sorted`` the compact patch id of each.
+    Returns ``(order, pid, counts, starts)``: ``order`` indexes the input points in patch
+    order (stable: file order inside a patch), ``pid`` (int32) the compact patch id of each
+    sorted point, ``counts``/``starts`` per patch.
     """
-    occ = np.bincount(keys) if len(keys) else np.zeros(1, np.int64)
-    remap = np.cumsum(occ > 0) - 1  # dense key -> compact patch id
-    inv = remap[keys]
-    order = np.argsort(inv, kind="stable")
-    pid = inv[order]
+    occ = np.bincount(keys, minlength=n_keys) if len(keys) else np.zeros(1, np.int64)
+    remap = (np.cumsum(occ > 0) - 1).astype(np.int32)  # dense key -> compact patch id
+    order = np.argsort(keys, kind="stable")
     counts = occ[occ > 0]
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    pid = np.empty(len(keys), np.int32)
+    for s, e in _blocks(len(keys)):
+        pid[s:e] = remap[keys[order[s:e]]]
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
     nsub = -(-counts // max_pp)
     if np.any(nsub > 1):
-        rank = np.arange(len(pid)) - starts[pid]
         base = np.concatenate([[0], np.cumsum(nsub)[:-1]])
-        pid = base[pid] + rank * nsub[pid] // counts[pid]
+        for s, e in _blocks(len(keys)):
+            p = pid[s:e].astype(np.int64)
+            rank = np.arange(s, e) - starts[p]
+            pid[s:e] = base[p] + rank * nsub[p] // counts[p]
         counts = np.bincount(pid, minlength=int(nsub.sum()))
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
     return order, pid, counts, starts
 
 
@@ -630,19 +734,30 @@ def preprocess_scan(
     n = len(data)
     r, phi, th = data.range_m, data.phi_rad, data.theta_rad
     reason = np.zeros(n, np.uint8)
-    finite = np.isfinite(r) & np.isfinite(phi) & np.isfinite(th)
+    finite = np.empty(n, bool)
+    for s, e in _blocks(n):
+        finite[s:e] = np.isfinite(r[s:e]) & np.isfinite(phi[s:e]) & np.isfinite(th[s:e])
     reason[~finite] = NON_FINITE
+    rng = np.random.default_rng(cfg.seed)
 
-    # ---- initial values (pointing + heading search)
+    def sample_rows(mask_fn, size):
+        """Up to ``size`` random rows (seeded) for which ``mask_fn(rows)`` holds."""
+        m = min(n, 4 * size)
+        cand = np.sort(rng.choice(n, size=m, replace=False)) if m < n else np.arange(n)
+        return cand[mask_fn(cand)][:size]
+
+    # ---- initial values (pointing + heading search), on a sample
     t0 = time.perf_counter()
     init = None
     if cfg.use_initial_values and finite.sum() >= 100:
         g = pointing_gravity(meta, tel, campaign.site)
+        rows = sample_rows(lambda c: finite[c], cfg.init_sample)
         try:
-            iv = initial_values(r[finite], phi[finite], th[finite], g,
-                                focal_length_m=tel.focal_length_m, seed=cfg.seed)
-            if all(np.isfinite(v) for v in iv.x.values()) and iv.x["f"] > 0 \
-                    and iv.inlier_fraction >= 0.2:
+            iv = initial_values(r[rows], phi[rows], th[rows], g,
+                                focal_length_m=tel.focal_length_m, n_sample=len(rows),
+                                seed=cfg.seed)
+            if (all(np.isfinite(v) for v in iv.x.values()) and iv.x["f"] > 0
+                    and iv.inlier_fraction >= 0.2):
                 init = iv
             else:
                 notes.append(f"initial values rejected (inlier fraction {iv.inlier_fraction:.2f})"
@@ -656,14 +771,11 @@ def preprocess_scan(
     auto_lo, auto_hi = default_range_window(campaign, init, cfg)
     d_min = auto_lo if cfg.d_min_m is None else float(cfg.d_min_m)
     d_max = auto_hi if cfg.d_max_m is None else float(cfg.d_max_m)
-    alive = finite.copy()
-    out_range = alive & ~((r >= d_min) & (r <= d_max))
-    reason[out_range] = RANGE_WINDOW
-    alive &= ~out_range
-    idx = np.flatnonzero(alive)
-    xs = np.asarray(polar_to_cartesian(r[idx], phi[idx], th[idx]))
 
-    # ---- geometry window (initial paraboloid, annulus)
+    def in_range(c):
+        return finite[c] & (r[c] >= d_min) & (r[c] <= d_max)
+
+    # ---- pose refinement on a sample inside the window
     frame = cfg.frame or ("flat" if init is not None else "scanner")
     if frame == "flat" and init is None:
         notes.append("frame 'flat' needs initial values: using 'scanner'")
@@ -671,37 +783,49 @@ def preprocess_scan(
     pose = None
     if init is not None:
         pose = dict(init.x)
-        Xf, rho = _flat_coordinates(xs, pose)
         if cfg.refine_pose:
-            near = np.flatnonzero(np.abs(Xf[:, 2]) <= cfg.geometry_window_m)
+            rows = sample_rows(in_range, 4 * cfg.pose_sample)
+            xs = _cartesian(r[rows], phi[rows], th[rows])
+            near = np.flatnonzero(np.abs(_flat_coordinates(xs, pose)[0][2])
+                                  <= cfg.geometry_window_m)[: cfg.pose_sample]
             if len(near) >= 100:
-                sub = np.random.default_rng(cfg.seed).choice(
-                    near, size=min(len(near), cfg.pose_sample), replace=False)
-                pose = refine_pose(xs[sub], pose)
-                Xf, rho = _flat_coordinates(xs, pose)
-        f_ = pose["f"]
-        hv = Xf[:, 2] * np.sqrt(1.0 + rho**2 / (4 * f_ * f_))  # vertical distance
-        rim = tel.diameter_m / 2 + abs(tel.offset_m)
-        inner = tel.cone_radius_m - cfg.cone_margin_m if tel.offset_m == 0 else -np.inf
-        good = ((np.abs(hv) <= cfg.geometry_window_m) & (rho >= inner)
-                & (rho <= rim + cfg.rim_margin_m))
-        reason[idx[~good]] = GEOMETRY_WINDOW
-        idx, xs, Xf = idx[good], xs[good], Xf[good]
-        coords = Xf if frame == "flat" else xs
-        del hv, rho
-    else:
-        coords = xs
+                pose = refine_pose(tuple(c[near] for c in xs), pose)
+    f_use = pose["f"] if pose is not None else tel.focal_length_m
+
+    # ---- range and geometry windows, block by block; survivors' coordinates for the planes
+    rim = tel.diameter_m / 2 + abs(tel.offset_m)
+    inner = tel.cone_radius_m - cfg.cone_margin_m if tel.offset_m == 0 else -np.inf
+    idx_parts, coord_parts = [], []
+    for s, e in _blocks(n):
+        alive = finite[s:e] & (r[s:e] >= d_min) & (r[s:e] <= d_max)
+        reason[s:e][finite[s:e] & ~alive] = RANGE_WINDOW
+        ia = np.flatnonzero(alive)
+        xs = _cartesian(r[s:e][ia], phi[s:e][ia], th[s:e][ia])
+        if pose is not None:
+            Xf, rho = _flat_coordinates(xs, pose)
+            hv = Xf[2] * np.sqrt(1.0 + rho**2 / (4 * f_use * f_use))  # vertical distance
+            good = ((np.abs(hv) <= cfg.geometry_window_m) & (rho >= inner)
+                    & (rho <= rim + cfg.rim_margin_m))
+            reason[s + ia[~good]] = GEOMETRY_WINDOW
+            ia = ia[good]
+            xs = tuple(c[good] for c in (Xf if frame == "flat" else xs))
+        idx_parts.append((s + ia).astype(np.int64))
+        coord_parts.append(xs)
+    idx = np.concatenate(idx_parts) if idx_parts else np.zeros(0, np.int64)
+    coords = [np.concatenate([c[k] for c in coord_parts]) if coord_parts else np.zeros(0)
+              for k in range(3)]
+    del idx_parts, coord_parts
     timing["windows"] = time.perf_counter() - t0
 
     # ---- patches
     t0 = time.perf_counter()
-    R_ref = float(np.median(r[idx])) if len(idx) else float(tel.focal_length_m)
+    R_ref = float(np.median(r[idx[:: max(1, len(idx) // 100_000)]])) if len(idx) else \
+        float(tel.focal_length_m)
     typical = None
     if cfg.patch_size_m is None:
-        size, typical = _auto_patch_size(phi[idx], th[idx], meta.cycle, R_ref, cfg)
+        size, typical = _auto_patch_size(phi, th, idx, meta.cycle, R_ref, cfg)
     else:
         size = float(cfg.patch_size_m)
-    f_use = pose["f"] if pose is not None else tel.focal_length_m
     sigma_n = math.hypot(sc.sigma_range_m, sc.sigma_angle_rad * d_max)
     if cfg.allowance_m is not None:
         allowance = float(cfg.allowance_m)
@@ -711,54 +835,59 @@ def preprocess_scan(
         allowance = (1.3 * size) ** 2 / (12 * f_use)
     eps = cfg.k_sigma * sigma_n + allowance if cfg.epsilon_m is None else float(cfg.epsilon_m)
 
-    keys = _patch_keys(phi[idx], th[idx], meta.cycle, size, R_ref)
-    occ = np.bincount(keys) if len(keys) else np.zeros(1, np.int64)
+    bins = _Bins(meta.cycle, size, R_ref)
+    keys = _keys(phi, th, idx, bins)
+    occ = np.bincount(keys, minlength=bins.n_keys) if len(keys) else np.zeros(1, np.int64)
     occ = occ[occ >= cfg.min_patch_points]
     cap = cfg.max_patch_points
     if len(occ):  # the few outsized patches (near the nadir) become strips of the common size
         q = float(np.quantile(occ, cfg.split_quantile))
         cap = int(min(cap, max(64, _next_pow2(int(math.ceil(q))))))
-    order, pid, counts, starts = _segment(keys, cap)
+    order, pid, counts, starts = _segment(keys, bins.n_keys, cap)
+    del keys
     n_patches = len(counts)
     patch_of = np.full(n, -1, np.int32)
-    patch_of[idx[order]] = pid
     small = counts < cfg.min_patch_points
     big_ids = np.flatnonzero(~small)
     timing["segmentation"] = time.perf_counter() - t0
 
-    # ---- RANSAC + refinement on the patches large enough
+    # ---- RANSAC + refinement on the patches large enough, one size bucket at a time
     t0 = time.perf_counter()
     planes = np.full((n_patches, 4), np.nan)
     n_inl = np.zeros(n_patches, np.int64)
     rms = np.full(n_patches, np.nan)
     inlier_sorted = np.zeros(len(order), bool)
     if len(big_ids):
-        c_sorted = coords[order]
-        cen = np.stack([np.bincount(pid, weights=c_sorted[:, k], minlength=n_patches)
-                        for k in range(3)], 1) / np.maximum(counts, 1)[:, None]
-        rank = np.arange(len(pid)) - starts[pid]
+        first = order[starts]
+        ref = np.stack([c[first] for c in coords], 1)  # a local origin per patch: its 1st point
         dt_ = np.float32 if cfg.ransac_float32 else np.float64
-        # size buckets (powers of two): padding wastes at most half of a bucket
         bucket = _size_buckets(counts, big_ids)
         for b in np.unique(bucket[big_ids]):
             ids_b = big_ids[bucket[big_ids] == b]
             P = int(2**b)
-            comp = np.full(n_patches, -1, np.int64)
-            comp[ids_b] = np.arange(len(ids_b))
-            sel = comp[pid] >= 0
-            dest = comp[pid[sel]] * P + rank[sel]
+            lens = counts[ids_b]
+            off = np.concatenate([[0], np.cumsum(lens)[:-1]])
+            # sorted positions of the bucket's points and their slots in the padded array
+            pos = np.repeat(starts[ids_b] - off, lens) + np.arange(int(lens.sum()))
+            dest = np.repeat(np.arange(len(ids_b)) * P - off, lens) + np.arange(int(lens.sum()))
+            owner = np.repeat(np.arange(len(ids_b)), lens)
             pad = np.zeros((len(ids_b) * P, 3), dt_)
-            pad[dest] = c_sorted[sel] - cen[pid[sel]]
+            for s, e in _blocks(len(pos)):
+                src = order[pos[s:e]]
+                o = ids_b[owner[s:e]]
+                for k in range(3):
+                    pad[dest[s:e], k] = coords[k][src] - ref[o, k]
             res = fit_planes(
-                pad.reshape(len(ids_b), P, 3), counts[ids_b], eps, seed=cfg.seed,
+                pad.reshape(len(ids_b), P, 3), lens, eps, seed=cfg.seed,
                 ransac_iterations=cfg.ransac_iterations, refine_iterations=cfg.refine_iterations,
-                ransac_float32=cfg.ransac_float32, batch_size=cfg.batch_size,
-                memory_mb=cfg.memory_mb, ids=ids_b,
+                ransac_float32=cfg.ransac_float32, score_points=cfg.score_points,
+                batch_size=cfg.batch_size, memory_mb=cfg.memory_mb, ids=ids_b,
             )
             del pad
-            inlier_sorted[sel] = res["inlier"].reshape(-1)[dest]
-            nrm, dd = res["normal"], res["d"]
-            D = -(dd + np.sum(nrm * cen[ids_b], axis=1))
+            inlier_sorted[pos] = res["inlier"].reshape(-1)[dest]
+            del pos, dest, owner
+            nrm = res["normal"]
+            D = -(res["d"] + np.sum(nrm * (res["centroid"] + ref[ids_b]), axis=1))
             # orientation: towards the scanner (scanner frame) or towards +Z (flat frame)
             flip = (D < 0) if frame == "scanner" else (nrm[:, 2] < 0)
             sgn = np.where(flip, -1.0, 1.0)
@@ -768,9 +897,13 @@ def preprocess_scan(
     timing["ransac"] = time.perf_counter() - t0
 
     weak = n_inl < cfg.min_patch_points  # includes the small patches (0 inliers)
-    rows_sorted = idx[order]
-    reason[rows_sorted[~inlier_sorted]] = RANSAC_OUTLIER
-    reason[rows_sorted[small[pid] | (weak[pid] & inlier_sorted)]] = SMALL_PATCH
+    for s, e in _blocks(len(order)):
+        rows = idx[order[s:e]]
+        p = pid[s:e]
+        inl = inlier_sorted[s:e]
+        patch_of[rows] = p
+        reason[rows[~inl]] = RANSAC_OUTLIER
+        reason[rows[small[p] | (weak[p] & inl)]] = SMALL_PATCH
     keep = reason == KEPT
 
     counts_reason = np.bincount(reason, minlength=len(REASONS))
@@ -782,12 +915,11 @@ def preprocess_scan(
         "patch_size_m": size, "typical_points_per_0.3m_patch": typical,
         "reference_range_m": R_ref, "epsilon_m": eps, "epsilon_allowance_m": allowance,
         "sigma_distance_m": sigma_n, "k_sigma": cfg.k_sigma, "frame": frame,
-        "geometry_window_m": cfg.geometry_window_m if init is not None else None,
-        "rim_margin_m": cfg.rim_margin_m,
-        "cone_margin_m": cfg.cone_margin_m, "ransac_iterations": cfg.ransac_iterations,
+        "geometry_window_m": cfg.geometry_window_m if pose is not None else None,
+        "rim_margin_m": cfg.rim_margin_m, "cone_margin_m": cfg.cone_margin_m,
+        "ransac_iterations": cfg.ransac_iterations, "score_points": cfg.score_points,
         "refine_iterations": cfg.refine_iterations, "min_patch_points": cfg.min_patch_points,
-        "max_patch_points": cfg.max_patch_points,
-        "patch_points_cap": cap, "seed": cfg.seed,
+        "max_patch_points": cfg.max_patch_points, "patch_points_cap": cap, "seed": cfg.seed,
         "initial_values": None if init is None else {
             **{k: float(v) for k, v in init.x.items()}, "kappa_rad": init.kappa_rad,
             "inlier_fraction": init.inlier_fraction},

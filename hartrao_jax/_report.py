@@ -99,15 +99,6 @@ def _subsample(n: int, k: int = MAX_MAP_POINTS, seed: int = 0) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(n, k, replace=False))
 
 
-def _marker_size(X: np.ndarray, ax_inches: float, extent_m: float) -> float:
-    """Scatter marker area (pt^2) so that points about touch at the data's spacing."""
-    sp = point_spacing(X) if len(X) > 2 else 0.1
-    if not np.isfinite(sp):
-        sp = 0.1
-    diam_pt = sp * ax_inches * 72.0 / extent_m
-    return float(np.clip(diam_pt, 0.6, 8.0) ** 2)
-
-
 def _dish_axes(ax, R: float, title: str | None = None):
     """Dish map axes: horizontal Y (west to the left), vertical X (north up), equal scale."""
     ax.set_aspect("equal")
@@ -205,11 +196,39 @@ def _dish_radius(layout: PanelLayout | None, *Xs: np.ndarray) -> float:
     return float(max(r)) if r else 13.0
 
 
-def _scatter_map(ax, X, dev_m, lim_mm, R, ax_inches):
-    idx = _subsample(len(dev_m))
-    s = _marker_size(X[idx], ax_inches, 2.08 * R)
-    return ax.scatter(X[idx, 1], X[idx, 0], c=1e3 * dev_m[idx], s=s, cmap=CMAP, vmin=-lim_mm,
-                      vmax=lim_mm, linewidths=0, rasterized=True, zorder=2)
+def raster(X: np.ndarray, dev_m: np.ndarray, R: float, pixel_m: float | None = None,
+           max_pixels: int = 520) -> tuple[np.ndarray, float]:
+    """Mean deviation (mm) per square pixel of the aperture plane: image rows along X (north),
+    columns along Y, covering ``[-1.05 R, 1.05 R]`` in both; NaN where there is no point.
+
+    The pixel is at least ``2.1 R / max_pixels`` and 1.6 point spacings (no holes on coarse
+    scans); dense scans are averaged over many points per pixel.
+    """
+    X = np.asarray(X, float)
+    if pixel_m is None:
+        sp = point_spacing(X) if len(X) > 2 else 0.1
+        pixel_m = max(2.1 * R / max_pixels, 1.6 * (sp if np.isfinite(sp) else 0.1))
+    n = int(math.ceil(2.1 * R / pixel_m))
+    half = 0.5 * n * pixel_m
+    iy = np.floor((X[:, 0] + half) / pixel_m).astype(np.int64)
+    ix = np.floor((X[:, 1] + half) / pixel_m).astype(np.int64)
+    ok = (ix >= 0) & (ix < n) & (iy >= 0) & (iy < n) & np.isfinite(dev_m)
+    k = iy[ok] * n + ix[ok]
+    c = np.bincount(k, minlength=n * n)
+    v = np.bincount(k, weights=1e3 * np.asarray(dev_m, float)[ok], minlength=n * n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        img = (v / c).reshape(n, n)
+    return img, half
+
+
+def _map(ax, X, dev_m, lim_mm, R):
+    from matplotlib import colormaps
+
+    img, half = raster(X, dev_m, R)
+    cmap = colormaps[CMAP].copy()
+    cmap.set_bad((1, 1, 1, 0))
+    return ax.imshow(img, origin="lower", extent=(-half, half, -half, half), cmap=cmap,
+                     vmin=-lim_mm, vmax=lim_mm, interpolation="nearest", zorder=2)
 
 
 # --------------------------------------------------------------------------------------------
@@ -229,7 +248,7 @@ def fig_cycle_maps(pos: PositionSurface, layout: PanelLayout | None = None, titl
     sc = None
     for ax, c in zip(axs, cycles):
         m = c.inside
-        sc = _scatter_map(ax, c.X[m], c.deviation_m[m], lim, R, 4.6)
+        sc = _map(ax, c.X[m], c.deviation_m[m], lim, R)
         _draw_outlines(ax, layout, lw=0.25, alpha=0.4)
         fb = face_boundary(c.X, c.face)
         if fb is not None:
@@ -252,7 +271,7 @@ def fig_average_map(pos: PositionSurface, layout: PanelLayout | None = None, tit
     R = _dish_radius(layout, a.X)
     lim = colour_limit_mm([a.deviation_m])
     if len(a):
-        sc = _scatter_map(ax, a.X, a.deviation_m, lim, R, 5.4)
+        sc = _map(ax, a.X, a.deviation_m, lim, R)
         cb = fig.colorbar(sc, ax=ax, shrink=0.85, extend="both")
         cb.set_label(SIGN_LABEL, fontsize=9)
     _draw_outlines(ax, layout)
@@ -350,9 +369,13 @@ def fig_focal_sky(fits: Sequence[tuple[str, dict]], nominal_m: float | None = No
         el = np.array([p.get("elevation_deg", np.nan) for p in ps], float)
         df = np.array([1e3 * (p["f"]["value"] - f0) for p in ps])
         sg = np.array([1e3 * p["f"]["sigma"] for p in ps])
-        ax2.errorbar(el + 0.4 * (k - (len(fits) - 1) / 2), df, yerr=sg, fmt="o", ms=5,
+        ax2.errorbar(el + 0.3 * (k - (len(fits) - 1) / 2), df, yerr=sg, fmt="o", ms=5,
                      capsize=3, label=label)
     ax2.axhline(0, color="0.5", lw=0.8)
+    lo, hi = ax2.get_xlim()
+    if hi - lo < 10:
+        mid = 0.5 * (lo + hi)
+        ax2.set_xlim(mid - 5, mid + 5)
     ax2.set_xlabel("elevation [deg]")
     ax2.set_ylabel(f"f \u2212 f\u2080 [mm]  ({ref_txt})")
     ax2.set_title("Focal length against elevation (error bars: 1 \u03c3)", fontsize=10)
@@ -408,7 +431,7 @@ def fig_residual_distribution(samples: Sequence[tuple[str, np.ndarray]]):
     ax2.set_ylabel("standardised residual quantile")
     ax2.set_title("Normal Q-Q plot", fontsize=10)
     ax2.set_xlim(-4, 4)
-    ax2.set_ylim(-8, 8)
+    ax2.set_ylim(-6, 6)
     ax2.legend(fontsize=8, loc="upper left")
     ax2.grid(alpha=0.3)
     return fig
@@ -762,8 +785,9 @@ def _surface_section(doc: _Doc, inp: ReportInputs, max_positions: int):
                            f"average_{label}_{p.position}")
             if label == main_label and res.layout is not None and p.panels is not None:
                 doc.figure(fig_panel_map(p, res.layout),
-                           f"{label}, {p.position}: per-panel deviation (plane fit to the "
-                           "averaged points: offset at the panel centre), id and value in mm.",
+                           f"{label}, {p.position}: per-panel deviation (mean of the panel's "
+                           "cycle-averaged points), panel id and value in mm; grey: too few "
+                           "points.",
                            f"panels_{label}_{p.position}")
                 _panel_table(doc, p)
                 _truth_panels(doc, inp, p)

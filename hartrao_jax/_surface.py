@@ -23,12 +23,13 @@ From the adjustment of each scan (:class:`._fit.ScanFit`) to the reflector's sur
    cell boundary) is paired with the nearest such cell of the other cycle in the same panel
    whose centroid lies within ``radius_m`` (mutual nearest neighbours, ``scipy cKDTree``);
    cells left without a partner are not part of the average (counted as ``n_unpaired``).
-5. Per panel: a plane ``d = a + t_r (rho - rho_c) + t_t rho_c dpsi`` is fitted to the averaged
-   points of the panel (the offset/tilt parametrisation of ``physics.md``'s ``panel_offset``):
-   ``deviation_m = a`` (the panel's mean deviation, i.e. its offset at its centre), ``sigma_m``
-   its standard deviation, ``tilt_rad = hypot(t_r, t_t)`` (radial and tangential parts as
-   ``tilt_radial_rad`` (outer edge up) and ``tilt_tangential_rad`` (counter-clockwise edge up)),
-   ``rms_m`` the rms of the panel's deviations, ``rms_plane_m`` about its plane, ``n`` points.
+5. Per panel: ``deviation_m``, the mean deviation of the panel's averaged points, with
+   ``sigma_m`` its standard deviation; a plane ``d = a + t_r (rho - rho_c) + t_t rho_c dpsi``
+   (the offset/tilt parametrisation of ``physics.md``'s ``panel_offset``) gives
+   ``tilt_rad = hypot(t_r, t_t)``, its radial (outer edge up) and tangential
+   (counter-clockwise edge up) parts, and ``offset_m = a`` (the plane at the panel centre, with
+   ``offset_sigma_m``); ``rms_m`` is the rms of the panel's deviations, ``rms_plane_m`` about its
+   plane, ``n`` the number of averaged points.
 
 Outputs (:func:`write_surface`): ``surface.json`` (schema ``hartrao-surface/1``, see
 :func:`surface_json`), ``points/<position>.parquet`` (cycle-averaged points) and
@@ -52,6 +53,9 @@ from ._geometry import face_of, panel_geometry, panel_ids
 log = logging.getLogger("hartrao_jax")
 
 SURFACE_SCHEMA = "hartrao-surface/1"
+PANEL_KEYS = ("deviation_m", "sigma_m", "tilt_rad", "tilt_radial_rad", "tilt_tangential_rad",
+              "offset_m", "offset_sigma_m", "rms_m", "rms_plane_m")
+"""Per-panel keys of ``surface.json`` besides ``panel``, ``ring`` and ``n`` (m, rad)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -182,14 +186,14 @@ class PanelTable:
     tilt_rad: np.ndarray
     tilt_radial_rad: np.ndarray
     tilt_tangential_rad: np.ndarray
-    mean_m: np.ndarray
+    offset_m: np.ndarray
+    offset_sigma_m: np.ndarray
     rms_m: np.ndarray
     rms_plane_m: np.ndarray
     n: np.ndarray
 
     def records(self) -> list[dict]:
-        keys = ("deviation_m", "sigma_m", "tilt_rad", "tilt_radial_rad", "tilt_tangential_rad",
-                "mean_m", "rms_m", "rms_plane_m")
+        keys = PANEL_KEYS
         out = []
         for i in range(len(self.panel)):
             r = {"panel": int(self.panel[i]), "ring": int(self.ring[i])}
@@ -420,7 +424,13 @@ def _mutual_nearest(a: np.ndarray, pa: np.ndarray, b: np.ndarray, pb: np.ndarray
 
 def panel_statistics(X: np.ndarray, deviation_m: np.ndarray, panel: np.ndarray,
                      layout: PanelLayout, min_points: int = 3) -> PanelTable:
-    """Offset, tilt, rms and point count of every panel (plane fit per panel, module doc)."""
+    """Deviation, tilt, rms and point count of every panel (module doc).
+
+    ``deviation_m`` is the mean deviation of the panel's points and ``sigma_m`` its standard
+    deviation from the scatter about the panel's plane; the plane
+    ``d = a + t_r (rho - rho_c) + t_t rho_c dpsi`` gives the tilts and ``offset_m = a`` (its
+    value at the panel centre, an extrapolation when part of the panel is shadowed).
+    """
     g = layout.geometry()
     P = layout.n_panels
     X = np.asarray(X, float)
@@ -447,34 +457,30 @@ def panel_statistics(X: np.ndarray, deviation_m: np.ndarray, panel: np.ndarray,
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = u[:, 0] / n
         rms = np.sqrt(dd / n)
-    dev = mean.copy()
-    sig = np.full(P, np.nan)
-    tr = np.full(P, np.nan)
-    tt = np.full(P, np.nan)
-    rmsp = np.full(P, np.nan)
+    sig, off, off_sig = (np.full(P, np.nan) for _ in range(3))
+    tr, tt, rmsp = (np.full(P, np.nan) for _ in range(3))
     enough = n >= max(min_points, 1)
     for i in np.flatnonzero(enough):
+        var = max(dd[i] / n[i] - mean[i] ** 2, 0.0)
         Ni = N[i]
-        # plane fit when the points span the panel in both directions, else the mean only
         if n[i] >= 4 and np.linalg.cond(Ni) < 1e10:
             Q = np.linalg.inv(Ni)
             x = Q @ u[i]
             rss = max(dd[i] - x @ u[i], 0.0)
             s2 = rss / (n[i] - 3)
-            dev[i], tr[i], tt[i] = x
-            sig[i] = math.sqrt(s2 * Q[0, 0])
+            off[i], tr[i], tt[i] = x
+            off_sig[i] = math.sqrt(s2 * Q[0, 0])
+            sig[i] = math.sqrt(s2 / n[i])
             rmsp[i] = math.sqrt(rss / n[i])
-        else:
-            var = max(dd[i] / n[i] - mean[i] ** 2, 0.0)
+        else:  # too few points for a plane: the mean only
             sig[i] = math.sqrt(var / max(n[i] - 1, 1))
             rmsp[i] = math.sqrt(var)
-    dev[~enough] = np.nan
     mean[~enough] = np.nan
     rms[~enough] = np.nan
     return PanelTable(
-        panel=np.arange(P), ring=np.asarray(g["ring"], np.int64), deviation_m=dev, sigma_m=sig,
-        tilt_rad=np.hypot(tr, tt), tilt_radial_rad=tr, tilt_tangential_rad=tt, mean_m=mean,
-        rms_m=rms, rms_plane_m=rmsp, n=n.astype(np.int64))
+        panel=np.arange(P), ring=np.asarray(g["ring"], np.int64), deviation_m=mean,
+        sigma_m=sig, tilt_rad=np.hypot(tr, tt), tilt_radial_rad=tr, tilt_tangential_rad=tt,
+        offset_m=off, offset_sigma_m=off_sig, rms_m=rms, rms_plane_m=rmsp, n=n.astype(np.int64))
 
 
 # --------------------------------------------------------------------------------------------
@@ -827,8 +833,7 @@ def read_surface(out_dir) -> SurfaceResult:
         if not recs:
             return None
         cols = {k: np.array([np.nan if r.get(k) is None else r[k] for r in recs], float)
-                for k in ("deviation_m", "sigma_m", "tilt_rad", "tilt_radial_rad",
-                          "tilt_tangential_rad", "mean_m", "rms_m", "rms_plane_m")}
+                for k in PANEL_KEYS}
         return PanelTable(panel=np.array([r["panel"] for r in recs]),
                           ring=np.array([r.get("ring", -1) for r in recs]),
                           n=np.array([r["n"] for r in recs]), **cols)

@@ -139,7 +139,7 @@ def test_ransac_recovers_exact_plane_despite_outliers(f32):
     res = fit_planes((P - cen)[None].astype(np.float32 if f32 else np.float64), [300], 0.004,
                      ransac_float32=f32)
     n_hat = res["normal"][0]
-    d_hat = res["d"][0] + n_hat @ cen
+    d_hat = res["d"][0] + n_hat @ (res["centroid"][0] + cen)
     s = np.sign(n_hat @ nrm)
     assert np.arccos(min(1.0, abs(n_hat @ nrm))) < 1e-6
     assert abs(s * d_hat - d) < 1e-6
@@ -197,7 +197,7 @@ def test_refinement_equals_gauss_helmert_plane_in_raw_observations():
     cen = xs.mean(0)
     res = fit_planes((xs - cen)[None], [len(xs)], 0.004, ransac_float32=False)
     n_tls = res["normal"][0]
-    d_tls = res["d"][0] + n_tls @ cen
+    d_tls = res["d"][0] + n_tls @ (res["centroid"][0] + cen)
     cond = PlaneCondition.around(n_tls)
     gh = gauss_helmert(cond, l, np.array([0.0, 0.0, d_tls]), sig)
     assert bool(gh.converged) and 0.9 < float(gh.sigma0) < 1.1

@@ -1,0 +1,632 @@
+"""Gravity model over the sky: focal length and low-order surface modes linear in gravity.
+
+The catalog's ``gravity_deformation`` (``physics.md``): elastic sag linear in the unit gravity
+vector ``g`` of the telescope frame (``campaign-format.md``; ``g = (0, 0, -1)`` at the zenith):
+
+* focal length ``f = f0 + c . g`` (m), and
+* surface modes: Zernike coefficients over the aperture ``a_j = a0_j + C_j . g`` (m, normal
+  deviation, Noll index ``j``, unit-rms normalisation, north-aligned telescope frame).
+
+Inputs are the per-scan fits of a campaign (in memory, or a results directory with ``fit.json``
+and ``residuals/*.parquet``). Each scan's deviations from its fitted paraboloid are projected
+onto Zernike modes (least squares over the used points, with piston and tilt as nuisance terms;
+defocus is mostly absorbed by ``f`` and ``tz`` and comes out small); cycles of one position are
+averaged; then ``f`` and every mode are regressed on ``g`` by weighted least squares over the
+positions, with the fit's sigmas. The hypothesis "``f`` depends on ``g_z`` only" is tested
+against "also on the transverse components ``g_x``, ``g_y``" with the nested-model F-test and
+the chi-square difference test.
+
+The model then predicts ``f`` and the surface rms over the whole working range (HA/DEC grid),
+and the Ruze gain loss ``G/G0 = exp(-(4 pi eps / lambda)^2)`` at 2.5 cm and 1.3 cm.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ._geometry import noll_to_nm
+from ._physics import DEFAULT_ZERNIKE_MODES
+
+GRAVITY_SCHEMA = "hartrao-gravity/1"
+NUISANCE_MODES = (1, 2, 3)  # piston, tilts: absorbed by the pose, estimated and dropped
+WAVELENGTHS_M = (0.025, 0.013)
+
+
+# --------------------------------------------------------------------------------------------
+# Per-scan samples
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class ScanSample:
+    """What the gravity model needs of one scan (SI units)."""
+
+    id: str
+    position: str
+    gravity: np.ndarray
+    f: float
+    sigma_f: float
+    ha_deg: float | None = None
+    dec_deg: float | None = None
+    elevation_deg: float | None = None
+    temperature_c: float | None = None
+    X: np.ndarray | None = None  # used points, north-aligned telescope frame (m)
+    deviation_m: np.ndarray | None = None
+
+
+def samples_from_fit(cf, *, with_points: bool = True) -> list[ScanSample]:
+    """Samples from a :class:`~hartrao_jax._fit.CampaignFit` (or a joint fit's ``scans``)."""
+    scans = cf.scans if hasattr(cf, "scans") else cf
+    out = []
+    for s in scans:
+        v, sg = s.estimates["f"]
+        m = s.meta
+        out.append(ScanSample(
+            m.id, m.position, np.asarray(s.gravity, float), v, sg, m.ha_deg, m.dec_deg,
+            s.elevation_deg, m.temperature_c,
+            s.X_tel[s.used] if with_points else None,
+            s.deviation_m[s.used] if with_points else None))
+    return out
+
+
+def samples_from_dir(results_dir, *, with_points: bool = True) -> list[ScanSample]:
+    """Samples from a results directory: ``fit.json`` and ``residuals/<scan>.parquet``."""
+    import pyarrow.parquet as pq
+
+    root = Path(results_dir)
+    p = root / "fit.json"
+    if not p.is_file():
+        raise FileNotFoundError(f"{p}: expected the fit.json of `hartrao-jax fit`")
+    doc = json.loads(p.read_text())
+    pos = {q["position"]: q for q in doc.get("positions", [])}
+    temps: dict[str, float | None] = {}
+    camp = doc.get("campaign")
+    if camp and (Path(camp) / "campaign.toml").is_file():
+        from ._campaign import load_campaign
+
+        try:
+            temps = {m.id: m.temperature_c for m in load_campaign(camp).scans}
+        except Exception:  # noqa: BLE001 - temperatures are optional
+            temps = {}
+    out = []
+    shared_f = doc.get("shared", {}).get("f")
+    for s in doc["scans"]:
+        est = s["estimates"].get("f") or shared_f
+        q = pos.get(s["position"], {})
+        X = dev = None
+        if with_points:
+            rp = root / "residuals" / f"{s['id']}.parquet"
+            if rp.is_file():
+                t = pq.read_table(rp, columns=["used", "X_m", "Y_m", "Z_m", "deviation_m"])
+                used = t.column("used").to_numpy(zero_copy_only=False)
+                X = np.column_stack([t.column(c).to_numpy() for c in ("X_m", "Y_m", "Z_m")])[used]
+                dev = t.column("deviation_m").to_numpy()[used]
+        out.append(ScanSample(
+            s["id"], s["position"], np.asarray(s.get("gravity") or q.get("gravity"), float),
+            float(est["value"]), float(est["sigma"]), q.get("ha_deg"), q.get("dec_deg"),
+            s.get("elevation_deg", q.get("elevation_deg")), temps.get(s["id"]), X, dev))
+    return out
+
+
+def zernike_np(j: int, u: np.ndarray, psi: np.ndarray) -> np.ndarray:
+    """NumPy twin of :func:`._geometry.zernike` (Noll index, unit rms over the unit disk)."""
+    n, m = noll_to_nm(j)
+    ma = abs(m)
+    u = np.asarray(u, float)
+    R = np.zeros_like(u)
+    for s in range((n - ma) // 2 + 1):
+        c = (-1) ** s * math.factorial(n - s) / (
+            math.factorial(s) * math.factorial((n + ma) // 2 - s) * math.factorial((n - ma) // 2 - s))
+        R = R + c * u ** (n - 2 * s)
+    if m == 0:
+        return math.sqrt(n + 1.0) * R
+    ang = np.cos(ma * psi) if m > 0 else np.sin(ma * psi)
+    return math.sqrt(2.0 * (n + 1.0)) * R * ang
+
+
+def gravity_grid(ha_deg: np.ndarray, dec_deg: np.ndarray, latitude_deg: float):
+    """Unit gravity vectors (telescope frame) and elevations (deg) on an HA x DEC grid.
+
+    NumPy form of :func:`._geometry.telescope_axes_hadec` (``F = R(P, -h) R(E, lat - d)
+    [N, -E, U]``): returns ``G`` (len(dec), len(ha), 3) and ``el`` (len(dec), len(ha)).
+    """
+    def rot(axis, ang):
+        k = np.asarray(axis, float) / np.linalg.norm(axis)
+        K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+        a = np.asarray(ang, float)[..., None, None]
+        return np.eye(3) + np.sin(a) * K + (1.0 - np.cos(a)) * (K @ K)
+
+    lat = math.radians(latitude_deg)
+    P = np.array([0.0, math.cos(lat), math.sin(lat)])
+    base = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # columns N, -E, U
+    h = np.radians(np.asarray(ha_deg, float))[None, :]
+    d = np.radians(np.asarray(dec_deg, float))[:, None]
+    h, d = np.broadcast_arrays(h, d)
+    F = rot(P, -h) @ rot([1.0, 0.0, 0.0], lat - d) @ base
+    G = -F[..., 2, :]  # F^T (0, 0, -1)
+    el = np.degrees(np.arcsin(np.clip(F[..., 2, 2], -1.0, 1.0)))
+    return G, el
+
+
+def zernike_projection(X: np.ndarray, dev: np.ndarray, aperture_radius_m: float,
+                       modes: Sequence[int] = DEFAULT_ZERNIKE_MODES,
+                       nuisance: Sequence[int] = NUISANCE_MODES):
+    """Least-squares Zernike coefficients (m) of a normal deviation sampled at points ``X``.
+
+    Returns ``(coef, sigma, rms_after)`` for ``modes`` (nuisance modes dropped); ``sigma`` from
+    the residual scatter assuming independent points (optimistic for panel-correlated
+    residuals), ``rms_after`` the rms of what the modes and nuisance terms leave.
+    """
+    u = np.hypot(X[:, 0], X[:, 1]) / aperture_radius_m
+    psi = np.arctan2(X[:, 1], X[:, 0])
+    allm = tuple(nuisance) + tuple(j for j in modes if j not in nuisance)
+    A = np.column_stack([zernike_np(j, u, psi) for j in allm])
+    coef, *_ = np.linalg.lstsq(A, dev, rcond=None)
+    r = dev - A @ coef
+    dof = max(len(dev) - A.shape[1], 1)
+    s2 = float(r @ r) / dof
+    cov = s2 * np.linalg.inv(A.T @ A)
+    keep = [allm.index(j) for j in modes]
+    return coef[keep], np.sqrt(np.diag(cov))[keep], float(np.sqrt(np.mean(r * r)))
+
+
+# --------------------------------------------------------------------------------------------
+# Weighted regression on g
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class LinearFit:
+    """Weighted LS ``y = A beta`` over positions (``names`` of the columns of ``A``)."""
+
+    names: tuple[str, ...]
+    beta: np.ndarray
+    cov: np.ndarray  # formal: (A^T W A)^-1 with the input sigmas
+    chi2: float
+    dof: int
+
+    @property
+    def sigma(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.cov))
+
+    @property
+    def scale(self) -> float:
+        """A posteriori variance factor ``chi2 / dof`` (1 if the input sigmas are right)."""
+        return self.chi2 / self.dof if self.dof > 0 else math.nan
+
+    @property
+    def sigma_scaled(self) -> np.ndarray:
+        return self.sigma * math.sqrt(max(self.scale, 1.0)) if self.dof > 0 else self.sigma
+
+    def as_dict(self, unit: str = "m") -> dict:
+        return {"coefficients": {n: {"value": float(b), "sigma": float(s), "sigma_scaled":
+                                     float(ss), "unit": unit}
+                                 for n, b, s, ss in zip(self.names, self.beta, self.sigma,
+                                                        self.sigma_scaled)},
+                "chi2": self.chi2, "dof": self.dof, "variance_factor": self.scale}
+
+
+def weighted_lsq(A: np.ndarray, y: np.ndarray, sigma: np.ndarray, names: Sequence[str]) -> LinearFit:
+    w = 1.0 / np.asarray(sigma, float) ** 2
+    N = A.T @ (A * w[:, None])
+    cov = np.linalg.inv(N)
+    beta = cov @ (A.T @ (w * y))
+    r = y - A @ beta
+    return LinearFit(tuple(names), beta, cov, float(np.sum(w * r * r)), len(y) - A.shape[1])
+
+
+def _design(G: np.ndarray, cols: Sequence[str], T: np.ndarray | None = None,
+            reference_c: float = 15.0) -> np.ndarray:
+    out = []
+    for c in cols:
+        if c == "f0" or c == "a0":
+            out.append(np.ones(len(G)))
+        elif c in ("gx", "gy", "gz"):
+            out.append(G[:, "xyz".index(c[1])])
+        elif c == "dT":
+            out.append(np.asarray(T, float) - reference_c)
+    return np.column_stack(out)
+
+
+def nested_test(reduced: LinearFit, full: LinearFit) -> dict:
+    """F-test and chi-square difference test of nested weighted LS models."""
+    from scipy import stats
+
+    q = full.names.__len__() - reduced.names.__len__()
+    d = reduced.chi2 - full.chi2
+    F = (d / q) / (full.chi2 / full.dof) if full.dof > 0 and full.chi2 > 0 else math.inf
+    p_F = float(stats.f.sf(F, q, full.dof)) if full.dof > 0 else math.nan
+    p_chi2 = float(stats.chi2.sf(d, q))
+    return {"q": q, "chi2_reduced": reduced.chi2, "chi2_full": full.chi2, "chi2_difference": d,
+            "p_value_chi2": p_chi2, "F": float(F), "F_dof": [q, full.dof], "p_value_F": p_F}
+
+
+# --------------------------------------------------------------------------------------------
+# The model
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class PositionRow:
+    position: str
+    gravity: np.ndarray
+    f: float
+    sigma_f: float
+    ha_deg: float | None
+    dec_deg: float | None
+    elevation_deg: float | None
+    temperature_c: float | None
+    zernike: np.ndarray | None
+    zernike_sigma: np.ndarray | None
+    residual_rms_m: float | None
+    scans: list[str] = field(default_factory=list)
+
+
+@dataclass
+class GravityModel:
+    """``f = f0 + c . g`` (+ ``df/dT (T - 15 C)``), ``a_j = a0_j + C_j . g`` and the tests.
+
+    ``focal``: the full regression (columns ``f0 gx gy gz [dT]``); ``focal_gz``: ``f0 gz [dT]``;
+    ``test``: the nested test of the two; ``modes``/``zernike``: one regression per mode
+    (columns ``a0 gx gy gz``); ``panel_rms_m``: median rms of the deviations left after the modes.
+    """
+
+    positions: list[PositionRow]
+    focal: LinearFit
+    focal_gz: LinearFit
+    test: dict
+    modes: tuple[int, ...]
+    zernike: list[LinearFit]
+    panel_rms_m: float | None
+    aperture_radius_m: float
+    latitude_deg: float
+    reference_g: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
+    temperature: bool = False
+
+    # --- predictions ---------------------------------------------------------------------
+    @property
+    def c(self) -> np.ndarray:
+        """``df/dg`` (m per unit g component)."""
+        return np.array([self.focal.beta[self.focal.names.index(k)] for k in ("gx", "gy", "gz")])
+
+    @property
+    def f0(self) -> float:
+        return float(self.focal.beta[0])
+
+    @property
+    def C(self) -> np.ndarray:
+        """Zernike coefficients per unit g, shape (modes, 3) (m)."""
+        if not self.zernike:
+            return np.zeros((0, 3))
+        return np.array([z.beta[1:4] for z in self.zernike])
+
+    @property
+    def a0(self) -> np.ndarray:
+        return np.array([z.beta[0] for z in self.zernike])
+
+    def predict_f(self, g: np.ndarray) -> np.ndarray:
+        """Focal length (m) at unit gravity vectors ``g`` (..., 3) (temperature at 15 C)."""
+        return self.f0 + np.asarray(g) @ self.c
+
+    def predict_zernike(self, g: np.ndarray) -> np.ndarray:
+        """Zernike coefficients (m) at ``g`` (..., 3) -> (..., modes)."""
+        return self.a0 + np.asarray(g) @ self.C.T
+
+    def gravity_rms(self, g: np.ndarray) -> np.ndarray:
+        """rms (m) of the modelled change of the surface modes from the reference ``g``."""
+        d = (np.asarray(g) - self.reference_g) @ self.C.T
+        return np.sqrt(np.sum(d * d, axis=-1))
+
+    def surface_rms(self, g: np.ndarray) -> np.ndarray:
+        """rms (m) of the modelled low-order surface (a0 + C g) plus the panel rms."""
+        a = self.predict_zernike(g)
+        p = self.panel_rms_m or 0.0
+        return np.sqrt(np.sum(a * a, axis=-1) + p * p)
+
+    def effect_parameters(self) -> dict:
+        """The catalog's ``gravity_deformation`` parameters (simulator/diagnosis form)."""
+        return {"df_dg_m": self.c.tolist(), "zernike_modes": list(self.modes),
+                "zernike_per_g_m": self.C.tolist(), "f0_m": self.f0}
+
+    # --- sky map -----------------------------------------------------------------------
+    def sky_map(self, *, ha_deg: np.ndarray | None = None, dec_deg: np.ndarray | None = None,
+                step_deg: float = 2.0, min_elevation_deg: float = 0.0) -> dict:
+        """Predicted f, surface rms and Ruze gain over an HA/DEC grid (NaN below the horizon)."""
+        from ._schedule import DEC_LIMITS_DEG, HA_LIMIT_DEG
+
+        ha = np.arange(-HA_LIMIT_DEG, HA_LIMIT_DEG + 1e-9, step_deg) if ha_deg is None else ha_deg
+        dec = (np.arange(DEC_LIMITS_DEG[0], DEC_LIMITS_DEG[1] + 1e-9, step_deg)
+               if dec_deg is None else dec_deg)
+        G, el = gravity_grid(ha, dec, self.latitude_deg)
+        mask = el < min_elevation_deg
+        f = np.where(mask, np.nan, self.predict_f(G))
+        grms = np.where(mask, np.nan, self.gravity_rms(G))
+        srms = np.where(mask, np.nan, self.surface_rms(G))
+        out = {"ha_deg": ha, "dec_deg": dec, "elevation_deg": el, "f_m": f,
+               "gravity_rms_m": grms, "surface_rms_m": srms}
+        for lam in WAVELENGTHS_M:
+            out[f"ruze_gain_{lam * 100:g}cm"] = ruze_gain(srms, lam)
+            out[f"ruze_gain_gravity_{lam * 100:g}cm"] = ruze_gain(grms, lam)
+        return out
+
+    def to_json(self, *, sky: dict | None = None, figures: Sequence[str] = ()) -> dict:
+        names = ("gx", "gy", "gz")
+        doc: dict = {
+            "schema": GRAVITY_SCHEMA,
+            "model": "f = f0 + c . g" + (" + df_dT (T - 15 C)" if self.temperature else "")
+                     + "; a_j = a0_j + C_j . g (Zernike, Noll, unit rms, north-aligned frame)",
+            "n_positions": len(self.positions),
+            "focal_length": {**self.focal.as_dict(), "f0_m": self.f0,
+                             "df_dg_m": dict(zip(names, self.c.tolist()))},
+            "focal_length_gz_only": self.focal_gz.as_dict(),
+            "test_transverse": {
+                **self.test, "null": "f depends on g_z only",
+                "alternative": "f depends on g_z and on the transverse components g_x, g_y",
+                "reject_null_at_0.01": bool(self.test["p_value_F"] < 0.01)},
+            "zernike": {
+                "modes": list(self.modes),
+                "aperture_radius_m": self.aperture_radius_m,
+                "per_mode": {f"zern_{j}": z.as_dict() for j, z in zip(self.modes, self.zernike)},
+                "per_g_m": self.C.tolist(),
+                "panel_rms_m": self.panel_rms_m,
+            },
+            "effect_parameters": self.effect_parameters(),
+            "positions": [
+                {"position": p.position, "ha_deg": p.ha_deg, "dec_deg": p.dec_deg,
+                 "elevation_deg": p.elevation_deg, "gravity": p.gravity.tolist(),
+                 "temperature_c": p.temperature_c, "scans": p.scans,
+                 "f": {"value": p.f, "sigma": p.sigma_f,
+                       "predicted": float(self.predict_f(p.gravity)),
+                       "predicted_gz_only": float(self._predict_gz(p))},
+                 "zernike_m": None if p.zernike is None else
+                 {f"zern_{j}": {"value": float(a), "sigma": float(s)}
+                  for j, a, s in zip(self.modes, p.zernike, p.zernike_sigma)},
+                 "residual_rms_m": p.residual_rms_m}
+                for p in self.positions],
+        }
+        if sky is not None:
+            doc["sky_map"] = sky_summary(sky)
+        if figures:
+            doc["figures"] = list(figures)
+        return doc
+
+    def _predict_gz(self, p: PositionRow) -> float:
+        b = dict(zip(self.focal_gz.names, self.focal_gz.beta))
+        v = b["f0"] + b["gz"] * p.gravity[2]
+        if "dT" in b and p.temperature_c is not None:
+            v += b["dT"] * (p.temperature_c - 15.0)
+        return float(v)
+
+
+def ruze_gain(eps_m, wavelength_m: float):
+    """Ruze: ``G/G0 = exp(-(4 pi eps / lambda)^2)`` for an rms surface error ``eps`` (m)."""
+    return np.exp(-((4 * np.pi * np.asarray(eps_m) / wavelength_m) ** 2))
+
+
+def sky_summary(sky: dict) -> dict:
+    """JSON form of a sky map: the grids and their extremes."""
+    def arr(a):
+        return [[None if not np.isfinite(v) else float(v) for v in row] for row in np.asarray(a)]
+
+    out: dict = {"ha_deg": [float(h) for h in sky["ha_deg"]],
+                 "dec_deg": [float(d) for d in sky["dec_deg"]]}
+    for k, v in sky.items():
+        if k in ("ha_deg", "dec_deg"):
+            continue
+        out[k] = arr(v)
+        a = np.asarray(v, float)
+        if np.any(np.isfinite(a)) and k != "elevation_deg":
+            i = np.unravel_index(np.nanargmin(a), a.shape)
+            j = np.unravel_index(np.nanargmax(a), a.shape)
+            out[f"{k}_range"] = {
+                "min": float(a[i]), "at_min": {"ha_deg": float(sky["ha_deg"][i[1]]),
+                                               "dec_deg": float(sky["dec_deg"][i[0]])},
+                "max": float(a[j]), "at_max": {"ha_deg": float(sky["ha_deg"][j[1]]),
+                                               "dec_deg": float(sky["dec_deg"][j[0]])}}
+    return out
+
+
+def _positions(samples: Sequence[ScanSample], modes, aperture: float) -> list[PositionRow]:
+    by: dict[str, list[ScanSample]] = {}
+    for s in samples:
+        by.setdefault(s.position, []).append(s)
+    rows = []
+    for pos, ss in by.items():
+        w = np.array([1.0 / s.sigma_f**2 for s in ss])
+        f = float(np.sum(w * np.array([s.f for s in ss])) / np.sum(w))
+        sf = float(1.0 / math.sqrt(np.sum(w)))
+        z = zs = rr = None
+        proj = [zernike_projection(s.X, s.deviation_m, aperture, modes) for s in ss
+                if s.X is not None and len(s.X) > 3 * (len(modes) + 3)]
+        if proj and modes:
+            a = np.array([p[0] for p in proj])
+            sa = np.array([p[1] for p in proj])
+            wz = 1.0 / sa**2
+            z = np.sum(wz * a, 0) / np.sum(wz, 0)
+            zs = 1.0 / np.sqrt(np.sum(wz, 0))
+            rr = float(np.median([p[2] for p in proj]))
+        temps = [s.temperature_c for s in ss if s.temperature_c is not None]
+        s0 = ss[0]
+        rows.append(PositionRow(pos, np.mean([s.gravity for s in ss], 0), f, sf, s0.ha_deg,
+                                s0.dec_deg, s0.elevation_deg,
+                                float(np.mean(temps)) if temps else None, z, zs, rr,
+                                [s.id for s in ss]))
+    return rows
+
+
+def gravity_model(
+    source,
+    *,
+    modes: Sequence[int] = DEFAULT_ZERNIKE_MODES,
+    temperature: bool = False,
+    aperture_radius_m: float | None = None,
+    latitude_deg: float | None = None,
+    reference_g: Sequence[float] = (0.0, 0.0, -1.0),
+) -> GravityModel:
+    """Estimate the gravity model from per-scan fits.
+
+    ``source``: a :class:`~hartrao_jax._fit.CampaignFit` (or a joint fit), a results directory
+    (``fit.json`` + ``residuals/``), or a list of :class:`ScanSample`. ``temperature``: add
+    ``df/dT (T - 15 C)`` to the focal-length model (needs the scans' temperatures).
+    ``reference_g``: gravity at which the surface was set (the change of the modes is measured
+    from there; default the zenith).
+    """
+    camp = getattr(source, "campaign", None)
+    if isinstance(source, (str, Path)):
+        samples = samples_from_dir(source, with_points=bool(modes))
+        doc = json.loads((Path(source) / "fit.json").read_text())
+        if doc.get("campaign") and (Path(doc["campaign"]) / "campaign.toml").is_file():
+            from ._campaign import load_campaign
+
+            camp = load_campaign(doc["campaign"])
+    elif isinstance(source, (list, tuple)) and source and isinstance(source[0], ScanSample):
+        samples = list(source)
+    else:
+        samples = samples_from_fit(source, with_points=bool(modes))
+    if aperture_radius_m is None:
+        aperture_radius_m = camp.telescope.diameter_m / 2 if camp is not None else 12.95
+    if latitude_deg is None:
+        latitude_deg = camp.site.latitude_deg if camp is not None else -25.8897
+    modes = tuple(int(j) for j in modes)
+    rows = _positions(samples, modes, aperture_radius_m)
+    G = np.array([r.gravity for r in rows])
+    y = np.array([r.f for r in rows])
+    sy = np.array([r.sigma_f for r in rows])
+    T = None
+    if temperature:
+        if any(r.temperature_c is None for r in rows):
+            raise ValueError("gravity model with temperature: some scans have no temperature_c")
+        T = np.array([r.temperature_c for r in rows])
+    extra = ("dT",) if temperature else ()
+    cols_full = ("f0", "gx", "gy", "gz") + extra
+    cols_red = ("f0", "gz") + extra
+    if len(rows) < len(cols_full) + 1:
+        raise ValueError(f"gravity model: {len(rows)} positions, need at least "
+                         f"{len(cols_full) + 1} for the test of the transverse components")
+    full = weighted_lsq(_design(G, cols_full, T), y, sy, cols_full)
+    red = weighted_lsq(_design(G, cols_red, T), y, sy, cols_red)
+    test = nested_test(red, full)
+    zfits = []
+    if modes and all(r.zernike is not None for r in rows):
+        Z = np.array([r.zernike for r in rows])
+        SZ = np.array([r.zernike_sigma for r in rows])
+        A = _design(G, ("a0", "gx", "gy", "gz"))
+        zfits = [weighted_lsq(A, Z[:, k], SZ[:, k], ("a0", "gx", "gy", "gz"))
+                 for k in range(len(modes))]
+    else:
+        modes = ()
+    rms = [r.residual_rms_m for r in rows if r.residual_rms_m is not None]
+    return GravityModel(rows, full, red, test, modes, zfits,
+                        float(np.median(rms)) if rms else None, float(aperture_radius_m),
+                        float(latitude_deg), np.asarray(reference_g, float), temperature)
+
+
+# --------------------------------------------------------------------------------------------
+# Figures and files
+# --------------------------------------------------------------------------------------------
+
+
+def plot_gravity(gm: GravityModel, sky: dict, out_dir) -> list[str]:
+    """``gravity_f.png`` (f against g_z, both models) and ``gravity_sky.png`` (maps)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files = []
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4.2))
+    gz = np.array([p.gravity[2] for p in gm.positions])
+    f = np.array([p.f for p in gm.positions])
+    sf = np.array([p.sigma_f for p in gm.positions])
+    pred = np.array([gm.predict_f(p.gravity) for p in gm.positions])
+    predz = np.array([gm._predict_gz(p) for p in gm.positions])
+    ax[0].errorbar(gz, (f - gm.f0) * 1e3, yerr=sf * 1e3, fmt="o", ms=3, label="per position")
+    o = np.argsort(gz)
+    ax[0].plot(gz[o], (predz[o] - gm.f0) * 1e3, "-", label="model: g_z only")
+    ax[0].plot(gz, (pred - gm.f0) * 1e3, "x", label="model: g_x, g_y, g_z")
+    ax[0].set_xlabel("g_z (telescope frame)")
+    ax[0].set_ylabel("f - f0 [mm]")
+    ax[0].legend(fontsize=8)
+    ax[0].set_title(f"focal length; transverse terms: p = {gm.test['p_value_F']:.2g} (F-test)")
+    ax[1].errorbar(np.arange(len(f)), (f - pred) * 1e3, yerr=sf * 1e3, fmt="o", ms=3)
+    ax[1].axhline(0, color="k", lw=0.5)
+    ax[1].set_xticks(np.arange(len(f)))
+    ax[1].set_xticklabels([p.position for p in gm.positions], rotation=90, fontsize=6)
+    ax[1].set_ylabel("f - model [mm]")
+    ax[1].set_title("residuals of the full model")
+    fig.tight_layout()
+    p = out / "gravity_f.png"
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    files.append(p.name)
+
+    keys = [("f_m", "predicted f - f(zenith) [mm]", 1e3, -float(gm.predict_f(gm.reference_g))),
+            ("surface_rms_m", "surface rms (modes + panels) [mm]", 1e3, 0.0),
+            ("ruze_gain_2.5cm", "Ruze G/G0 at 2.5 cm", 1.0, 0.0),
+            ("ruze_gain_1.3cm", "Ruze G/G0 at 1.3 cm", 1.0, 0.0)]
+    fig, axs = plt.subplots(2, 2, figsize=(11, 8))
+    ha, dec = sky["ha_deg"], sky["dec_deg"]
+    for a, (k, title, scale, off) in zip(axs.ravel(), keys):
+        m = a.pcolormesh(ha, dec, (np.asarray(sky[k]) + off) * scale, shading="auto")
+        fig.colorbar(m, ax=a)
+        a.contour(ha, dec, sky["elevation_deg"], levels=[10, 30, 60], colors="w",
+                  linewidths=0.5)
+        a.plot([p.ha_deg for p in gm.positions], [p.dec_deg for p in gm.positions], "k.", ms=3)
+        a.set_title(title)
+        a.set_xlabel("HA [deg]")
+        a.set_ylabel("DEC [deg]")
+    fig.tight_layout()
+    p = out / "gravity_sky.png"
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    files.append(p.name)
+    return files
+
+
+def write_gravity(results_dir, out_dir=None, *, modes: Sequence[int] = DEFAULT_ZERNIKE_MODES,
+                  temperature: bool = False, step_deg: float = 2.0, figures: bool = True,
+                  source=None) -> tuple[Path, GravityModel]:
+    """``gravity.json`` (schema ``hartrao-gravity/1``) and figures for a results directory."""
+    out = Path(out_dir or results_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    gm = gravity_model(source if source is not None else results_dir, modes=modes,
+                       temperature=temperature)
+    sky = gm.sky_map(step_deg=step_deg)
+    figs = plot_gravity(gm, sky, out) if figures else []
+    p = out / "gravity.json"
+    p.write_text(json.dumps(gm.to_json(sky=sky, figures=figs), indent=1))
+    return p, gm
+
+
+def print_gravity_summary(gm: GravityModel, console=None) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    console = console or Console()
+    t = Table(title=f"gravity model over {len(gm.positions)} positions")
+    for c in ("term", "value", "sigma", "sigma (scaled)"):
+        t.add_column(c, justify="right")
+    for n, b, s, ss in zip(gm.focal.names, gm.focal.beta, gm.focal.sigma, gm.focal.sigma_scaled):
+        t.add_row(f"f: {n}", f"{b * 1e3:.4f} mm", f"{s * 1e3:.4f} mm", f"{ss * 1e3:.4f} mm")
+    for j, z in zip(gm.modes, gm.zernike):
+        for n, b, s, ss in zip(z.names[1:], z.beta[1:], z.sigma[1:], z.sigma_scaled[1:]):
+            t.add_row(f"Z{j}: {n}", f"{b * 1e6:.1f} um", f"{s * 1e6:.1f} um", f"{ss * 1e6:.1f} um")
+    console.print(t)
+    te = gm.test
+    console.print(f"f depends on g_z only? F = {te['F']:.2f} (dof {te['F_dof']}), "
+                  f"p = {te['p_value_F']:.3g}; chi2 difference {te['chi2_difference']:.1f}, "
+                  f"p = {te['p_value_chi2']:.3g}")
+
+
+__all__ = ["GRAVITY_SCHEMA", "GravityModel", "LinearFit", "ScanSample", "gravity_grid", "gravity_model",
+           "nested_test", "plot_gravity", "print_gravity_summary", "ruze_gain",
+           "samples_from_dir", "samples_from_fit", "weighted_lsq", "write_gravity",
+           "zernike_np", "zernike_projection"]

@@ -78,7 +78,7 @@ def _eval_cse(jaxpr, consts, args, on, memo):
     def key_of(v):
         if isinstance(v, jcore.Literal):
             try:
-                return ("lit", float(v.val))
+                return ("lit", float(v.val), str(v.aval))
             except TypeError:
                 return ("lit", id(v.val))
         return id(env[v])
@@ -101,7 +101,7 @@ def _eval_cse(jaxpr, consts, args, on, memo):
             sub = eqn.params["jaxpr"]
             out = _eval_cse(sub.jaxpr, sub.consts, invals, on, memo)
         else:
-            pk = _hashable(eqn.params)
+            pk = None if eqn.effects else _hashable(eqn.params)  # never merge effectful ops
             k = None if pk is None else (name, pk, tuple(key_of(v) for v in eqn.invars))
             if k is not None and k in memo:
                 out = memo[k][1]
@@ -209,6 +209,12 @@ def _solve(N, rhs):
     return (Ninv_s @ (rhs * d)) * d, Ninv_s * d[:, None] * d[None, :]
 
 
+def _materialize(on, tree):
+    """Identity behind a runtime ``lax.cond``: a fusion boundary, so XLA computes ``tree``
+    once instead of duplicating its producers into every consumer fusion."""
+    return lax.cond(on, lambda t: t, lambda t: jax.tree_util.tree_map(jnp.zeros_like, t), tree)
+
+
 def _window(i, chunk, n):
     """Start of chunk ``i`` (the last one is shifted back to end at ``n``: no padding copy) and
     the mask of its points not already covered by chunk ``i - 1``."""
@@ -218,7 +224,7 @@ def _window(i, chunk, n):
 
 
 def make_pass(condition, l, consts, weights, sigma_l, on, *, lin, chunk, trig=True,
-              store_dtype=jnp.float32):
+              store_dtype=jnp.float32, mat=True):
     """The per-iteration pass of :func:`gh_one_pass`: ``one_pass(x, dx_prev, store)``.
 
     Returns ``(one_pass, residuals, store0(v0), nc)``; ``one_pass`` gives ``(N, n, store)``.
@@ -264,6 +270,10 @@ def make_pass(condition, l, consts, weights, sigma_l, on, *, lin, chunk, trig=Tr
             w8 = jnp.where(fresh, sl(weights, start), 0.0)
             _, v, _ = residuals(store, i, dx_prev, start)
             F, a, b = lin(condition, sl(l, start) + v, x, sl(consts, start), on if trig else None)
+            # materialise the linearisation once: a, b have several consumers (store, masked
+            # normals) and XLA would otherwise re-run the whole derivative per consumer (2x)
+            if mat:
+                F, a, b = _materialize(on, (F, a, b))
             wm = F - jnp.sum(b * v, axis=-1)
             m = jnp.sum(b * b * s2c, axis=-1)
             ok = (w8 > 0) & (m > 0)
@@ -303,7 +313,8 @@ def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *,
     1e-7 relative, ~1e-10 m); ``w``, ``m`` stay float64. The observations are never copied
     or padded: the last chunk overlaps the previous one, its repeated points masked.
 
-    Returns ``(x, N, N^-1, v (n, 3), k (n,), m (n,), omega, iterations, converged)``.
+    Returns ``(x, N, N^-1, v (n, 3), k (n,), m (n,), F(l, x) (n,), omega, iterations,
+    converged)``; ``normalized = |k| sqrt(m) / sigma0``.
     """
     n, u = l.shape[0], x0.shape[0]
     f = l.dtype
@@ -326,23 +337,30 @@ def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *,
     state = (x0, jnp.zeros_like(x0), store0, jnp.array(0), zu, zu, jnp.array(False))
     x, dx, store, it, N, Ninv, done = lax.while_loop(cond, step, state)
 
-    # residuals at the solution: one sweep over the store, no linearisation
+    # at the solution: residuals from the store (no linearisation) and the misclosure F(l, x)
+    # at the observations (a primal-only evaluation), in one sweep
+    cond_mt = materialize_trig(condition, on) if trig else condition
+    misclosure = jax.vmap(cond_mt, in_axes=(0, None, 0))
+
     def fin(i, carry):
-        omega, V, K, M = carry
+        omega, V, K, M, F0 = carry
         start, fresh = _window(i, chunk, n)
-        w8 = jnp.where(fresh, lax.dynamic_slice_in_dim(weights, start, chunk), 0.0)
+        sl = partial(lax.dynamic_slice_in_dim, start_index=start, slice_size=chunk)
+        w8 = jnp.where(fresh, sl(weights), 0.0)
         k, v, m = residuals(store, i, dx, start)
         omega = omega + jnp.sum(jnp.where(w8 > 0, w8 * k * k * m, 0.0))
+        f0 = misclosure(sl(l), x, sl(consts))
         # rows of the overlapped last chunk already written by chunk i-1 keep their value
-        sl = partial(lax.dynamic_slice_in_dim, start_index=start, slice_size=chunk)
         V = lax.dynamic_update_slice_in_dim(V, jnp.where(fresh[:, None], v, sl(V)), start, 0)
         K = lax.dynamic_update_slice_in_dim(K, jnp.where(fresh, k, sl(K)), start, 0)
         M = lax.dynamic_update_slice_in_dim(M, jnp.where(fresh, m, sl(M)), start, 0)
-        return omega, V, K, M
+        F0 = lax.dynamic_update_slice_in_dim(F0, jnp.where(fresh, f0, sl(F0)), start, 0)
+        return omega, V, K, M, F0
 
-    omega, V, K, M = lax.fori_loop(
-        0, nc, fin, (jnp.zeros((), f), jnp.zeros((n, 3), f), jnp.zeros((n,), f), jnp.ones((n,), f)))
-    return x, N, Ninv, V, K, M, omega, it, done
+    z = jnp.zeros((n,), f)
+    omega, V, K, M, F0 = lax.fori_loop(
+        0, nc, fin, (jnp.zeros((), f), jnp.zeros((n, 3), f), z, jnp.ones((n,), f), z))
+    return x, N, Ninv, V, K, M, F0, omega, it, done
 
 
 def fit(condition, l, x0, sigma_l, consts=None, weights=None, v0=None, *, lin=None,

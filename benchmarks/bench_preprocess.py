@@ -6,8 +6,10 @@ per size, cached as ``.npz``. Every method runs the *same* pipeline
 angular patches) and differs only in the plane stage, swapped in for
 ``_preprocess.fit_planes``:
 
-* ``jax``: the package (RANSAC vmapped over padded patches, ``lax.map`` chunks, float32 scoring,
-  TLS refinement in float64), first call (with compilation) and warm call;
+* ``jax``: the package (RANSAC vmapped over padded patches, ``lax.map`` chunks, float32,
+  hypotheses scored on up to 256 points per patch, TLS refinement on all points), first call
+  (with compilation: cold, and with the persistent compilation cache the CLI enables) and warm
+  calls;
 * ``numpy``: the same algorithm with NumPy on chunks of padded patches (same samples: it must
   agree with ``jax`` to round-off);
 * ``open3d``: ``PointCloud.segment_plane`` called once per patch (a Python loop, open3d's own
@@ -104,7 +106,7 @@ def _three_distinct_np(u, n):
 
 
 def numpy_fit_planes(pts, n, eps, *, seed=0, ransac_iterations=64, refine_iterations=2,
-                     ransac_float32=True, batch_size=None, memory_mb=96.0, ids=None, **_):
+                     ransac_float32=True, score_points=256, memory_mb=64.0, ids=None, **_):
     """The package's algorithm in NumPy, chunk by chunk of padded patches."""
     from hartrao_jax._preprocess import ransac_uniforms
 
@@ -118,67 +120,75 @@ def numpy_fit_planes(pts, n, eps, *, seed=0, ransac_iterations=64, refine_iterat
     good = n >= 3
     nr = np.where(good, np.minimum(n, P), 3)
     ct = np.float32 if ransac_float32 else np.float64
-    chunk = int(max(1, memory_mb * 2**20 // (P * H * np.dtype(ct).itemsize * 3)))
+    S = min(P, score_points)
+    isz = np.dtype(ct).itemsize
+    chunk = int(max(1, memory_mb * 2**20 // (P * 3 * isz * 4 + S * H * isz * 3)))
     inl_all = np.zeros((n_p, P), bool)
-    normal_all, d_all = np.zeros((n_p, 3)), np.zeros(n_p)
+    normal_all, d_all, cen_all = np.zeros((n_p, 3)), np.zeros(n_p), np.zeros((n_p, 3))
     nin_all, rms_all, nr_all = np.zeros(n_p, np.int32), np.zeros(n_p), np.zeros(n_p, np.int32)
     ar = np.arange(P)
     for s in range(0, n_p, chunk):
         e = min(s + chunk, n_p)
-        q = pts[s:e].astype(ct)
         B = e - s
         k = nr[s:e]
         valid = ar[None, :] < k[:, None]
+        q = pts[s:e].astype(ct)
+        cen = np.sum(np.where(valid[..., None], q, 0), axis=1) / k[:, None].astype(ct)
+        q -= cen[:, None, :]
         idx = _three_distinct_np(U[s:e], k)  # (B, H, 3)
         tri = np.take_along_axis(q, idx.reshape(B, H * 3)[..., None], axis=1).reshape(B, H, 3, 3)
         nrm = np.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0])
         ln = np.sqrt(np.sum(nrm * nrm, -1))
-        scale = np.abs(q).max(axis=(1, 2))[:, None] + ct(1e-12)
+        scale = np.abs(np.where(valid[..., None], q, 0)).max(axis=(1, 2))[:, None] + ct(1e-12)
         ok = ln > ct(1e-6) * scale * scale
         nh = nrm / np.where(ok, ln, 1)[..., None]
         d = np.sum(nh * tri[:, :, 0], -1)
-        dist = q @ nh.transpose(0, 2, 1) - d[:, None, :]  # (B, P, H)
+        kk = np.arange(S)[None, :]
+        sub = np.where(k[:, None] > S, (kk * k[:, None]) // S, kk)  # (B, S)
+        scored = sub < k[:, None]
+        qs = np.take_along_axis(q, sub[..., None], axis=1)
+        dist = qs @ nh.transpose(0, 2, 1) - d[:, None, :]  # (B, S, H)
         ee = eps[s:e].astype(ct)[:, None, None]
-        cost = np.sum(np.where(valid[..., None], np.minimum(dist * dist, ee * ee), 0), axis=1)
+        cost = np.sum(np.where(scored[..., None], np.minimum(dist * dist, ee * ee), 0), axis=1)
         cost = np.where(ok, cost, np.inf)
         best = np.argmin(cost, axis=1)
         db = np.take_along_axis(dist, best[:, None, None], axis=2)[..., 0]
-        nr_all[s:e] = np.sum(valid & (np.abs(db) <= ee[:, :, 0]), axis=1)
-        p64 = pts[s:e].astype(np.float64)
-        normal = nh[np.arange(B), best].astype(np.float64)
-        d0 = d[np.arange(B), best].astype(np.float64)
-        ep = eps[s:e][:, None]
+        nr_all[s:e] = np.sum(scored & (np.abs(db) <= ee[:, :, 0]), axis=1)
+        normal = nh[np.arange(B), best]
+        d0 = d[np.arange(B), best]
+        ep = eps[s:e].astype(ct)[:, None]
         for _ in range(refine_iterations):
-            r = np.einsum("bpk,bk->bp", p64, normal) - d0[:, None]
-            w = (valid & (np.abs(r) <= ep)).astype(float)
-            sw = np.maximum(w.sum(1), 1.0)
-            c = np.einsum("bp,bpk->bk", w, p64) / sw[:, None]
-            y = p64 - c[:, None, :]
-            M = np.einsum("bp,bpi,bpj->bij", w, y, y)
+            r = np.einsum("bpk,bk->bp", q, normal) - d0[:, None]
+            w = (valid & (np.abs(r) <= ep)).astype(ct)
+            sw = np.maximum(w.sum(1), 1)
+            pw = q * w[..., None]
+            c = pw.sum(1) / sw[:, None]
+            M = pw.transpose(0, 2, 1) @ q - sw[:, None, None] * (c[:, :, None] * c[:, None, :])
             a_, b_, c_ = M[:, 0, 0], M[:, 0, 1], M[:, 0, 2]
             d_, e_, f_ = M[:, 1, 1], M[:, 1, 2], M[:, 2, 2]
-            adj = np.stack([np.stack([d_ * f_ - e_ * e_, c_ * e_ - b_ * f_, b_ * e_ - c_ * d_], -1),
-                            np.stack([c_ * e_ - b_ * f_, a_ * f_ - c_ * c_, b_ * c_ - a_ * e_], -1),
-                            np.stack([b_ * e_ - c_ * d_, b_ * c_ - a_ * e_, a_ * d_ - b_ * b_], -1)],
-                           1)
-            v = normal
-            for _ in range(2):
-                u = np.einsum("bij,bj->bi", adj, v)
-                nu = np.linalg.norm(u, axis=1)
-                v = np.where((nu > 0)[:, None], u / np.where(nu > 0, nu, 1)[:, None], v)
+            A, B_, C = d_ * f_ - e_ * e_, c_ * e_ - b_ * f_, b_ * e_ - c_ * d_
+            D, E, F = a_ * f_ - c_ * c_, b_ * c_ - a_ * e_, a_ * d_ - b_ * b_
+            adj = np.stack([np.stack([A, B_, C], -1), np.stack([B_, D, E], -1),
+                            np.stack([C, E, F], -1)], 1)
+            u = np.einsum("bij,bj->bi", adj, np.einsum("bij,bj->bi", adj, normal))
+            nu = np.linalg.norm(u, axis=1)
+            v = np.where((nu > 0)[:, None], u / np.where(nu > 0, nu, 1)[:, None], normal)
             v = np.where((np.sum(v * normal, 1) < 0)[:, None], -v, v)
             enough = w.sum(1) >= 3
             normal = np.where(enough[:, None], v, normal)
             d0 = np.where(enough, np.sum(v * c, 1), d0)
-        r = np.einsum("bpk,bk->bp", p64, normal) - d0[:, None]
+        r = np.einsum("bpk,bk->bp", q, normal) - d0[:, None]
         inl = valid & (np.abs(r) <= ep)
         nin = inl.sum(1)
-        inl_all[s:e], normal_all[s:e], d_all[s:e], nin_all[s:e] = inl, normal, d0, nin
+        inl_all[s:e], nin_all[s:e] = inl, nin
+        normal_all[s:e] = normal / np.linalg.norm(normal.astype(float), axis=1, keepdims=True)
+        d_all[s:e], cen_all[s:e] = d0, cen
         rms_all[s:e] = np.sqrt(np.sum(np.where(inl, r * r, 0), 1) / np.maximum(nin - 3, 1))
     inl_all &= good[:, None]
     return {"inlier": inl_all, "normal": np.where(good[:, None], normal_all, np.nan),
-            "d": np.where(good, d_all, np.nan), "n_inliers": np.where(good, nin_all, 0),
-            "rms": np.where(good, rms_all, np.nan), "ransac_inliers": np.where(good, nr_all, 0)}
+            "d": np.where(good, d_all, np.nan), "centroid": cen_all,
+            "n_inliers": np.where(good, nin_all, 0), "rms": np.where(good, rms_all, np.nan),
+            "ransac_inliers": np.where(good, nr_all, 0)}
 
 
 def open3d_fit_planes(pts, n, eps, *, seed=0, ransac_iterations=64, **_):
@@ -209,8 +219,8 @@ def open3d_fit_planes(pts, n, eps, *, seed=0, ransac_iterations=64, **_):
         r = q[idx] @ nrm - dd
         normal_all[i], d_all[i], nin_all[i] = nrm, dd, len(idx)
         rms_all[i] = np.sqrt(np.sum(r * r) / max(len(idx) - 3, 1))
-    return {"inlier": inl_all, "normal": normal_all, "d": d_all, "n_inliers": nin_all,
-            "rms": rms_all, "ransac_inliers": nin_all}
+    return {"inlier": inl_all, "normal": normal_all, "d": d_all, "centroid": np.zeros((n_p, 3)),
+            "n_inliers": nin_all, "rms": rms_all, "ransac_inliers": nin_all}
 
 
 # --------------------------------------------------------------------------------------------
@@ -218,7 +228,7 @@ def open3d_fit_planes(pts, n, eps, *, seed=0, ransac_iterations=64, **_):
 # --------------------------------------------------------------------------------------------
 
 
-def worker(method: str, n_rows: float) -> dict:
+def worker(method: str, n_rows: float, calls: int = 3, xla_cache: str | None = None) -> dict:
     import jax
 
     import hartrao_jax  # noqa: F401
@@ -233,22 +243,37 @@ def worker(method: str, n_rows: float) -> dict:
                                                                  angular_step_rad=step))
     meta = ScanMeta("r23c1", "r23", 1, "", ha_deg=-35.0, dec_deg=-64.0)
     base = peak_mib()
+    if method == "jax" and xla_cache:
+        from hartrao_jax._config import enable_compilation_cache
+
+        out_cache = any(Path(xla_cache).glob("*")) if Path(xla_cache).exists() else False
+        enable_compilation_cache(xla_cache)
     if method == "numpy":
         pp.fit_planes = numpy_fit_planes
     elif method == "open3d":
         pp.fit_planes = open3d_fit_planes
     cfg = pp.PreprocessConfig()
     out = {"method": method, "n_rows": len(data), "step_rad": step, "baseline_mib": base}
-    t = time.perf_counter()
+    if method == "jax" and xla_cache:
+        out["xla_cache_was_warm"] = out_cache
+    t, c = time.perf_counter(), time.process_time()
     res = pp.preprocess_scan(camp, meta, data, cfg)
     out["first_s"] = time.perf_counter() - t
+    out["first_cpu_s"] = time.process_time() - c
     out["first_plane_s"] = res.stats["timing_s"]["ransac"]
-    if method == "jax":  # warm call: compiled shapes reused
-        t = time.perf_counter()
+    warm, cpu, plane, stages = [], [], [], []
+    for _ in range(calls - 1):  # warm calls (jax: compiled shapes reused); best of
+        t, c = time.perf_counter(), time.process_time()
         res = pp.preprocess_scan(camp, meta, data, cfg)
-        out["warm_s"] = time.perf_counter() - t
-        out["warm_plane_s"] = res.stats["timing_s"]["ransac"]
-    out["timing_s"] = res.stats["timing_s"]
+        warm.append(time.perf_counter() - t)
+        cpu.append(time.process_time() - c)
+        plane.append(res.stats["timing_s"]["ransac"])
+        stages.append(res.stats["timing_s"])
+    if warm:
+        out["warm_s"], out["warm_plane_s"], out["cpu_s"] = min(warm), min(plane), min(cpu)
+        out["timing_s"] = {k: min(st[k] for st in stages) for k in stages[0]}
+    else:
+        out["timing_s"] = res.stats["timing_s"]
     out["peak_mib"] = peak_mib()
     out["n_patches"] = res.stats["n_patches_fitted"]
     out["points_per_patch"] = res.stats["points_per_patch"]
@@ -268,8 +293,9 @@ def worker(method: str, n_rows: float) -> dict:
 # --------------------------------------------------------------------------------------------
 
 
-def run_worker(method: str, n_rows: float, timeout: float) -> dict:
-    cmd = [sys.executable, __file__, "--worker", method, "--size", repr(n_rows)]
+def run_worker(method: str, n_rows: float, timeout: float, calls: int) -> dict:
+    cmd = [sys.executable, __file__, "--worker", method, "--size", repr(n_rows),
+           "--calls", str(calls), "--xla-cache", str(CACHE / "xla")]
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -285,34 +311,64 @@ def main(argv=None):
     ap.add_argument("--sizes", default="1e6,1.3e7")
     ap.add_argument("--methods", default="jax,numpy,open3d")
     ap.add_argument("--timeout", type=float, default=3600.0)
+    ap.add_argument("--calls", type=int, default=3,
+                    help="calls per worker: the first, then warm ones (best of)")
+    ap.add_argument("--rounds", type=int, default=2,
+                    help="workers per method and size, interleaved (best of: shared machine)")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--xla-cache", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--size", type=float, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
-        print(json.dumps(worker(args.worker, args.size), default=float))
+        print(json.dumps(worker(args.worker, args.size, args.calls, args.xla_cache),
+                         default=float))
         return
     from _common import machine_info, md_table, write_results
 
+    load_start = os.getloadavg()
+    import shutil
+
+    shutil.rmtree(CACHE / "xla", ignore_errors=True)  # round 1 compiles cold, later rounds hit
     sizes = [float(s) for s in args.sizes.split(",")]
     methods = args.methods.split(",")
     rows = []
     for n in sizes:
         make_scan(n)
+        best: dict[str, dict] = {}
+        for rnd in range(args.rounds):
+            for m in methods:
+                print(f"size {n:.3g}: {m} (round {rnd + 1}) ...", flush=True)
+                r = run_worker(m, n, args.timeout, args.calls)
+                print(json.dumps(r, default=float), flush=True)
+                if "error" in r:
+                    best.setdefault(m, r)
+                    continue
+                r["plane_s"] = r.get("warm_plane_s", r["first_plane_s"])
+                r["total_s"] = r.get("warm_s", r["first_s"])
+                if r.get("xla_cache_was_warm"):
+                    r["first_cached_s"] = r["first_s"]
+                    r["first_s"] = None
+                b = best.get(m)
+                if b is None or "error" in b:
+                    best[m] = r
+                else:  # best of rounds, per column
+                    for k in ("plane_s", "total_s", "cpu_s", "first_s", "first_cached_s",
+                              "first_plane_s", "peak_mib"):
+                        v = [x for x in (b.get(k), r.get(k)) if x is not None]
+                        b[k] = min(v) if v else None
         for m in methods:
-            print(f"size {n:.3g}: {m} ...", flush=True)
-            r = run_worker(m, n, args.timeout)
+            r = best[m]
             r["size"] = n
             if "error" not in r:
                 ref = CACHE / f"keep_jax_{int(n)}.npy"
                 mine = CACHE / f"keep_{m}_{int(n)}.npy"
                 if ref.exists() and mine.exists():
                     r["agree_with_jax"] = float(np.mean(np.load(ref) == np.load(mine)))
-                r["throughput_Mpts_s"] = r["n_rows"] / r.get("warm_s", r["first_s"]) / 1e6
-                r["plane_s"] = r.get("warm_plane_s", r["first_plane_s"])
-                r["total_s"] = r.get("warm_s", r["first_s"])
-            print(json.dumps(r, default=float), flush=True)
+                r["throughput_Mpts_s"] = r["n_rows"] / r["total_s"] / 1e6
             rows.append(r)
     info = machine_info()
+    info["loadavg_start"] = [round(v, 1) for v in load_start]
+    info["loadavg_end"] = [round(v, 1) for v in os.getloadavg()]
     try:
         import open3d
 
@@ -321,19 +377,25 @@ def main(argv=None):
         info["open3d"] = f"not available ({type(e).__name__}: {e})"
     cols = [("n_rows", "rows", ",d"), ("method", "plane stage", ""),
             ("n_patches", "patches", ",d"), ("patch_size_m", "patch m", ".2f"),
-            ("plane_s", "plane stage s", ".2f"), ("total_s", "total s", ".2f"),
-            ("first_s", "first call s", ".2f"), ("throughput_Mpts_s", "Mpts/s", ".2f"),
+            ("plane_s", "plane stage s", ".2f"), ("first_plane_s", "plane 1st call s", ".2f"),
+            ("total_s", "total s", ".2f"), ("cpu_s", "total CPU s", ".2f"),
+            ("first_s", "first call s", ".2f"),
+            ("first_cached_s", "first call, XLA cache s", ".2f"),
+            ("throughput_Mpts_s", "Mpts/s", ".2f"),
             ("baseline_mib", "baseline MiB", ".0f"), ("peak_mib", "peak MiB", ".0f"),
-            ("reflector_kept", "reflector kept", ".4f"), ("scatter_removed", "scatter removed", ".4f"),
+            ("reflector_kept", "reflector kept", ".4f"),
+            ("scatter_removed", "scatter removed", ".4f"),
             ("agree_with_jax", "same mask as jax", ".6f"), ("error", "error", "")]
     full = [r for r in rows if r.get("size") == max(sizes) and "error" not in r]
     jx = next((r for r in full if r["method"] == "jax"), None)
     o3 = next((r for r in full if r["method"] == "open3d"), None)
     verdict = []
     if jx:
+        first = max(v for v in (jx.get("first_s"), jx.get("first_cached_s"), jx["total_s"])
+                    if v is not None)
         verdict.append(f"- full-resolution scan ({jx['n_rows']:,} rows): whole preprocessing "
-                       f"{jx['total_s']:.1f} s warm, {jx['first_s']:.1f} s first call "
-                       f"(target < 60 s: {'met' if jx['first_s'] < 60 else 'NOT met'})")
+                       f"{jx['total_s']:.1f} s warm, {first:.1f} s at worst (first call, cold "
+                       f"compilation) (target < 60 s: {'met' if first < 60 else 'NOT met'})")
     if jx and o3:
         verdict.append(f"- plane stage: JAX {jx['plane_s']:.2f} s vs open3d per patch "
                        f"{o3['plane_s']:.2f} s ({o3['plane_s'] / jx['plane_s']:.1f}x); whole "
@@ -344,8 +406,12 @@ def main(argv=None):
         "cone, quadrupod, background, mixed pixels, multipath), the same pipeline "
         "(initial values, range and geometry windows, angular patches) for every method; "
         "only the plane stage differs. *plane stage*: RANSAC + refinement of all patches; "
-        "*total*: `preprocess_scan` end to end (warm for jax: the second call, compiled "
-        "shapes reused; *first call* includes compilation). Peak memory is the worker "
+        "*total*: `preprocess_scan` end to end, best of the warm calls (for jax the "
+        "compiled shapes are reused; *total CPU*: process time of that call, all threads); "
+        "*first call* includes compilation and every method's first-use overheads (for jax "
+        "with an empty persistent compilation cache; *XLA cache*: a new process with the "
+        "cache the CLI enables already filled). Best of `--rounds` interleaved workers per "
+        "method: the machine is shared, single timings are noisy. Peak memory is the worker "
         "process's `ru_maxrss`; *baseline* is its peak after loading the scan (Python, JAX, "
         "the scan's columns). *same mask as jax*: fraction of rows with the same keep flag.\n\n"
         + md_table(rows, cols) + "\n" + "\n".join(verdict) + "\n\n"

@@ -94,6 +94,43 @@ def kappa_from_legs(
     return np.asarray(cands), contrast
 
 
+def refine_kappa_from_legs(
+    X_fit: np.ndarray, leg_azimuths_deg, kappa0: float, *, rho_range_m: tuple[float, float],
+    ring_width_m: float = 0.15, search_rad: float = np.radians(10.0),
+) -> float:
+    """Refine ``kappa`` to a fraction of the scan's angular step from the leg shadows' gaps.
+
+    In each thin ring of dish radius, the shadow of a leg is the widest gap between consecutive
+    point azimuths near where the leg should be; the middle of that gap is the shadow's axis.
+    The median over rings and legs of (expected - found) corrects ``kappa0``: the sampling
+    phase differs from ring to ring, so the median resolves much finer than one step.
+    """
+    legs = np.radians(np.asarray(leg_azimuths_deg, float))
+    rho = np.hypot(X_fit[:, 0], X_fit[:, 1])
+    psi = np.arctan2(X_fit[:, 1], X_fit[:, 0])
+    offsets = []
+    edges = np.arange(rho_range_m[0], rho_range_m[1], ring_width_m)
+    ring = np.digitize(rho, edges)
+    for L in legs:
+        expect = L - kappa0
+        d = _wrap(psi - expect)
+        near = np.abs(d) < search_rad
+        for k in np.unique(ring[near]):
+            if k == 0 or k == len(edges):
+                continue
+            a = np.sort(d[near & (ring == k)])
+            if len(a) < 6:
+                continue
+            gaps = np.diff(a)
+            i = int(np.argmax(gaps))
+            if gaps[i] < 3 * np.median(gaps):
+                continue  # no clear shadow in this ring
+            offsets.append(0.5 * (a[i] + a[i + 1]))
+    if len(offsets) < 5:
+        return kappa0
+    return float(_wrap(kappa0 - np.median(offsets)))
+
+
 def mount_heading(kappa: float, rx: float, ry: float, gravity: np.ndarray) -> float:
     """Scanner heading on its mount (rad) implied by a scan's ``kappa`` and attitude.
 
@@ -140,7 +177,9 @@ def north_alignment(
     if heading_hint_rad is not None:
         pred = kappa_from_heading(heading_hint_rad, g)
         k = cands[np.argmin(np.abs(_wrap(cands - pred)))]
+        k = refine_kappa_from_legs(X_fit, leg_azimuths_deg, float(k), rho_range_m=rho_range_m)
         return Alignment(float(k), "quadrupod+heading")
     k = cands[np.argmin(np.abs(cands))]
+    k = refine_kappa_from_legs(X_fit, leg_azimuths_deg, float(k), rho_range_m=rho_range_m)
     amb = 2 * np.pi / len(cands) if len(cands) > 1 else 0.0
     return Alignment(float(k), "quadrupod", float(amb))

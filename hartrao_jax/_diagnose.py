@@ -37,6 +37,7 @@ Units: metres, radians, seconds; ``_deg`` keys are degrees.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
@@ -190,6 +191,7 @@ class _Spec:
     motion: dict[str, dict] = field(default_factory=dict)  # scan id -> names, window_s, period_s
     panels: dict[str, np.ndarray] | None = None  # offset, tilt_r, tilt_t per panel
     accepted: list[str] = field(default_factory=list)
+    skip: set[str] = field(default_factory=set)  # found confounded: not tested again
 
     def names(self) -> list[str]:
         out = list(self.start) + list(self.shared)
@@ -271,16 +273,74 @@ class _Context:
 # fitting
 # --------------------------------------------------------------------------------------------
 
+_BUCKET = 1 << 15  # point arrays are padded to a multiple: scans of similar size share programs
+
+
+def _npad(n: int) -> int:
+    return max(_BUCKET, -(-n // _BUCKET) * _BUCKET)
+
+
+def _pad(a: np.ndarray, npad: int, fill=None) -> np.ndarray:
+    """Rows padded to ``npad``: repeating the last row (``fill=None``) or with ``fill``."""
+    a = np.asarray(a)
+    n = a.shape[0]
+    if n == npad:
+        return a
+    tail = (np.repeat(a[-1:], npad - n, 0) if fill is None
+            else np.full((npad - n,) + a.shape[1:], fill, a.dtype))
+    return np.concatenate([a, tail])
+
+
+def _adjust(ctx: _Context, model, l, x0, c, w, v0=None):
+    """Robust GH on padded arrays; returns the result cut back to the points."""
+    from ._ghm import GHResult
+
+    n = len(l)
+    npad = _npad(n)
+    lp, cp, wp = _pad(l, npad), _pad(c, npad), _pad(w, npad, 0.0)
+    k = ctx.config.robust_k
+    if k is None:
+        res = gauss_helmert(model, lp, x0, ctx.sigma, cp, wp)
+    else:
+        res = robust_gauss_helmert(model, lp, x0, ctx.sigma, cp, wp, k=k)
+    return GHResult(x=res.x, cov=res.cov, N=res.N, sigma0=res.sigma0, v=res.v[:n],
+                    misclosure=res.misclosure[:n], normalized=res.normalized[:n],
+                    weights=res.weights[:n], redundancy=res.redundancy, iterations=res.iterations,
+                    converged=res.converged)
+
 
 def _start_scans(ctx: _Context, start: tuple[str, ...], keep, scans: Sequence[str] | None,
                  progress: bool) -> list[_Scan]:
-    """Fit every scan with the start model (the project's ``fit``) and freeze its geometry."""
-    from ._fit import fit_campaign
+    """Fit every scan with the start model (as ``fit`` does) and freeze its geometry."""
+    from ._align import mount_heading
+    from ._campaign import read_scan
+    from ._fit import finish_scan_fit, prepare_scan, scan_arrays
+    from ._geometry import pointing_gravity
 
-    cf = fit_campaign(ctx.campaign, start, scans=scans, keep=keep,
-                      robust_k=ctx.config.robust_k, progress=progress)
+    camp = ctx.campaign
+    metas = [camp.scan(s) for s in scans] if scans else list(camp.scans)
+    tel, site = camp.telescope, camp.site
+    tilt = {m.id: np.arccos(np.clip(-pointing_gravity(m, tel, site)[2], -1, 1)) for m in metas}
+    fits, headings = {}, []
+    for meta in sorted(metas, key=lambda m: -tilt[m.id]):
+        data = read_scan(camp, meta)
+        k = np.asarray(keep(meta, data), bool) if keep is not None else None
+        data, g, init, window = prepare_scan(camp, meta, data, keep=k)
+        mdl = make_model(start, aperture_radius_m=ctx.aperture, check_separable=False)
+        l, c = scan_arrays(data)
+        x0 = np.array([init.x.get(n, 0.0) for n in mdl.free])
+        res = _adjust(ctx, mdl, l, x0, c, window.astype(float))
+        hint = float(np.angle(np.mean(np.exp(1j * np.array(headings))))) if headings else None
+        f = finish_scan_fit(camp, meta, mdl, data, res, g, init, window, heading_hint_rad=hint)
+        if f.alignment.source == "gravity":
+            headings.append(mount_heading(f.alignment.kappa_rad, f.value("rx"), f.value("ry"),
+                                          f.gravity))
+        fits[meta.id] = (f, window)
+        log.info("start fit %s: sigma0 %.3f, %d points", meta.id, f.sigma0, f.n_points)
+
     out = []
-    for f in cf.scans:
+    for meta in metas:  # campaign order
+        f, window = fits[meta.id]
         X = f.X_tel
         rho = np.hypot(X[:, 0], X[:, 1])
         psi = np.mod(np.arctan2(X[:, 1], X[:, 0]), 2 * np.pi)
@@ -296,10 +356,7 @@ def _start_scans(ctx: _Context, start: tuple[str, ...], keep, scans: Sequence[st
         nrm = np.column_stack([-X[:, 0] / (2 * fval), -X[:, 1] / (2 * fval), np.ones(len(X))])
         cosi = np.abs(np.sum(d * nrm, 1)) / (np.linalg.norm(d, axis=1) * np.linalg.norm(nrm, axis=1)
                                              + 1e-300)
-        window = np.isfinite(f.deviation_m) & (np.abs(f.deviation_m) < 0.10)
-        if keep is not None:
-            window &= np.asarray(keep(f.meta, f.data), bool)
-        window |= f.used
+        window = window | f.used
         n = len(f.data)
         sc = _Scan(
             meta=f.meta, data=f.data, g=np.asarray(f.gravity), init_x=dict(f.init.x),
@@ -316,19 +373,19 @@ def _start_scans(ctx: _Context, start: tuple[str, ...], keep, scans: Sequence[st
     return out
 
 
-def _refit(ctx: _Context, sc: _Scan, spec: _Spec, x_hint: dict[str, float] | None = None) -> None:
-    """Adjust one scan with the current model (rigorous GH, robust rejection from scratch)."""
+def _refit(ctx: _Context, sc: _Scan, spec: _Spec, x_hint: dict[str, float] | None = None,
+           from_used: bool = False) -> None:
+    """Adjust one scan with the current model (rigorous GH with robust rejection).
+
+    Rejection starts from the whole window (points rejected because of an effect that is now
+    modelled come back), or from the points used so far (``from_used``: global, small changes).
+    """
     model = _scan_model(sc, spec, ctx.aperture)
     prev = dict(zip(sc.names, sc.x))
     hint = x_hint or {}
     x0 = np.array([hint.get(n, prev.get(n, sc.init_x.get(n, 0.0))) for n in model.free])
-    w = (sc.window & ~sc.cut).astype(float)
-    c = sc.consts()
-    k = ctx.config.robust_k
-    if k is None:
-        res = gauss_helmert(model, sc.l, x0, ctx.sigma, c, w)
-    else:
-        res = robust_gauss_helmert(model, sc.l, x0, ctx.sigma, c, w, k=k)
+    w = ((sc.used if from_used and sc.used is not None else sc.window) & ~sc.cut).astype(float)
+    res = _adjust(ctx, model, sc.l, x0, sc.consts(), w)
     sc.names = model.free
     sc.x, sc.cov, sc.sigma0 = np.asarray(res.x), np.asarray(res.cov), float(res.sigma0)
     sc.v, sc.used = np.asarray(res.v), np.asarray(res.weights) > 0
@@ -339,18 +396,21 @@ def _refit(ctx: _Context, sc: _Scan, spec: _Spec, x_hint: dict[str, float] | Non
 def _evaluate(ctx: _Context, sc: _Scan, spec: _Spec, model=None) -> None:
     """Misclosures, ``m``, ``dF/dr`` and probe derivatives at the current solution."""
     model = model or _scan_model(sc, spec, ctx.aperture)
-    c = sc.consts()
+    n = len(sc.l)
+    npad = _npad(n)
+    c = _pad(sc.consts(), npad)
+    lp = jnp.asarray(_pad(sc.l, npad))
     x = jnp.asarray(sc.x)
-    sc.F = np.asarray(_misclosure(model, jnp.asarray(sc.l), x, jnp.asarray(c)))
+    sc.F = np.asarray(_misclosure(model, lp, x, jnp.asarray(c)))[:n]
     base = [n for n in model.free if n not in SHIFT + OSCILLATION]
     fixed = {k: v for k, v in _fixed(sc, spec).items() if k not in base}
     probe = make_model(base + list(PROBE), fixed, shift_window_s=(-1e9, 1e18),
                        osc_period_s=1e18, kappa_rad=sc.kappa, aperture_radius_m=ctx.aperture,
                        check_separable=False)
     xp = np.array([sc.value(n) for n in probe.free[: len(probe.free) - len(PROBE)]])
-    m, b0, ap = _pointwise(model, probe, jnp.asarray(sc.l), x, jnp.asarray(xp), jnp.asarray(c),
+    m, b0, ap = _pointwise(model, probe, lp, x, jnp.asarray(xp), jnp.asarray(c),
                            jnp.asarray(ctx.sigma**2))
-    sc.m, sc.b0, sc.probe = np.asarray(m), np.asarray(b0), np.asarray(ap)
+    sc.m, sc.b0, sc.probe = np.asarray(m)[:n], np.asarray(b0)[:n], np.asarray(ap)[:n]
     u = sc.used
     sc.omega = float(np.sum(sc.F[u] ** 2 / sc.m[u]))
     sc.redundancy = int(u.sum() - len(sc.x))
@@ -421,6 +481,48 @@ def _box_search(edges, Nb, nbv, cfg: DiagnoseConfig):
     return best[0], best[1], best[2], profile, Lmax
 
 
+def _refine_window(sc: _Scan, edges, i: int, j: int, Ntot, T0: float, n_cand: int = 48):
+    """Window edges at the resolution of the points' times (within one bin of the coarse
+    edges), by the same statistic on cumulative sums over the time-sorted points."""
+    u = sc.used & (sc.m > 0)
+    t = sc.data.time_s[u]
+    order = np.argsort(t, kind="stable")
+    t = t[order]
+    a = sc.probe[u][order, :3]
+    q = 1.0 / sc.m[u][order]
+    F = sc.F[u][order]
+    qa = a * q[:, None]
+    CN = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(qa[:, :, None] * a[:, None, :], 0)])
+    Cn = np.concatenate([np.zeros((1, 3)), np.cumsum(qa * F[:, None], 0)])
+    Ninv = np.linalg.pinv(Ntot)
+
+    def cands(k):
+        lo, hi = edges[max(k - 1, 0)], edges[min(k + 1, len(edges) - 1)]
+        idx = np.arange(np.searchsorted(t, lo), np.searchsorted(t, hi, side="right") + 1)
+        idx = np.clip(idx, 0, len(t))
+        if len(idx) > n_cand:
+            idx = idx[np.linspace(0, len(idx) - 1, n_cand).astype(int)]
+        return np.unique(idx)
+
+    s_idx, e_idx = cands(i), cands(j)
+    S0, E0 = np.meshgrid(s_idx, e_idx, indexing="ij")
+    ok = E0 > S0
+    if not ok.any():
+        return (float(edges[i]), float(edges[j] - edges[i])), T0
+    S0, E0 = S0[ok], E0[ok]
+    NW = CN[E0] - CN[S0]
+    nW = Cn[E0] - Cn[S0]
+    Sm = NW - NW @ Ninv @ NW + 1e-9 * np.trace(Ntot) / 3 * np.eye(3)
+    T = np.sum(nW * np.linalg.solve(Sm, nW[..., None])[..., 0], 1)
+    k = int(np.argmax(T))
+    if T[k] <= T0:
+        return (float(edges[i]), float(edges[j] - edges[i])), T0
+    s0, e0 = int(S0[k]), int(E0[k])
+    start = 0.5 * (t[s0 - 1] + t[s0]) if s0 > 0 else t[0] - 1e-9
+    end = 0.5 * (t[e0 - 1] + t[e0]) if e0 < len(t) else t[-1] + 1e-9
+    return (float(start), float(end - start)), float(T[k])
+
+
 def _periodogram(edges, Nb, nbv, cfg: DiagnoseConfig):
     """Score statistic of a rotation ``a sin(wt) + b cos(wt)`` about scanner x and y vs period.
 
@@ -459,8 +561,7 @@ def _locate_time(sc: _Scan, cfg: DiagnoseConfig) -> None:
     """Window of the strongest box (change points) and the strongest period of one scan."""
     edges, b, Nb, nbv = _time_bins(sc, cfg)
     i, j, T, profile, Lmax = _box_search(edges, Nb, nbv, cfg)
-    sc.window_s = (float(edges[i]), float(edges[j] - edges[i]))
-    sc.window_stat = T
+    sc.window_s, sc.window_stat = _refine_window(sc, edges, i, j, Nb[:, :3, :3].sum(0), T)
     periods, P = _periodogram(edges, Nb, nbv, cfg)
     if len(P):
         k = int(np.argmax(P))
@@ -652,6 +753,9 @@ class _Test:
     T_diff: float = 0.0
     dof_diff: int = 0
     notes: list[str] = field(default_factory=list)
+    S: np.ndarray | None = None  # Schur complement of the tested parameters (x, panels out)
+    Draw: np.ndarray | None = None  # their normal matrix alone
+    cov: np.ndarray | None = None  # covariance of the one-step estimate
 
 
 def _z_of(T: float, dof: int) -> float:
@@ -736,9 +840,11 @@ class _Joint:
                 else:
                     P[i, self.cidx[(sc.id, name)]] = 1.0
             w = (sc.used & (sc.m > 0)).astype(float)
-            ne = normal_equations(model, sc.l, x, ctx.sigma, sc.consts(), w, sc.v,
-                                  groups=np.where(sc.panel >= 0, sc.panel, -1), n_groups=G,
-                                  offset_column=2)
+            npad = _npad(len(w))
+            ne = normal_equations(model, _pad(sc.l, npad), x, ctx.sigma,
+                                  _pad(sc.consts(), npad), _pad(w, npad, 0.0), _pad(sc.v, npad),
+                                  groups=_pad(np.where(sc.panel >= 0, sc.panel, -1), npad, -1),
+                                  n_groups=G, offset_column=2)
             Ns, ns = np.asarray(ne.N), np.asarray(ne.n)
             N += P.T @ Ns @ P
             n += P.T @ ns
@@ -757,6 +863,10 @@ class _Joint:
         self.n = n - sg.T @ (Si * tg)
         self.wMw = wMw - float(np.sum(Si * tg**2))
         self.group = (S, sg, tg)
+        self.group_count = np.zeros(G)
+        for sc in scans:
+            ok = sc.used & (sc.panel >= 0)
+            self.group_count += np.bincount(sc.panel[ok], minlength=G)
         # ---- null system: x blocks and accepted shared
         self.I0 = np.concatenate([*self.xidx.values(), self.sidx]).astype(int)
         K = self.N[np.ix_(self.I0, self.I0)]
@@ -822,9 +932,10 @@ class _Joint:
         # correlation of each tested parameter with the null unknowns (for "with")
         with_, cw = [], []
         if len(m) == 1:
-            Sv = float(S[0, 0]) if S[0, 0] > 0 else 1e-300
-            kd = np.diag(self.K_inv)
-            corr = (-Z[:, 0] / Sv) / np.sqrt((1 / Sv) * (kd + Z[:, 0] ** 2 / Sv))
+            # corr(e, x_i) = -Z_i / sqrt(S (K^-1)_ii + Z_i^2)  (inverse of the bordered matrix)
+            kd = np.maximum(np.diag(self.K_inv), 0.0)
+            Sv = max(float(S[0, 0]), 0.0)
+            corr = -Z[:, 0] / np.sqrt(Sv * kd + Z[:, 0] ** 2 + 1e-300)
             order = np.argsort(-np.abs(corr))
             for i in order:
                 name = self.labels[self.I0[i]].split("@")[0]
@@ -835,7 +946,8 @@ class _Joint:
                     cw.append(float(corr[i]))
         p = _p_of(T, dof)
         return _Test(cand, T, dof, p, _z_of(T, dof), effect, delta, sig, rho, with_, cw,
-                     confounded=dof < len(m) if len(m) == 1 else dof == 0)
+                     confounded=dof < len(m) if len(m) == 1 else dof == 0, S=S, Draw=Draw,
+                     cov=cov)
 
     def scan_difference(self, cand: _Candidate, test: _Test) -> tuple[float, int]:
         """``T`` of freeing a shared candidate per scan, beyond the shared value."""
@@ -847,6 +959,11 @@ class _Joint:
         return max(0.0, t.T - test.T), t.dof - test.dof
 
 
+@functools.lru_cache(maxsize=256)
+def _inseparable(names: tuple[str, ...]) -> tuple:
+    return tuple(inseparable_pairs(list(names)))
+
+
 def _local_candidates(ctx: _Context, scans: Sequence[_Scan], spec: _Spec) -> dict[str, list[str]]:
     """Per scan: the catalog parameters not in the model, free at value 0 in the test."""
     cfg = ctx.config
@@ -854,9 +971,9 @@ def _local_candidates(ctx: _Context, scans: Sequence[_Scan], spec: _Spec) -> dic
     in_model = set(spec.start) | set(spec.shared)
     inst = []
     for k in INSTRUMENT:
-        if k in in_model or (wanted is not None and k not in wanted):
+        if k in in_model or (wanted is not None and k not in wanted) or k in spec.skip:
             continue
-        if inseparable_pairs(list(in_model) + [k]):
+        if _inseparable(tuple(sorted(in_model)) + (k,)):
             continue  # same shape as a model parameter: reported as confounded elsewhere
         inst.append(k)
     positions = {sc.meta.position for sc in scans}
@@ -985,6 +1102,7 @@ class Diagnosis:
     notes: list[str] = field(default_factory=list)
     scans_final: dict[str, dict] = field(default_factory=dict)
     history: list[dict] = field(default_factory=list)
+    detectability: list[dict] = field(default_factory=list)
 
     def to_json(self) -> dict:
         return {
@@ -1001,6 +1119,7 @@ class Diagnosis:
             "comparison": self.comparison,
             "last_candidates": self.candidates,
             "scans": self.scans_final,
+            "detectability": self.detectability,
             "timing_s": self.timing_s,
             "notes": self.notes,
         }
@@ -1042,11 +1161,8 @@ def _log_sf(T: float, dof: int) -> float:
 def _panel_known(ctx: _Context, sc: _Scan, panels: dict[str, np.ndarray] | None) -> np.ndarray:
     if panels is None:
         return np.zeros(len(sc.rho))
-    P = _panel_columns(ctx, sc)
     k = np.where(sc.panel >= 0, sc.panel, 0)
-    dev = (panels["offset"][k] * P[:, 0] + panels["tilt_r"][k] * P[:, 1]
-           + panels["tilt_t"][k] * P[:, 2])
-    return np.where(sc.panel >= 0, dev, 0.0)
+    return np.where(sc.panel >= 0, panels["offset"][k], 0.0)
 
 
 def _estimate_panels(ctx: _Context, scans: Sequence[_Scan], spec: _Spec) -> dict[str, np.ndarray]:
@@ -1059,7 +1175,7 @@ def _estimate_panels(ctx: _Context, scans: Sequence[_Scan], spec: _Spec) -> dict
     for sc in scans:
         ok = sc.used & (sc.m > 0) & (sc.panel >= 0)
         q = np.where(ok, 1.0 / np.where(sc.m > 0, sc.m, 1.0), 0.0) * sc.s_rho**2
-        r = sc.mismatch_m + _panel_known(ctx, sc, spec.panels)
+        r = sc.mismatch_m + _panel_known(ctx, sc, spec.panels)  # the whole panel deviation
         P = _panel_columns(ctx, sc)
         pid = sc.panel[ok]
         cnt += np.bincount(pid, minlength=G)
@@ -1100,8 +1216,9 @@ def _signature(ctx: _Context, sc: _Scan, spec: _Spec, names: Sequence[str], valu
     prev = dict(zip(sc.names, sc.x))
     x = np.array([prev.get(k, fixed.get(k, 0.0)) for k in model.free])
     idx = np.array([model.free.index(n) for n in names])
-    A = np.asarray(_columns(model, jnp.asarray(sc.l), jnp.asarray(x), jnp.asarray(sc.consts()),
-                            jnp.asarray(idx)))
+    npad = _npad(len(sc.l))
+    A = np.asarray(_columns(model, jnp.asarray(_pad(sc.l, npad)), jnp.asarray(x),
+                            jnp.asarray(_pad(sc.consts(), npad)), jnp.asarray(idx)))[: len(sc.l)]
     return A @ np.asarray(values, float)
 
 
@@ -1227,7 +1344,7 @@ def _static_confounded(start: Sequence[str], wanted) -> list[dict]:
     for k in INSTRUMENT:
         if k in start or (wanted is not None and k not in wanted):
             continue
-        pairs = inseparable_pairs(list(start) + [k])
+        pairs = _inseparable(tuple(start) + (k,))
         if pairs:
             a, b, c = pairs[0]
             other = b if a == k else a
@@ -1283,8 +1400,11 @@ def diagnose(
     if any(sc.meta.cycle == 0 for sc in S):
         notes.append("one-face scans: two-face instrument parameters are not separable there")
     t_loop = time.time()
+    step_done = False
+    joint, tests, options = None, [], []
     for step in range(1, cfg.max_steps + 1):
         ts = time.time()
+        step_done = True
         for sc in S:
             _locate_time(sc, cfg)
         local = _local_candidates(ctx, S, spec)
@@ -1292,9 +1412,10 @@ def diagnose(
         cands = _candidates(joint, S, local)
         tests = [joint.test(c) for c in cands]
         options = _options(ctx, S, spec, joint, tests, confounded, wanted)
+        spec.skip |= set(confounded)
         best = None
         for o in sorted((o for o in options if o.eligible), key=lambda o: o.log_p):
-            why = _signature_check(ctx, S, spec, joint, o)
+            why = _signature_check(ctx, S, spec, joint, o, options)
             if why:
                 o.eligible, o.reason = False, why
                 continue
@@ -1322,6 +1443,7 @@ def diagnose(
                  f.effect, ",".join(f.scans), best.T, best.dof, before[0], after[0],
                  1e3 * before[1], 1e3 * after[1])
     timing["loop"] = time.time() - t_loop
+    detect = _detectability(ctx, joint, tests, len(options)) if step_done else []
     scans_final = {}
     for sc in S:
         cv = np.sqrt(np.maximum(np.diag(sc.cov), 0.0)) if sc.cov.size else np.zeros(0)
@@ -1342,7 +1464,7 @@ def diagnose(
         sigma0_start=sigma0_start, sigma0_final=_global_sigma0(S), rms_start_m=rms_start,
         rms_final_m=_rms(S), findings=findings, confounded=list(confounded.values()),
         comparison=comparison, candidates=last_rows, timing_s=timing, notes=notes,
-        scans_final=scans_final, history=history,
+        scans_final=scans_final, history=history, detectability=detect,
     )
     if report_dir is not None:
         write_report(diag, report_dir)
@@ -1413,6 +1535,45 @@ def _options(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint,
     return opts
 
 
+def _detectability(ctx: _Context, joint: _Joint, tests: Sequence[_Test], m_tests: int) -> list[dict]:
+    """Minimal detectable amplitude of every candidate at the final solution (Baarda).
+
+    The noncentrality ``lam`` gives 80 % power at the Bonferroni-adjusted level of a step; the
+    amplitude of parameter j is ``sigma0 sqrt(lam (S^-1)_jj)`` (S: its Schur complement with the
+    model and the panel offsets eliminated), or what reaches ``min_effect_m``, whichever is
+    larger. ``rms_effect_m`` is the rms change of the points' condition at that amplitude before
+    the model absorbs part of it; ``relative_to_range_noise`` divides it by ``sigma_range_m``.
+    """
+    from scipy import optimize
+
+    cfg = ctx.config
+    out = []
+    s0 = joint.sigma0
+    sq = joint.sum_q
+    for t in tests:
+        if t.S is None or t.dof == 0 or t.confounded:
+            continue
+        q = t.dof
+        a = cfg.alpha / max(m_tests, 1) / t.cand.penalty
+        crit = stats.chi2.isf(a, q)
+        lam = optimize.brentq(lambda L: stats.ncx2.sf(crit, q, L) - 0.8, 1e-6, 1e6)
+        Si = np.linalg.pinv(t.S)
+        for j, name in enumerate(t.cand.names):
+            if Si[j, j] <= 0:
+                continue
+            mdb_stat = s0 * math.sqrt(lam * Si[j, j])
+            mdb_eff = cfg.min_effect_m * math.sqrt(sq * Si[j, j])
+            mdb = max(mdb_stat, mdb_eff)
+            raw = mdb * math.sqrt(max(t.Draw[j, j], 0.0) / sq)
+            out.append({"effect": t.cand.effect, "parameter": name, "scans": t.cand.scans,
+                        "minimal_detectable": mdb,
+                        "limited_by": "statistic" if mdb_stat >= mdb_eff else "effect_size",
+                        "rms_effect_m": raw,
+                        "relative_to_range_noise": raw / float(ctx.sigma[0]),
+                        "correlation_with_model": t.correlation})
+    return out
+
+
 def _raw_T(joint: _Joint, cand: _Candidate) -> float:
     """Statistic of a confounded candidate ignoring the confounding (for information)."""
     m = cand.H.T @ joint.n[cand.idx]
@@ -1420,7 +1581,7 @@ def _raw_T(joint: _Joint, cand: _Candidate) -> float:
     return float(m @ np.linalg.pinv(Nj) @ m) / joint.sigma0**2
 
 
-def _signature_check(ctx, S, spec, joint, o: _Option) -> str:
+def _signature_check(ctx, S, spec, joint, o: _Option, options: Sequence[_Option] = ()) -> str:
     """The family's physics signature; returns a reason to refuse, or ``""``."""
     cfg = ctx.config
     if o.kind == "catalog" and o.family == "instrument":
@@ -1444,6 +1605,17 @@ def _signature_check(ctx, S, spec, joint, o: _Option) -> str:
             return ""
         slope, z = _common_slope(ctx, sc, others, sig / sc.s_rho)
         o.payload.cand.info["common_slope"] = (slope, z)
+        # the two cycles see a dish point at the same time of their scans: the same motion in
+        # both (a significant candidate there too) shows the same pattern in both
+        twin = [x for x in options if x is not o and x.kind == "catalog" and x.effect == o.effect
+                and x.log_p < math.log(cfg.alpha)
+                and set(x.payload.cand.scans) & {s.id for s in others}]
+        if twin:  # modelled together (one step), see _apply
+            best = {}
+            for x in sorted(twin, key=lambda x: x.log_p):
+                best.setdefault(x.payload.cand.scans[0], x)
+            o.payload.cand.info["twins"] = list(best.values())
+            return ""
         if slope > cfg.common_slope and z > 4.0:
             return (f"the other cycle shows the same deviation in the same dish cells "
                     f"(slope {slope:.2f}, z {z:.1f}): a reflector effect, not motion")
@@ -1483,14 +1655,34 @@ def _common_slope(ctx, sc: _Scan, others: Sequence[_Scan], pred: np.ndarray):
 
 
 def _joint_step(joint: _Joint, t: _Test | None):
-    """Joint increments of the null unknowns with (optionally) a candidate at its estimate."""
+    """Joint increments of the null unknowns with (optionally) a candidate at its estimate
+    (placed in its own slots, so that :meth:`_Joint.panel_step` sees it too)."""
     n0 = joint.n[joint.I0].copy()
+    dz = np.zeros(joint.D)
     if t is not None:
         c = t.cand
-        n0 = n0 + joint.N[np.ix_(joint.I0, c.idx)] @ (c.H @ t.estimate)
-    dz = np.zeros(joint.D)
+        dz[c.idx] = c.H @ t.estimate
+        n0 = n0 + joint.N[np.ix_(joint.I0, c.idx)] @ dz[c.idx]
     dz[joint.I0] = -joint.K_inv @ n0
     return dz
+
+
+def _update_panels(spec: _Spec, joint: _Joint, dz: np.ndarray) -> None:
+    """Panel offsets of the joint solution (group elimination), fed back as known deviation."""
+    if spec.panels is not None:
+        spec.panels["offset"] = _panel_datum(joint, spec.panels["offset"] + joint.panel_step(dz))
+
+
+def _panel_datum(joint: _Joint, off: np.ndarray) -> np.ndarray:
+    """Offsets without the part a paraboloid absorbs (``a + b rho^2`` over the panel centres):
+    the focal length and the vertex stay those of the best-fit paraboloid."""
+    w = joint.group_count
+    rc = joint.ctx.geo["rho_c"]
+    A = np.column_stack([np.ones_like(rc), rc**2])
+    live = w > 0
+    beta = np.linalg.lstsq(A[live] * np.sqrt(w[live, None]), off[live] * np.sqrt(w[live]),
+                           rcond=None)[0]
+    return np.where(live, off - A @ beta, 0.0)
 
 
 def _update_shared(spec: _Spec, joint: _Joint, dz: np.ndarray) -> None:
@@ -1502,17 +1694,16 @@ def _update_shared(spec: _Spec, joint: _Joint, dz: np.ndarray) -> None:
         spec.zern_C = spec.zern_C + d
 
 
-def _refit_all(ctx, S, spec, only: Sequence[_Scan] | None = None, hints=None, panels=True):
-    for sc in (only or S):
+def _refit_all(ctx, S, spec, only: Sequence[_Scan] | None = None, hints=None, panels=True,
+               from_used: bool = True):
+    for sc in S:
+        if only is not None and sc not in only:
+            if spec.panels is not None and panels:  # new panel offsets: misclosures only
+                _set_known(ctx, sc, spec)
+                _evaluate(ctx, sc, spec)
+            continue
         _set_known(ctx, sc, spec)
-        _refit(ctx, sc, spec, (hints or {}).get(sc.id))
-    if spec.panels is not None and panels:
-        # one alternating round: panel planes from the new residuals, then the misclosures
-        new = _estimate_panels(ctx, S, spec)
-        spec.panels = new
-        for sc in S:
-            _set_known(ctx, sc, spec)
-            _evaluate(ctx, sc, spec)
+        _refit(ctx, sc, spec, (hints or {}).get(sc.id), from_used=from_used)
 
 
 def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Option) -> Finding:
@@ -1527,8 +1718,30 @@ def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Op
     if o.kind == "catalog":
         t: _Test = o.payload
         c = t.cand
+        if fam == "motion" and c.info.get("twins"):
+            # the same motion in the other cycle(s) of the position: one joint step
+            members, idx, names = [], [], []
+            for cc in [c] + [tw.payload.cand for tw in c.info["twins"]]:
+                members.append((cc.scans[0], list(cc.names),
+                                slice(len(names), len(names) + len(cc.names))))
+                idx.append(cc.idx)
+                names += [f"{n}@{cc.scans[0]}" for n in cc.names]
+            comb = _Candidate(c.effect, fam, np.concatenate(idx), np.eye(len(names)), names,
+                              [m[0] for m in members], penalty=c.penalty,
+                              info={**c.info, "members": members})
+            tc = joint.test(comb)
+            # a twin must add significantly to the first scan's own explanation (the panel
+            # offsets shared by the cycles make a ghost of one scan's motion in the other)
+            dT, dd = tc.T - t.T, tc.dof - t.dof
+            lm = math.log(max(2, len(members)))
+            if dd > 0 and _log_sf(dT, dd) + lm + math.log(c.penalty) < math.log(ctx.config.alpha):
+                c, t = comb, tc
+                o.T, o.dof = t.T, t.dof
+            else:
+                c.info["twin_rejected"] = {"statistic": dT, "dof": dd}
         scans = list(c.scans)
         dz = _joint_step(joint, t)
+        _update_panels(spec, joint, dz)
         if fam == "instrument":
             k = c.names[0]
             _update_shared(spec, joint, dz)
@@ -1543,25 +1756,36 @@ def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Op
             expl = (f"{expl}; {k} = {_fmt(k, t.estimate[0], t.sigma[0])}, one value for all "
                     f"scans")
         elif fam == "motion":
-            sc = next(s for s in S if s.id == c.scans[0])
-            # parameters individually separable from the model (drift has confounded ones)
-            names = [n for n, e in zip(c.names, t.estimate)
-                     if joint.test(_Candidate(c.effect, fam, np.array([c.idx[c.names.index(n)]]),
-                                              np.ones((1, 1)), [n], c.scans)).correlation
-                     < ctx.config.confounded_correlation]
-            mot = spec.motion.setdefault(sc.id, {"names": []})
-            mot["names"] = list(mot["names"]) + names
-            if c.effect == "impulsive_shift":
-                mot["window_s"] = sc.window_s
-            if c.effect == "oscillation":
-                mot["period_s"] = sc.period_s
+            _update_shared(spec, joint, dz)
+            members = c.info.get("members") or [(c.scans[0], list(c.names), slice(0, len(c.names)))]
+            multi = len(members) > 1
+            refit, hints, first = [], {}, None
+            for sid, mnames, sl in members:
+                sc = next(s for s in S if s.id == sid)
+                first = first or (sc, mnames, t.estimate[sl])
+                # parameters individually separable from the model (drift has confounded ones)
+                names = [n for n in mnames if joint.test(_Candidate(
+                    c.effect, fam, np.array([joint.cidx[(sid, n)]]), np.ones((1, 1)), [n],
+                    [sid])).correlation < ctx.config.confounded_correlation]
+                mot = spec.motion.setdefault(sid, {"names": []})
+                mot["names"] = list(mot["names"]) + names
+                if c.effect == "impulsive_shift":
+                    mot["window_s"] = sc.window_s
+                if c.effect == "oscillation":
+                    mot["period_s"] = sc.period_s
+                hints[sid] = {n: float(v) for n, v in zip(mnames, t.estimate[sl]) if n in names}
+                refit.append((sc, names))
+            sc, mnames, est0 = first
             sig = c.info.get("signature")
             if sig is None:
-                sig = _signature(ctx, sc, spec, c.names, t.estimate, window_s=sc.window_s,
+                sig = _signature(ctx, sc, spec, mnames, est0, window_s=sc.window_s,
                                  period_s=sc.period_s)
             where = _where_of_signature(ctx, sc, sig, True)
+            where["covariate"] = "time"
+            if multi:
+                where["cycle"] = [s.meta.cycle for s, _ in refit]
+                where.pop("phi_deg", None)
             if c.effect == "impulsive_shift":
-                where["covariate"] = "time"
                 where["time_s"] = [sc.window_s[0], sc.window_s[0] + sc.window_s[1]]
                 extra["_evidence"] = {"kind": "change_point", "scan": sc.id,
                                       "edges": sc.search["edges"],
@@ -1569,32 +1793,42 @@ def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Op
                                       "translation": sc.search["translation"],
                                       "window_s": sc.window_s}
             elif c.effect == "oscillation":
-                where["covariate"] = "time"
                 where["period_s"] = sc.period_s
+                if multi:
+                    where["period_s_by_scan"] = {s.id: s.period_s for s, _ in refit}
                 extra["_evidence"] = {"kind": "periodogram", "scan": sc.id,
                                       "periods": sc.search["periods"],
                                       "periodogram": sc.search["periodogram"],
                                       "period_s": sc.period_s}
-            else:
-                where["covariate"] = "time"
             if "common_slope" in c.info:
                 extra["other_cycle_slope"] = _num(c.info["common_slope"][0])
-            hint = {n: float(v) for n, v in zip(c.names, t.estimate) if n in names}
-            _refit_all(ctx, S, spec, only=[sc], hints={sc.id: hint})
-            for n in names:
-                estimate[n] = {"value": sc.value(n),
-                               "sigma": float(np.sqrt(sc.cov[sc.names.index(n)] [sc.names.index(n)]))}
+            log.debug("%s one-step estimate %s", c.effect, hints)
+            _refit_all(ctx, S, spec, only=[s for s, _ in refit], hints=hints, from_used=False)
+            # values from the refit; covariance from the joint system (the panel offsets,
+            # estimated from the same points, are eliminated there, not held fixed)
+            sel = []
+            for (s_, names), (sid, mnames, sl) in zip(refit, members):
+                for n in names:
+                    key = f"{n}@{s_.id}" if multi else n
+                    j = np.arange(len(t.estimate))[sl][mnames.index(n)]
+                    sel.append(j)
+                    estimate[key] = {"value": s_.value(n), "sigma": float(t.sigma[j])}
+            extra["covariance"] = t.cov[np.ix_(sel, sel)].tolist()
+            vals = {k.split("@")[0]: v["value"] for k, v in estimate.items()
+                    if k.endswith(f"@{sc.id}") or "@" not in k}
+            span = ", ".join(s.id for s, _ in refit)
             if c.effect == "impulsive_shift":
-                d = np.array([estimate.get(n, {"value": 0.0})["value"] for n in SHIFT])
-                expl = (f"{expl}; cycle {sc.meta.cycle}, phi {where.get('phi_deg', [0, 0])[0]:.1f}"
-                        f"-{where.get('phi_deg', [0, 0])[1]:.1f} deg, {1e3 * np.linalg.norm(d):.2f} mm "
-                        f"for {sc.window_s[1]:.2f} s")
+                d = np.array([vals.get(n, 0.0) for n in SHIFT])
+                ph = where.get("phi_deg", [0.0, 0.0])
+                expl = (f"{expl}; cycle {sc.meta.cycle}, phi {ph[0]:.1f}-{ph[1]:.1f} deg, "
+                        f"{1e3 * np.linalg.norm(d):.2f} mm for {sc.window_s[1]:.2f} s")
             elif c.effect == "oscillation":
-                a = [estimate.get(n, {"value": 0.0})["value"] for n in OSCILLATION]
+                a = [vals.get(n, 0.0) for n in OSCILLATION]
                 amp = max(math.hypot(a[0], a[1]), math.hypot(a[2], a[3]))
-                expl = f"{expl}; period {sc.period_s:.3f} s, amplitude {amp * 206264.8:.2f} arcsec"
+                expl = (f"{expl}; period {sc.period_s:.3f} s, amplitude {amp * 206264.8:.2f} "
+                        f"arcsec ({span})")
             else:
-                expl = f"{expl}; scan {sc.id}"
+                expl = f"{expl} ({span})"
         elif c.effect == "gravity_deformation":
             _update_shared(spec, joint, dz)
             C = t.estimate.reshape(len(ZERNIKE_TESTED), 3)
@@ -1605,13 +1839,17 @@ def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Op
                     estimate[f"zern_{j}_per_g{ax}"] = {"value": float(C[i, a]),
                                                        "sigma": float(sg[i, a])}
             where = {"covariate": "gravity", "positions": sorted({s.meta.position for s in S})}
+            extra["covariance"] = t.cov.tolist()
             _refit_all(ctx, S, spec)
             expl = f"{expl}; Zernike modes {', '.join(map(str, ZERNIKE_TESTED))} linear in g"
     elif o.kind == "panel":
-        spec.panels = _estimate_panels(ctx, S, spec)
+        dz = _joint_step(joint, None)
+        _update_shared(spec, joint, dz)
+        spec.panels = {"offset": _panel_datum(joint, joint.panel_step(dz)),
+                       "n_points": joint.group_count}
         _refit_all(ctx, S, spec)
-        _refit_all(ctx, S, spec, panels=True)
-        P = spec.panels
+        P = {**spec.panels, **{k: v for k, v in _estimate_panels(ctx, S, spec).items()
+                               if k in ("tilt_r", "tilt_t")}}  # tilts: reported, not modelled
         live = P["n_points"] > 0
         off = P["offset"]
         order = np.argsort(-np.abs(np.where(live, off, 0.0)))
@@ -1627,7 +1865,11 @@ def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Op
                            "tilt_tangential_rad": [float(v) for v in P["tilt_t"]]}
         expl = (f"{expl}; {int(live.sum())} panels, offsets {1e3 * estimate['offset_rms_m']['value']:.3f}"
                 f" mm rms")
-    elif o.kind == "dish":
+    elif o.kind in ("dish", "covariate"):
+        dz = _joint_step(joint, None)
+        _update_panels(spec, joint, dz)
+        _update_shared(spec, joint, dz)
+    if o.kind == "dish":
         pl = o.payload
         flagged = pl["flagged"]
         est = pl["est"]
@@ -1689,7 +1931,7 @@ def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Op
             corr = np.where(ok, -sc.b0 * means[np.where(ok, ids, 0)] / sc.s_rho, 0.0)
             sc.extra_known = sc.extra_known + corr
             action = f"modelled as a range correction per {name} bin"
-        _refit_all(ctx, S, spec, only=[sc])
+        _refit_all(ctx, S, spec, only=[sc], from_used=False)
         estimate = {"range_error_rms_m": {"value": float(np.sqrt(np.mean(means[sig_bins] ** 2)))
                                           if len(sig_bins) else 0.0,
                                           "sigma": float(np.mean(se[sig_bins])) if len(sig_bins)
@@ -1750,7 +1992,109 @@ def _json_default(o):
 
 
 def write_report(diag: Diagnosis, out_dir: str | Path) -> Path:
-    """Figures and an HTML summary of a diagnosis (placeholder, replaced below)."""
+    """Residual maps before and after each accepted step, the evidence of motion findings
+    (change points, periodogram) and ``index.html``; returns the HTML path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    return out
+    hist = diag.history
+    images: list[tuple[str, str]] = []
+    R = 13.0
+
+    def maps_figure(before: dict, after: dict, ids: Sequence[str], title: str, name: str):
+        vals = np.concatenate([np.abs(before[i][np.isfinite(before[i])]) for i in ids] or [[1e-4]])
+        vmax = 1e3 * float(np.percentile(vals, 98)) if vals.size else 0.5
+        fig, axes = plt.subplots(len(ids), 2, figsize=(8.5, 4.0 * len(ids)), squeeze=False)
+        for r, i in enumerate(ids):
+            for c, (lab, mp) in enumerate((("before", before), ("after", after))):
+                ax = axes[r, c]
+                im = ax.imshow(1e3 * mp[i].T, origin="lower", extent=[-R, R, -R, R],
+                               cmap="RdBu_r", vmin=-vmax, vmax=vmax)
+                ax.set_title(f"{i}: {lab}", fontsize=9)
+                ax.set_xlabel("X [m]")
+                ax.set_ylabel("Y [m]")
+                ax.set_aspect("equal")
+        fig.colorbar(im, ax=axes, shrink=0.6, label="recording - simulation, normal [mm]")
+        fig.suptitle(title, fontsize=10)
+        fig.savefig(out / name, dpi=90)
+        plt.close(fig)
+        images.append((title, name))
+
+    all_ids = list(hist[0]["maps"]) if hist else []
+    for k in range(1, len(hist)):
+        ids = [i for i in (hist[k].get("scans") or all_ids) if i in hist[k]["maps"]][:4]
+        maps_figure(hist[k - 1]["maps"], hist[k]["maps"], ids,
+                    f"step {k}: {hist[k]['label']}", f"step{k}_{hist[k]['label']}_maps.png")
+        ev = hist[k].get("evidence")
+        if ev and ev.get("kind") == "change_point":
+            e = ev["edges"]
+            tb = 0.5 * (e[:-1] + e[1:])
+            fig, (a1, a2) = plt.subplots(2, 1, figsize=(8, 5.5), sharex=True)
+            tr = 1e3 * np.asarray(ev["translation"])
+            for j, ax_name in enumerate("xyz"):
+                a1.plot(tb, tr[:, j], lw=0.7, label=f"d{ax_name}")
+            a1.set_ylabel("translation per time bin [mm]")
+            a1.legend(fontsize=8)
+            a2.plot(tb, ev["profile"], lw=0.8, color="k")
+            a2.set_ylabel("box statistic T (max over lengths)")
+            a2.set_xlabel("scan time [s]")
+            for ax in (a1, a2):
+                w0, dw = ev["window_s"]
+                ax.axvspan(w0, w0 + dw, color="orange", alpha=0.3)
+            fig.suptitle(f"{ev['scan']}: change-point search (impulsive shift)", fontsize=10)
+            name = f"step{k}_change_points.png"
+            fig.savefig(out / name, dpi=90)
+            plt.close(fig)
+            images.append((f"step {k}: change-point search", name))
+        elif ev and ev.get("kind") == "periodogram":
+            fig, ax = plt.subplots(figsize=(8, 3.5))
+            ax.semilogx(ev["periods"], ev["periodogram"], lw=0.8, color="k")
+            ax.axvline(ev["period_s"], color="orange")
+            ax.set_xlabel("period [s]")
+            ax.set_ylabel("score statistic T (4 dof)")
+            ax.set_title(f"{ev['scan']}: periodogram of the scanner rotation", fontsize=10)
+            name = f"step{k}_periodogram.png"
+            fig.savefig(out / name, dpi=90)
+            plt.close(fig)
+            images.append((f"step {k}: periodogram", name))
+    if len(hist) > 1:
+        ids = all_ids[:4]
+        maps_figure(hist[0]["maps"], hist[-1]["maps"], ids, "start model vs final model",
+                    "start_vs_final_maps.png")
+    rows = "".join(
+        f"<tr><td>{i + 1}</td><td>{f.effect}</td><td>{f.family}</td><td>{', '.join(f.scans)}</td>"
+        f"<td>{f.statistic:.1f} ({f.dof})</td><td>{1e3 * f.effect_size_m:.4f}</td>"
+        f"<td>{f.sigma0_before:.4f} &rarr; {f.sigma0_after:.4f}</td>"
+        f"<td>{1e3 * f.rms_before_m:.4f} &rarr; {1e3 * f.rms_after_m:.4f}</td>"
+        f"<td>{_html(json.dumps(f.where, default=_json_default))}</td>"
+        f"<td>{_html(f.explanation)}</td></tr>" for i, f in enumerate(diag.findings))
+    conf = "".join(f"<tr><td>{c['effect']}</td><td>{', '.join(c['with'])}</td>"
+                   f"<td>{c['correlation']:.6f}</td></tr>" for c in diag.confounded)
+    imgs = "".join(f"<h3>{_html(t)}</h3><img src='{n}' style='max-width:100%'>" for t, n in images)
+    html = f"""<!doctype html><html><head><meta charset="utf-8"><title>diagnosis</title>
+<style>body{{font-family:sans-serif;max-width:1100px;margin:auto}} td,th{{border:1px solid #ccc;
+padding:3px 6px;font-size:13px;vertical-align:top}} table{{border-collapse:collapse}}</style></head>
+<body><h1>Discrepancy diagnosis</h1>
+<p>Campaign <code>{_html(diag.campaign)}</code>. Start model {', '.join(diag.start_model)};
+final model {', '.join(diag.final_model)}.</p>
+<p>sigma0 {diag.sigma0_start:.4f} &rarr; {diag.sigma0_final:.4f}; rms of recording minus simulation
+(normal) {1e3 * diag.rms_start_m:.4f} &rarr; {1e3 * diag.rms_final_m:.4f} mm.</p>
+<h2>Findings (in the order accepted)</h2>
+<table><tr><th>#</th><th>effect</th><th>family</th><th>scans</th><th>T (dof)</th>
+<th>effect [mm]</th><th>sigma0</th><th>rms [mm]</th><th>where</th><th>explanation</th></tr>
+{rows}</table>
+<h2>Confounded with the model (not tested)</h2>
+<table><tr><th>effect</th><th>with</th><th>correlation</th></tr>{conf}</table>
+<h2>Figures</h2>{imgs}
+<p>Notes: {_html('; '.join(diag.notes))}</p></body></html>"""
+    p = out / "index.html"
+    p.write_text(html, encoding="utf-8")
+    return p
+
+
+def _html(s: str) -> str:
+    return str(s).replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")

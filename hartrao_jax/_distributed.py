@@ -83,16 +83,25 @@ def start_client(scheduler: str | None = None, *, n_workers: int = 2, threads_pe
     except ImportError as e:  # pragma: no cover
         raise ImportError("the Dask commands need dask[distributed]: pip install "
                           "'hartrao-jax[dask]'") from e
+    _quiet()
     cluster = None
     if scheduler:
         client = Client(scheduler)
     else:
         cluster = LocalCluster(n_workers=n_workers, threads_per_worker=threads_per_worker,
                                processes=True, env=dict(WORKER_ENV), dashboard_address=None,
-                               memory_limit=memory_limit)
+                               memory_limit=memory_limit, silence_logs=logging.ERROR)
         client = Client(cluster)
     client.register_plugin(JaxWorkerPlugin())
     return client, cluster
+
+
+def _quiet() -> None:
+    """Dask's own INFO messages (scheduler start/stop) are not the user's business."""
+    for name in list(logging.root.manager.loggerDict):
+        if name.startswith("distributed"):
+            logging.getLogger(name).setLevel(logging.WARNING)
+    logging.getLogger("distributed").setLevel(logging.WARNING)
 
 
 def close_client(client, cluster) -> None:
@@ -396,7 +405,8 @@ def _joint_on_workers(client, root, campaign, metas, fits, summaries, names, sha
     sol = schur_iterate(backend, names, shared, groups, [s.x for s in summaries])
     outd = str(Path(out_dir).resolve()) if out_dir else None
     jsum = client.gather(client.map(
-        task_finish_joint, [root] * len(futs), futs, backend.futures, sol.xs, [sol.cov(i) for i in range(len(futs))],
+        task_finish_joint, [root] * len(futs), futs, backend.futures, sol.xs,
+        [sol.cov(i) for i in range(len(futs))],
         sol.N, [sol.sigma0] * len(futs), sol.n_used, sol.omega, [len(sol.o_idx)] * len(futs),
         [sol.iterations] * len(futs), [sol.converged] * len(futs), [hint] * len(futs),
         [outd] * len(futs), pure=False))

@@ -483,7 +483,7 @@ def detect_disturbed_residuals(fit_dir, config: DisturbedConfig | None = None
         p = fit_dir / "residuals" / f"{s['id']}.parquet"
         if not p.exists():
             continue
-        r = read_residuals(p)
+        r = read_residuals(p, ("phi_rad", "theta_rad", "deviation_m", "used"))
         arrays.append({"scan": s["id"], "position": s["position"], "cycle": int(s["cycle"]),
                        "phi": r["phi_rad"], "theta": r["theta_rad"],
                        "deviation_m": r["deviation_m"], "used": r["used"].astype(bool)})

@@ -122,7 +122,8 @@ def zernike_np(j: int, u: np.ndarray, psi: np.ndarray) -> np.ndarray:
     R = np.zeros_like(u)
     for s in range((n - ma) // 2 + 1):
         c = (-1) ** s * math.factorial(n - s) / (
-            math.factorial(s) * math.factorial((n + ma) // 2 - s) * math.factorial((n - ma) // 2 - s))
+            math.factorial(s) * math.factorial((n + ma) // 2 - s)
+            * math.factorial((n - ma) // 2 - s))
         R = R + c * u ** (n - 2 * s)
     if m == 0:
         return math.sqrt(n + 1.0) * R
@@ -156,12 +157,14 @@ def gravity_grid(ha_deg: np.ndarray, dec_deg: np.ndarray, latitude_deg: float):
 
 def zernike_projection(X: np.ndarray, dev: np.ndarray, aperture_radius_m: float,
                        modes: Sequence[int] = DEFAULT_ZERNIKE_MODES,
-                       nuisance: Sequence[int] = NUISANCE_MODES):
+                       nuisance: Sequence[int] = NUISANCE_MODES, layout=None):
     """Least-squares Zernike coefficients (m) of a normal deviation sampled at points ``X``.
 
-    Returns ``(coef, sigma, rms_after)`` for ``modes`` (nuisance modes dropped); ``sigma`` from
+    Returns ``(coef, sigma, surface_rms)`` for ``modes`` (nuisance modes dropped); ``sigma`` from
     the residual scatter assuming independent points (optimistic for panel-correlated
-    residuals), ``rms_after`` the rms of what the modes and nuisance terms leave.
+    residuals). ``surface_rms``: rms of the surface the modes leave, at panel scale -- the rms of
+    the per-panel mean residuals with their noise variance removed (``layout = (ring_edges_m,
+    panels_per_ring)``; without a layout the point rms, which includes the measurement noise).
     """
     u = np.hypot(X[:, 0], X[:, 1]) / aperture_radius_m
     psi = np.arctan2(X[:, 1], X[:, 0])
@@ -173,7 +176,34 @@ def zernike_projection(X: np.ndarray, dev: np.ndarray, aperture_radius_m: float,
     s2 = float(r @ r) / dof
     cov = s2 * np.linalg.inv(A.T @ A)
     keep = [allm.index(j) for j in modes]
-    return coef[keep], np.sqrt(np.diag(cov))[keep], float(np.sqrt(np.mean(r * r)))
+    return coef[keep], np.sqrt(np.diag(cov))[keep], surface_rms(X, r, layout)
+
+
+def surface_rms(X: np.ndarray, r: np.ndarray, layout=None) -> float:
+    """rms (m) of a residual surface at panel scale, measurement noise removed.
+
+    Per panel the mean residual ``m_k`` and its noise variance ``s_k^2 / n_k``; the result is
+    ``sqrt(max(mean(m_k^2 - s_k^2 / n_k), 0))`` over panels with points (weighted by area share
+    through the point counts). Without a panel layout: the rms of the points.
+    """
+    if layout is None or len(r) == 0:
+        return float(np.sqrt(np.mean(r * r))) if len(r) else math.nan
+    from ._geometry import panel_ids
+
+    edges, counts = layout
+    rho = np.hypot(X[:, 0], X[:, 1])
+    psi = np.mod(np.arctan2(X[:, 1], X[:, 0]), 2 * np.pi)
+    pid = panel_ids(rho, psi, edges, counts)
+    ok = pid >= 0
+    n_p = int(sum(counts))
+    n = np.bincount(pid[ok], minlength=n_p).astype(float)
+    s1 = np.bincount(pid[ok], weights=r[ok], minlength=n_p)
+    s2 = np.bincount(pid[ok], weights=r[ok] ** 2, minlength=n_p)
+    live = n >= 3
+    m = s1[live] / n[live]
+    var = (s2[live] - n[live] * m * m) / (n[live] - 1)
+    val = np.sum(n[live] * (m * m - var / n[live])) / np.sum(n[live])
+    return float(math.sqrt(max(val, 0.0)))
 
 
 # --------------------------------------------------------------------------------------------
@@ -212,7 +242,8 @@ class LinearFit:
                 "chi2": self.chi2, "dof": self.dof, "variance_factor": self.scale}
 
 
-def weighted_lsq(A: np.ndarray, y: np.ndarray, sigma: np.ndarray, names: Sequence[str]) -> LinearFit:
+def weighted_lsq(A: np.ndarray, y: np.ndarray, sigma: np.ndarray, names: Sequence[str]
+                 ) -> LinearFit:
     w = 1.0 / np.asarray(sigma, float) ** 2
     N = A.T @ (A * w[:, None])
     cov = np.linalg.inv(N)
@@ -274,7 +305,8 @@ class GravityModel:
 
     ``focal``: the full regression (columns ``f0 gx gy gz [dT]``); ``focal_gz``: ``f0 gz [dT]``;
     ``test``: the nested test of the two; ``modes``/``zernike``: one regression per mode
-    (columns ``a0 gx gy gz``); ``panel_rms_m``: median rms of the deviations left after the modes.
+    (columns ``a0 gx gy gz``); ``panel_rms_m``: median over scans of the panel-scale rms of the
+    surface left after the modes (measurement noise removed, :func:`surface_rms`).
     """
 
     positions: list[PositionRow]
@@ -432,7 +464,8 @@ def sky_summary(sky: dict) -> dict:
     return out
 
 
-def _positions(samples: Sequence[ScanSample], modes, aperture: float) -> list[PositionRow]:
+def _positions(samples: Sequence[ScanSample], modes, aperture: float, layout=None
+               ) -> list[PositionRow]:
     by: dict[str, list[ScanSample]] = {}
     for s in samples:
         by.setdefault(s.position, []).append(s)
@@ -442,7 +475,7 @@ def _positions(samples: Sequence[ScanSample], modes, aperture: float) -> list[Po
         f = float(np.sum(w * np.array([s.f for s in ss])) / np.sum(w))
         sf = float(1.0 / math.sqrt(np.sum(w)))
         z = zs = rr = None
-        proj = [zernike_projection(s.X, s.deviation_m, aperture, modes) for s in ss
+        proj = [zernike_projection(s.X, s.deviation_m, aperture, modes, layout=layout) for s in ss
                 if s.X is not None and len(s.X) > 3 * (len(modes) + 3)]
         if proj and modes:
             a = np.array([p[0] for p in proj])
@@ -494,7 +527,14 @@ def gravity_model(
     if latitude_deg is None:
         latitude_deg = camp.site.latitude_deg if camp is not None else -25.8897
     modes = tuple(int(j) for j in modes)
-    rows = _positions(samples, modes, aperture_radius_m)
+    tel = camp.telescope if camp is not None else None
+    if tel is None:
+        from ._campaign import default_campaign
+
+        tel = default_campaign().telescope
+    layout = ((tel.ring_edges_m, tel.panels_per_ring)
+              if tel.ring_edges_m is not None and tel.panels_per_ring is not None else None)
+    rows = _positions(samples, modes, aperture_radius_m, layout)
     G = np.array([r.gravity for r in rows])
     y = np.array([r.f for r in rows])
     sy = np.array([r.sigma_f for r in rows])
@@ -626,7 +666,8 @@ def print_gravity_summary(gm: GravityModel, console=None) -> None:
                   f"p = {te['p_value_chi2']:.3g}")
 
 
-__all__ = ["GRAVITY_SCHEMA", "GravityModel", "LinearFit", "ScanSample", "gravity_grid", "gravity_model",
+__all__ = ["GRAVITY_SCHEMA", "GravityModel", "LinearFit", "ScanSample", "gravity_grid",
+           "gravity_model",
            "nested_test", "plot_gravity", "print_gravity_summary", "ruze_gain",
            "samples_from_dir", "samples_from_fit", "weighted_lsq", "write_gravity",
-           "zernike_np", "zernike_projection"]
+           "surface_rms", "zernike_np", "zernike_projection"]

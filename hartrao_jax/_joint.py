@@ -1,4 +1,4 @@
-"""Joint adjustment of a campaign: calibration parameters shared by scans, object parameters per scan.
+"""Joint adjustment of a campaign: calibration shared by scans, object parameters per scan.
 
 The paper fits every scan (one cycle at one position) by itself: each cycle estimates its own
 scanner calibration (``x4 x6 x7``), and the per-cycle calibration absorbs part of the panel
@@ -12,7 +12,8 @@ complement -- never one dense matrix over all points, never one over all scans' 
 * per scan ``s``, linearise at ``(l + v_s, x_s, c_g)`` (:func:`._ghm.normal_equations` of the
   scan's model, whose free parameters are the object ones ``o`` and the shared ones ``c``) and
   partition ``N_s`` into the blocks ``oo``, ``oc``, ``cc`` (and ``n_s`` into ``o``, ``c``);
-* reduce per group: ``Nr = sum_s (N_cc - N_co N_oo^-1 N_oc)``, ``nr = sum_s (n_c - N_co N_oo^-1 n_o)``;
+* reduce per group: ``Nr = sum_s (N_cc - N_co N_oo^-1 N_oc)``,
+  ``nr = sum_s (n_c - N_co N_oo^-1 n_o)``;
 * solve ``dc = -Nr^-1 nr``; back-substitute ``do_s = -N_oo^-1 (n_o + N_oc dc)`` per scan;
 * update every scan's residuals with the Gauss-Helmert residual pass (``v = Sigma b k``,
   ``k = -(a . dx + w) / m``), iterate to convergence.
@@ -318,7 +319,8 @@ def schur_iterate(
             qoo = Noo_inv + T @ Q_cc[g] @ T.T
             Q_oo.append(qoo)
             Q_oc.append(qoc)
-            ratio = max(ratio, float(np.max(np.abs(do) / np.sqrt(np.maximum(np.diag(qoo), 1e-300)))))
+            sd = np.sqrt(np.maximum(np.diag(qoo), 1e-300))
+            ratio = max(ratio, float(np.max(np.abs(do) / sd)))
         for g in gnames:
             if len(c):
                 ratio = max(ratio, float(np.max(np.abs(dc[g]) /
@@ -671,6 +673,7 @@ def print_joint_summary(jf: JointFit, console=None) -> None:
 __all__ = [
     "DEFAULT_SHARED", "JointBackend", "JointFit", "LocalBackend", "ScanProblem", "SchurSolution",
     "bucket_size", "check_shared", "condition_number", "fit_joint", "group_of", "joint_json",
-    "joint_scan_fit", "joint_scan_fits", "print_joint_summary", "problems_from_fits", "residual_update",
+    "joint_scan_fit", "joint_scan_fits", "print_joint_summary", "problems_from_fits",
+    "residual_update",
     "schur_iterate", "write_joint_fit",
 ]

@@ -8,23 +8,28 @@ first stage that removed it (:data:`REASONS`):
    the smallest/largest distance from the scanner to the reflector annulus
    ``cone_radius_m <= rho <= diameter_m / 2`` of the paraboloid, plus ``range_margin_m``. The
    scanner position comes from the initial values (:func:`._init.initial_values`, i.e. the
-   pointing's gravity plus a heading search on the scan); without them from the nominal
-   geometry (scanner at the focus, a wider margin).
+   pointing's gravity plus a heading search on the scan, refined as in stage 3); without
+   them from the nominal geometry (scanner at the focus, a wider margin).
 3. ``geometry_window``: the quadrupod legs are locally planar too, so RANSAC alone cannot remove
-   them. Points further than ``geometry_window_m`` (vertically) from the initial paraboloid
-   (:func:`._init.initial_distance`), or outside the annulus
-   ``[cone_radius_m - rim_margin_m, diameter_m / 2 + rim_margin_m]`` of the initial frame, are
-   removed: legs and cone stand decimetres to metres in front of the surface, the background
-   and rim mixed pixels lie beyond the rim.
+   them. Points further than ``geometry_window_m`` (vertically, as
+   :func:`._init.initial_distance`) from the paraboloid of the initial values, or outside the
+   annulus ``[cone_radius_m - cone_margin_m, diameter_m / 2 + rim_margin_m]``, are removed: legs
+   and cone stand decimetres to metres in front of the surface, the background and the rim's
+   mixed pixels lie beyond the rim. The initial pose is first refined (:func:`refine_pose`: a
+   trimmed 6-parameter Gauss-Newton on a sample inside the height window) because the initial
+   values' ``tx, ty`` can be decimetres off (compensated by ``rx, ry``), which matters for the
+   radius tests, not for the height window.
 4. Segmentation (NumPy): the raw angles are discretised into patches of about
    ``patch_size_m`` x ``patch_size_m`` at the reflector's range: ``dtheta = s / R`` and, per
    theta band, ``dphi = s / (R sin theta)`` (so patches near the nadir are not slivers). Faces
    are keyed separately, so a patch never mixes face 1 (theta < pi) and face 2. Patches with
-   more than ``max_patch_points`` are cut into strips, patches with fewer than
-   ``min_patch_points`` are removed (``small_patch``).
+   more points than the power of two above the median patch (and than ``max_patch_points``)
+   are cut into strips of consecutive rows (so one padded size serves almost every patch),
+   patches with fewer than ``min_patch_points`` are removed (``small_patch``).
 5. RANSAC (JAX, vmapped over all patches of a scan, chunked with ``lax.map(batch_size=...)``):
    ``ransac_iterations`` minimal samples (3 distinct points) per patch, scored by the MSAC cost
-   ``sum min(d^2, eps^2)``, then a plane refinement (see below). Points beyond ``epsilon`` from
+   ``sum min(d^2, eps^2)`` over up to ``score_points`` points spread over the patch, then a
+   plane refinement on all its points (see below). Points beyond ``epsilon`` from
    the refined plane are removed (paper eq. 4, ``ransac_outlier``); a patch whose plane holds
    fewer than ``min_patch_points`` inliers is removed as a whole (``small_patch``).
 
@@ -46,12 +51,13 @@ Plane refinement: the rigorous Gauss-Helmert plane adjustment in the raw observa
 (condition ``n . p(r, phi, theta) - d = 0``, see :class:`PlaneCondition`) minimises
 ``sum (n . p_i - d)^2 / m_i`` with ``m_i = b_i Sigma_l b_i^T`` the variance of point ``i``'s
 distance from the plane. Inside one patch (0.3 m seen from ~12 m: ray directions within
-+-0.7 deg, ranges within +-1 %) ``m_i`` is the same for every point to better than 1e-3, so the
-GH solution is the total-least-squares plane of the inliers (smallest eigenvector of their
-scatter matrix), iterated with the inlier set. That is what runs here, vmapped over thousands of
-patches in one compiled call; calling the generic GH solver once per patch costs a compilation
-plus a while-loop per patch (seconds for 5000 patches x 3 iterations). The test suite checks on
-one patch that both give the same plane to a small fraction of its standard deviation.
++-0.7 deg, ranges within +-1 %) ``m_i`` varies by ~1 %, so the GH solution is, to a small
+fraction of its standard deviation, the total-least-squares plane of the inliers (smallest
+eigenvector of their scatter matrix), iterated with the inlier set. That is what runs here,
+vmapped over thousands of patches in one compiled call; the generic GH solver once per patch
+(a while-loop of chunked passes per patch, 5000 patches per scan) would cost seconds to
+minutes. The test suite checks on one patch that both give the same plane (measured: 0.08
+sigma apart in the normal).
 
 The default ``epsilon`` is ``k_sigma * sqrt(sigma_range^2 + (sigma_angle * D_max)^2)`` (an upper
 bound of the standard deviation of a point's distance from the surface, whatever the incidence)
@@ -62,8 +68,12 @@ the initial focal length in the ``"flat"`` frame; the curvature bound above in t
 Patch size: ``patch_size_m=None`` chooses the paper's "about 30 cm^2", read as patches of
 0.3 m x 0.3 m (about 5000 patches on the 26-m dish; 500-2500 points per patch at the paper's
 0.63 mrad step), enlarged on coarser scans so that a typical patch holds about
-``target_patch_points`` points (measured on the data: order independent): 0.3 m at 3 mrad,
-~0.75 m at 10 mrad, ~1.5 m at 20 mrad.
+``target_patch_points`` points (measured on the data, whatever the row order): 0.3 m up to
+~3 mrad, ~0.6 m at 10 mrad, ~1.2 m at 20 mrad.
+
+The per-point NumPy stages run in blocks of :data:`CHUNK` points; the survivors are sorted by
+patch once, packed into padded arrays by size bucket (powers of two) and handed to
+:func:`fit_planes` (the JAX core, usable on its own).
 """
 
 from __future__ import annotations
@@ -129,7 +139,8 @@ class PreprocessConfig:
         min_patch_points: smaller patches (and planes with fewer inliers) are removed.
         max_patch_points: larger patches are cut into strips of at most this many points.
         split_quantile: patches above the power of two covering this quantile of the patch
-            sizes are cut into strips too (fewer padded shapes, less padding).
+            sizes are cut into strips too: with the median, almost every patch lands in one
+            padded size (one compilation, at most 2x padding).
         seed: seeds the RANSAC samples and the initial-value search: same seed, same result.
         use_initial_values: derive the windows and the "flat" frame from the initial values.
         geometry_window_m: half-width of the window about the initial paraboloid (vertical).
@@ -143,8 +154,8 @@ class PreprocessConfig:
         batch_size: patches per vmapped chunk of ``lax.map``; None: from ``memory_mb``.
         memory_mb: budget of one vmapped chunk's intermediates (float64 copies of the padded
             patches, the scoring points x hypotheses matrices).
-        ransac_float32: score the hypotheses in float32 (coordinates relative to the patch
-            centroid; the refinement and the final classification are float64).
+        ransac_float32: fit the planes in float32 (coordinates relative to the patch
+            centroid, distances rounded to ~0.1 um); False: float64.
     """
 
     d_min_m: float | None = None
@@ -157,11 +168,11 @@ class PreprocessConfig:
     k_sigma: float = 4.5
     allowance_m: float | None = None
     ransac_iterations: int = 64
-    score_points: int = 512
+    score_points: int = 256
     refine_iterations: int = 2
     min_patch_points: int = 10
     max_patch_points: int = 4096
-    split_quantile: float = 0.95
+    split_quantile: float = 0.5
     seed: int = 0
     use_initial_values: bool = True
     geometry_window_m: float = 0.05
@@ -413,11 +424,14 @@ class _Bins:
         return ((face2 * self.n_band + band) * self.J + j).astype(np.int32)
 
 
-def _keys(phi, theta, idx, bins: _Bins) -> np.ndarray:
+def _keys(phi, theta, idx, bins: _Bins) -> tuple[np.ndarray, np.ndarray]:
+    """Patch keys of the points ``idx`` and the number of points per key."""
     out = np.empty(len(idx), np.int32)
+    occ = np.zeros(bins.n_keys, np.int64)
     for s, e in _blocks(len(idx)):
         out[s:e] = bins.keys(phi[idx[s:e]], theta[idx[s:e]])
-    return out
+        occ += np.bincount(out[s:e], minlength=bins.n_keys)
+    return out, occ
 
 
 def _auto_patch_size(phi, theta, idx, cycle, range_m: float, cfg: PreprocessConfig):
@@ -441,12 +455,14 @@ def _auto_patch_size(phi, theta, idx, cycle, range_m: float, cfg: PreprocessConf
 
 def _three_distinct(u: Float[Array, "h 3"], n: Array) -> Array:
     """Three distinct indices in [0, n) per row of uniforms ``u`` (n >= 3)."""
-    i1 = jnp.minimum((u[:, 0] * n).astype(jnp.int32), n - 1)
-    i2 = (i1 + 1 + jnp.minimum((u[:, 1] * (n - 1)).astype(jnp.int32), n - 2)) % n
+    n = n.astype(jnp.int32)
+    nf = n.astype(u.dtype)
+    i1 = jnp.minimum((u[:, 0] * nf).astype(jnp.int32), n - 1)
+    i2 = (i1 + 1 + jnp.minimum((u[:, 1] * (nf - 1)).astype(jnp.int32), n - 2)) % n
     a, b = jnp.minimum(i1, i2), jnp.maximum(i1, i2)
-    k = jnp.minimum((u[:, 2] * (n - 2)).astype(jnp.int32), n - 3)
-    k = k + (k >= a)
-    k = k + (k >= b)
+    k = jnp.minimum((u[:, 2] * (nf - 2)).astype(jnp.int32), n - 3)
+    k = k + (k >= a).astype(jnp.int32)
+    k = k + (k >= b).astype(jnp.int32)
     return jnp.stack([i1, i2, k], axis=1)
 
 
@@ -472,16 +488,16 @@ def _tls_plane(p: Float[Array, "p 3"], w: Float[Array, " p"], n0: Float[Array, "
     ``lambda_min / lambda_mid`` ~ (sigma / patch size)^2 ~ 1e-5, so two steps are exact to
     round-off (a batched ``eigh`` gives the same and compiles much slower).
     """
-    sw = jnp.maximum(jnp.sum(w), 1.0)
-    c = jnp.sum(p * w[:, None], axis=0) / sw
-    y = p - c
-    M = (y * w[:, None]).T @ y
+    sw = jnp.maximum(jnp.sum(w), 1)
+    pw = p * w[:, None]
+    c = jnp.sum(pw, axis=0) / sw
+    # raw moments (one pass over the points); p is centred on the patch, so the
+    # subtraction of sw c c^T loses nothing even in float32
+    M = pw.T @ p - sw * (c[:, None] * c[None, :])
     adj = _adjugate_sym(M)
-    v = n0
-    for _ in range(2):
-        u = adj @ v
-        nu = jnp.sqrt(jnp.sum(u * u))
-        v = jnp.where(nu > 0, u / jnp.where(nu > 0, nu, 1.0), v)
+    u = adj @ (adj @ n0)
+    nu = jnp.sqrt(jnp.sum(u * u))
+    v = jnp.where(nu > 0, u / jnp.where(nu > 0, nu, 1.0), n0)
     v = jnp.where(v @ n0 < 0, -v, v)
     return v, v @ c
 
@@ -496,48 +512,58 @@ def _patch_fit(pts, n, eps, u, *, n_refine: int, f32: bool, n_score: int):
         u: (H, 3) uniforms in [0, 1): the minimal samples of the H hypotheses.
         n_score: hypotheses are scored on this many points spread over the patch (all of
             them if the patch is smaller); the refinement and the inliers use every point.
+        f32: compute in float32 (coordinates relative to the patch centroid, < 1 m: the
+            rounding of a distance is ~0.1 um, far below the noise), else float64.
     Returns ``(inlier (P,) bool, normal (3,), d, centroid (3,), n_inliers, rms,
-    ransac_inliers)`` with the plane ``normal . (p - centroid) = d``.
+    ransac_inliers)`` with the plane ``normal . (p - centroid) = d``; ``ransac_inliers``
+    counts the RANSAC plane's inliers among the scored points.
     """
     P = pts.shape[0]
-    valid = jnp.arange(P) < n
+    n = n.astype(jnp.int32)
+    valid = jnp.arange(P, dtype=jnp.int32) < n
     ct = jnp.float32 if f32 else jnp.float64
-    p64 = pts.astype(jnp.float64)
-    cen = jnp.sum(jnp.where(valid[:, None], p64, 0.0), axis=0) / n
-    p64 = p64 - cen
-    q = p64.astype(ct)
+    q = pts.astype(ct)
+    cen = jnp.sum(jnp.where(valid[:, None], q, 0), axis=0) / n.astype(ct)
+    q = q - cen[None, :]
+    e = jnp.asarray(eps, ct)
     idx = _three_distinct(u, n)
     tri = q[idx]  # (H, 3, 3)
     nrm = jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     ln = jnp.sqrt(jnp.sum(nrm * nrm, axis=1))
     scale = jnp.max(jnp.where(valid[:, None], jnp.abs(q), 0)) + jnp.asarray(1e-12, ct)
     ok = ln > jnp.asarray(1e-6, ct) * scale * scale
-    nh = nrm / jnp.where(ok, ln, 1.0)[:, None]
+    nh = nrm / jnp.where(ok, ln, 1)[:, None]
     d = jnp.sum(nh * tri[:, 0], axis=1)
-    e = jnp.asarray(eps, ct)
     S = min(P, n_score)
-    k = jnp.arange(S)
+    k = jnp.arange(S, dtype=jnp.int32)
     sub = jnp.where(n > S, (k * n) // S, k)  # spread over the patch when it is larger
-    qs = q[sub]
-    dist = qs @ nh.T - d[None, :]  # (S, H): the one large intermediate
-    cost = jnp.sum(jnp.where((sub < n)[:, None], jnp.minimum(dist * dist, e * e), 0), axis=0)
+    scored = sub < n
+    dist = q[sub] @ nh.T - d[None, :]  # (S, H): the one large intermediate
+    cost = jnp.sum(jnp.where(scored[:, None], jnp.minimum(dist * dist, e * e), 0), axis=0)
     cost = jnp.where(ok, cost, jnp.inf)
     best = jnp.argmin(cost)
-    normal = nh[best].astype(jnp.float64)
-    d0 = d[best].astype(jnp.float64)
-    n_ransac = jnp.sum(valid & (jnp.abs(p64 @ normal - d0) <= eps), dtype=jnp.int32)
-    for _ in range(n_refine):
-        r = p64 @ normal - d0
-        w = (valid & (jnp.abs(r) <= eps)).astype(jnp.float64)
+    n_ransac = jnp.sum(scored & (jnp.abs(dist[:, best]) <= e), dtype=jnp.int32)
+    normal, d0 = nh[best], d[best]
+
+    def dist_to(normal, d0):
+        return q @ normal - d0
+
+    def refine(_, nd):  # a loop, not unrolled: one copy of the body to compile
+        normal, d0 = nd
+        r = dist_to(normal, d0)
+        w = (valid & (jnp.abs(r) <= e)).astype(ct)
         enough = jnp.sum(w) >= 3
-        n_new, d_new = _tls_plane(p64, w, normal)
-        normal = jnp.where(enough, n_new, normal)
-        d0 = jnp.where(enough, d_new, d0)
-    r = p64 @ normal - d0
-    inl = valid & (jnp.abs(r) <= eps)
+        n_new, d_new = _tls_plane(q, w, normal)
+        return jnp.where(enough, n_new, normal), jnp.where(enough, d_new, d0)
+
+    if n_refine:
+        normal, d0 = jax.lax.fori_loop(0, n_refine, refine, (normal, d0))
+    r = dist_to(normal, d0)
+    inl = valid & (jnp.abs(r) <= e)
     n_in = jnp.sum(inl, dtype=jnp.int32)
-    rms = jnp.sqrt(jnp.sum(jnp.where(inl, r * r, 0.0)) / jnp.maximum(n_in - 3, 1))
-    return inl, normal, d0, cen, n_in, rms, n_ransac
+    rms = jnp.sqrt(jnp.sum(jnp.where(inl, r * r, 0)) / jnp.maximum(n_in - 3, 1).astype(ct))
+    f64 = jnp.float64
+    return inl, normal.astype(f64), d0.astype(f64), cen.astype(f64), n_in, rms.astype(f64), n_ransac
 
 
 @eqx.filter_jit
@@ -569,7 +595,7 @@ def ransac_uniforms(seed: int, ids: np.ndarray, n_hyp: int) -> np.ndarray:
 def fit_planes(
     pts: np.ndarray, n: np.ndarray, eps: np.ndarray | float, *, seed: int = 0,
     ransac_iterations: int = 64, refine_iterations: int = 2, ransac_float32: bool = True,
-    score_points: int = 512, batch_size: int | None = None, memory_mb: float = 64.0,
+    score_points: int = 256, batch_size: int | None = None, memory_mb: float = 64.0,
     ids: np.ndarray | None = None, max_chunk: int = 8192,
 ) -> dict[str, np.ndarray]:
     """RANSAC + TLS planes of padded patches (the JAX core, usable on its own).
@@ -630,6 +656,7 @@ def fit_planes(
                 "centroid": np.zeros((0, 3)), "n_inliers": z.astype(np.int32), "rms": z,
                 "ransac_inliers": z.astype(np.int32)}
     inl, normal, d, cen, n_in, rms, n_r = (np.concatenate(c) for c in zip(*outs))
+    normal = normal / np.linalg.norm(normal, axis=1, keepdims=True)  # exactly unit in float64
     inl = inl & good[:, None]
     return {"inlier": inl, "normal": np.where(good[:, None], normal, np.nan),
             "d": np.where(good, d, np.nan), "centroid": cen,
@@ -691,14 +718,15 @@ def _size_buckets(counts: np.ndarray, ids: np.ndarray, min_share: float = 0.2) -
     return b
 
 
-def _segment(keys: np.ndarray, n_keys: int, max_pp: int):
+def _segment(keys: np.ndarray, occ: np.ndarray, max_pp: int):
     """Sort points by patch; cut patches larger than ``max_pp`` into consecutive strips.
+
+    ``occ``: points per dense key (``bincount(keys)``).
 
     Returns ``(order, pid, counts, starts)``: ``order`` indexes the input points in patch
     order (stable: file order inside a patch), ``pid`` (int32) the compact patch id of each
     sorted point, ``counts``/``starts`` per patch.
     """
-    occ = np.bincount(keys, minlength=n_keys) if len(keys) else np.zeros(1, np.int64)
     remap = (np.cumsum(occ > 0) - 1).astype(np.int32)  # dense key -> compact patch id
     order = np.argsort(keys, kind="stable")
     counts = occ[occ > 0]
@@ -766,16 +794,8 @@ def preprocess_scan(
             notes.append(f"initial values failed ({e}); nominal geometry used")
     timing["initial_values"] = time.perf_counter() - t0
 
-    # ---- range window (eq. 3)
+    # ---- pose refinement on a sample inside a generous range window
     t0 = time.perf_counter()
-    auto_lo, auto_hi = default_range_window(campaign, init, cfg)
-    d_min = auto_lo if cfg.d_min_m is None else float(cfg.d_min_m)
-    d_max = auto_hi if cfg.d_max_m is None else float(cfg.d_max_m)
-
-    def in_range(c):
-        return finite[c] & (r[c] >= d_min) & (r[c] <= d_max)
-
-    # ---- pose refinement on a sample inside the window
     frame = cfg.frame or ("flat" if init is not None else "scanner")
     if frame == "flat" and init is None:
         notes.append("frame 'flat' needs initial values: using 'scanner'")
@@ -784,13 +804,21 @@ def preprocess_scan(
     if init is not None:
         pose = dict(init.x)
         if cfg.refine_pose:
-            rows = sample_rows(in_range, 4 * cfg.pose_sample)
+            lo, hi = default_range_window(campaign, pose, dataclasses.replace(
+                cfg, range_margin_m=cfg.range_margin_m + 0.5))
+            rows = sample_rows(lambda c: finite[c] & (r[c] >= lo) & (r[c] <= hi),
+                               4 * cfg.pose_sample)
             xs = _cartesian(r[rows], phi[rows], th[rows])
             near = np.flatnonzero(np.abs(_flat_coordinates(xs, pose)[0][2])
                                   <= cfg.geometry_window_m)[: cfg.pose_sample]
             if len(near) >= 100:
                 pose = refine_pose(tuple(c[near] for c in xs), pose)
     f_use = pose["f"] if pose is not None else tel.focal_length_m
+
+    # ---- range window (eq. 3), from the (refined) pose
+    auto_lo, auto_hi = default_range_window(campaign, pose, cfg)
+    d_min = auto_lo if cfg.d_min_m is None else float(cfg.d_min_m)
+    d_max = auto_hi if cfg.d_max_m is None else float(cfg.d_max_m)
 
     # ---- range and geometry windows, block by block; survivors' coordinates for the planes
     rim = tel.diameter_m / 2 + abs(tel.offset_m)
@@ -836,14 +864,13 @@ def preprocess_scan(
     eps = cfg.k_sigma * sigma_n + allowance if cfg.epsilon_m is None else float(cfg.epsilon_m)
 
     bins = _Bins(meta.cycle, size, R_ref)
-    keys = _keys(phi, th, idx, bins)
-    occ = np.bincount(keys, minlength=bins.n_keys) if len(keys) else np.zeros(1, np.int64)
-    occ = occ[occ >= cfg.min_patch_points]
+    keys, occ_all = _keys(phi, th, idx, bins)
+    occ = occ_all[occ_all >= cfg.min_patch_points]
     cap = cfg.max_patch_points
     if len(occ):  # the few outsized patches (near the nadir) become strips of the common size
         q = float(np.quantile(occ, cfg.split_quantile))
         cap = int(min(cap, max(64, _next_pow2(int(math.ceil(q))))))
-    order, pid, counts, starts = _segment(keys, bins.n_keys, cap)
+    order, pid, counts, starts = _segment(keys, occ_all, cap)
     del keys
     n_patches = len(counts)
     patch_of = np.full(n, -1, np.int32)
@@ -871,12 +898,15 @@ def preprocess_scan(
             pos = np.repeat(starts[ids_b] - off, lens) + np.arange(int(lens.sum()))
             dest = np.repeat(np.arange(len(ids_b)) * P - off, lens) + np.arange(int(lens.sum()))
             owner = np.repeat(np.arange(len(ids_b)), lens)
+            t1 = time.perf_counter()
             pad = np.zeros((len(ids_b) * P, 3), dt_)
             for s, e in _blocks(len(pos)):
                 src = order[pos[s:e]]
                 o = ids_b[owner[s:e]]
                 for k in range(3):
                     pad[dest[s:e], k] = coords[k][src] - ref[o, k]
+            t2 = time.perf_counter()
+            timing["planes_packing"] = timing.get("planes_packing", 0.0) + t2 - t1
             res = fit_planes(
                 pad.reshape(len(ids_b), P, 3), lens, eps, seed=cfg.seed,
                 ransac_iterations=cfg.ransac_iterations, refine_iterations=cfg.refine_iterations,
@@ -884,6 +914,8 @@ def preprocess_scan(
                 batch_size=cfg.batch_size, memory_mb=cfg.memory_mb, ids=ids_b,
             )
             del pad
+            t1 = time.perf_counter()
+            timing["planes_fit"] = timing.get("planes_fit", 0.0) + t1 - t2
             inlier_sorted[pos] = res["inlier"].reshape(-1)[dest]
             del pos, dest, owner
             nrm = res["normal"]
@@ -970,7 +1002,8 @@ def _jsonable(v):
 
 
 def preprocess_json(results: Mapping[str, PreprocessResult],
-                    config: PreprocessConfig | None = None, campaign: Campaign | None = None) -> dict:
+                    config: PreprocessConfig | None = None,
+                    campaign: Campaign | None = None) -> dict:
     """The ``preprocess.json`` document (schema ``hartrao-preprocess/1``)."""
     scans = []
     tot = {"n_rows": 0, "n_kept": 0, "removed": {REASONS[k]: 0 for k in REASONS if k != KEPT}}
@@ -1037,7 +1070,8 @@ def preprocess_table(results: Mapping[str, PreprocessResult], title: str = "prep
         t.add_column(c, justify="left" if c == "scan" else "right")
     for sid, res in results.items():
         s, rm = res.stats, res.stats["removed"]
-        t.add_row(sid, f"{s['n_rows']:,}", f"{s['n_kept']:,} ({s['n_kept'] / max(s['n_rows'], 1):.1%})",
+        kept = f"{s['n_kept']:,} ({s['n_kept'] / max(s['n_rows'], 1):.1%})"
+        t.add_row(sid, f"{s['n_rows']:,}", kept,
                   f"{rm['non_finite']:,}", f"{rm['range_window']:,}", f"{rm['geometry_window']:,}",
                   f"{rm['ransac_outlier']:,}", f"{rm['small_patch']:,}",
                   f"{s['n_patches_fitted']:,}/{s['n_patches']:,}",
@@ -1070,7 +1104,8 @@ def preprocess_campaign(
         if masks:
             write_masks(out_dir, results)
     if progress or out_dir is not None:
-        (console or Console()).print(preprocess_table(results, f"{campaign.telescope.name}: preprocessing"))
+        title = f"{campaign.telescope.name}: preprocessing"
+        (console or Console()).print(preprocess_table(results, title))
     return results
 
 

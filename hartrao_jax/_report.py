@@ -196,18 +196,28 @@ def _dish_radius(layout: PanelLayout | None, *Xs: np.ndarray) -> float:
     return float(max(r)) if r else 13.0
 
 
+def mean_spacing(X: np.ndarray, cell_m: float = 0.25) -> float:
+    """Mean point spacing (m): sqrt(area covered / points), the area from occupied cells."""
+    X = np.asarray(X, float)
+    if len(X) < 3:
+        return 0.1
+    sub = X[_subsample(len(X), 1_000_000, seed=2)]
+    ij = np.floor(sub[:, :2] / cell_m).astype(np.int64)
+    area = len(np.unique(ij[:, 0] * 1_000_003 + ij[:, 1])) * cell_m**2
+    return float(math.sqrt(area / len(X)))
+
+
 def raster(X: np.ndarray, dev_m: np.ndarray, R: float, pixel_m: float | None = None,
-           max_pixels: int = 520) -> tuple[np.ndarray, float]:
+           max_pixels: int = 520, points_per_pixel: float = 4.0) -> tuple[np.ndarray, float]:
     """Mean deviation (mm) per square pixel of the aperture plane: image rows along X (north),
     columns along Y, covering ``[-1.05 R, 1.05 R]`` in both; NaN where there is no point.
 
-    The pixel is at least ``2.1 R / max_pixels`` and 1.6 point spacings (no holes on coarse
-    scans); dense scans are averaged over many points per pixel.
+    The pixel is at least ``2.1 R / max_pixels`` and holds about ``points_per_pixel`` points
+    on average (the noise of single points would hide the panels on coarse scans).
     """
     X = np.asarray(X, float)
     if pixel_m is None:
-        sp = point_spacing(X) if len(X) > 2 else 0.1
-        pixel_m = max(2.1 * R / max_pixels, 1.6 * (sp if np.isfinite(sp) else 0.1))
+        pixel_m = max(2.1 * R / max_pixels, math.sqrt(points_per_pixel) * mean_spacing(X))
     n = int(math.ceil(2.1 * R / pixel_m))
     half = 0.5 * n * pixel_m
     iy = np.floor((X[:, 0] + half) / pixel_m).astype(np.int64)
@@ -221,12 +231,10 @@ def raster(X: np.ndarray, dev_m: np.ndarray, R: float, pixel_m: float | None = N
     return img, half
 
 
-def _map(ax, X, dev_m, lim_mm, R):
+def _map(ax, img: np.ndarray, half: float, lim_mm: float):
     from matplotlib import colormaps
 
-    img, half = raster(X, dev_m, R)
-    cmap = colormaps[CMAP].copy()
-    cmap.set_bad((1, 1, 1, 0))
+    cmap = colormaps[CMAP].with_extremes(bad=(1, 1, 1, 0))
     return ax.imshow(img, origin="lower", extent=(-half, half, -half, half), cmap=cmap,
                      vmin=-lim_mm, vmax=lim_mm, interpolation="nearest", zorder=2)
 
@@ -244,11 +252,11 @@ def fig_cycle_maps(pos: PositionSurface, layout: PanelLayout | None = None, titl
     fig = _figure(w, 5.6)
     axs = fig.subplots(1, n, squeeze=False)[0]
     R = _dish_radius(layout, *[c.X for c in cycles])
-    lim = colour_limit_mm([c.deviation_m[c.inside] for c in cycles])
+    imgs = [raster(c.X[c.inside], c.deviation_m[c.inside], R) for c in cycles]
+    lim = colour_limit_mm([1e-3 * im[np.isfinite(im)] for im, _ in imgs])
     sc = None
-    for ax, c in zip(axs, cycles):
-        m = c.inside
-        sc = _map(ax, c.X[m], c.deviation_m[m], lim, R)
+    for ax, c, (img, half) in zip(axs, cycles, imgs):
+        sc = _map(ax, img, half, lim)
         _draw_outlines(ax, layout, lw=0.25, alpha=0.4)
         fb = face_boundary(c.X, c.face)
         if fb is not None:
@@ -269,9 +277,10 @@ def fig_average_map(pos: PositionSurface, layout: PanelLayout | None = None, tit
     fig = _figure(7.0, 6.0)
     ax = fig.subplots()
     R = _dish_radius(layout, a.X)
-    lim = colour_limit_mm([a.deviation_m])
     if len(a):
-        sc = _map(ax, a.X, a.deviation_m, lim, R)
+        img, half = raster(a.X, a.deviation_m, R)
+        lim = colour_limit_mm([1e-3 * img[np.isfinite(img)]])
+        sc = _map(ax, img, half, lim)
         cb = fig.colorbar(sc, ax=ax, shrink=0.85, extend="both")
         cb.set_label(SIGN_LABEL, fontsize=9)
     _draw_outlines(ax, layout)
@@ -352,7 +361,7 @@ def fig_focal_sky(fits: Sequence[tuple[str, dict]], nominal_m: float | None = No
             ax1.annotate(f"{p['position']}\n{d:+.2f}\u00b1{s:.2f}", (xi, yi), xytext=(0, 9),
                          textcoords="offset points", ha="center", va="bottom", fontsize=7)
         cb = fig.colorbar(sc, ax=ax1, shrink=0.9)
-        cb.set_label(f"f \u2212 f\u2080 [mm]  ({ref_txt})", fontsize=9)
+        cb.set_label("f \u2212 f\u2080 [mm]", fontsize=9)
         ax1.set_xlabel(xl)
         ax1.set_ylabel(yl)
         pad_x = max(10.0, 0.1 * np.ptp(x))
@@ -360,8 +369,8 @@ def fig_focal_sky(fits: Sequence[tuple[str, dict]], nominal_m: float | None = No
         ax1.set_xlim(x.min() - pad_x, x.max() + pad_x)
         ax1.set_ylim(y.min() - pad_y, y.max() + 2 * pad_y)
         ax1.grid(alpha=0.3)
-    ax1.set_title(f"Focal length per position ({main_label}); labels: f \u2212 f\u2080 \u00b1 "
-                  "\u03c3 [mm]", fontsize=10)
+    ax1.set_title(f"Focal length per position ({main_label}, {ref_txt}); labels: "
+                  "f \u2212 f\u2080 \u00b1 \u03c3 [mm]", fontsize=10)
     for k, (label, doc) in enumerate(fits):
         ps = doc.get("positions", [])
         if not ps:
@@ -586,6 +595,12 @@ def collect(results_dir, campaign=None) -> ReportInputs:
     else:
         for _, s in inp.surfaces:
             inp.disturbed += list(s.disturbed)
+    if not inp.disturbed:
+        for p in _find(root, "disturbed.json"):
+            try:
+                inp.disturbed += list(json.loads(p.read_text()).get("disturbed", []))
+            except (OSError, ValueError):
+                pass
     return inp
 
 
@@ -724,13 +739,19 @@ def _residual_section(doc: _Doc, inp: ReportInputs):
     from ._surface import read_residuals
 
     samples = []
+    rng = np.random.default_rng(0)
     for label, d, fj in inp.fits:
         vals = []
-        for s in fj.get("scans", []):
+        scans = fj.get("scans", [])
+        per_scan = max(20_000, 2_000_000 // max(len(scans), 1))  # a sample is enough
+        for s in scans:
             p = d / "residuals" / f"{s['id']}.parquet"
             if p.exists():
-                r = read_residuals(p)
-                vals.append(r["deviation_m"][r["used"].astype(bool)])
+                r = read_residuals(p, ("deviation_m", "used"))
+                v = r["deviation_m"][r["used"].astype(bool)]
+                if len(v) > per_scan:
+                    v = v[rng.choice(len(v), per_scan, replace=False)]
+                vals.append(v)
         if vals:
             samples.append((label, np.concatenate(vals)))
     if not samples:

@@ -132,7 +132,7 @@ def within_limits(ha_deg: float, dec_deg: float, *, min_elevation_deg: float = M
 
 def night_temperature_c(tour: str, t: dt.datetime) -> float:
     """Air temperature (C) of the night of ``tour`` at UTC time ``t`` (exponential cooling)."""
-    t0 = dt.datetime.combine(NIGHTS[tour], dt.time(18 - UTC_OFFSET_H), tzinfo=dt.timezone.utc)
+    t0 = dt.datetime.combine(NIGHTS[tour], dt.time(18 - UTC_OFFSET_H), tzinfo=dt.UTC)
     T0, T1 = NIGHT_TEMPERATURE_C[tour]
     hours = (t - t0).total_seconds() / 3600.0
     k = 1.0 / COOLING_TIME_H
@@ -148,7 +148,7 @@ def tour_plan(tour: str) -> list[PlannedPosition]:
     """The positions of one tour in visiting order, with start times and temperatures."""
     if tour not in TOUR_POSITIONS:
         raise ValueError(f"unknown tour {tour!r}; known: {', '.join(TOURS)}")
-    t = dt.datetime.combine(NIGHTS[tour], dt.time(18 - UTC_OFFSET_H), tzinfo=dt.timezone.utc)
+    t = dt.datetime.combine(NIGHTS[tour], dt.time(18 - UTC_OFFSET_H), tzinfo=dt.UTC)
     prev = (0.0, LATITUDE_DEG)  # the telescope waits at the zenith (scanner mounted)
     out = []
     for i, (ha, dec) in enumerate(TOUR_POSITIONS[tour], start=1):

@@ -480,7 +480,8 @@ def sensitivity_json(cs: CampaignSensitivity, *, figures: Sequence[str] = (),
                                       for p in s.params},
         }
         if s.panel_dp is not None:
-            rec["panel_dp_rms"] = dict(zip(s.params, np.sqrt(np.nanmean(s.panel_dp**2, 0)).tolist()))
+            rms = np.sqrt(np.nanmean(s.panel_dp**2, 0))
+            rec["panel_dp_rms"] = dict(zip(s.params, rms.tolist()))
         if s.design:
             rec["design"] = s.design
         scans.append(rec)

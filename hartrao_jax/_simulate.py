@@ -62,6 +62,7 @@ from ._physics import (
     thermal_focal_length,
     zernike_deviation,
 )
+from ._schedule import CAMPAIGN_STEP_RAD, PRESET_TOURS, plan_positions
 
 TRUTH_SCHEMA = "hartrao-truth/1"
 EXACT_M = 1e-9  # |condition| (m) every reflector point satisfies at the truth, before noise
@@ -216,6 +217,7 @@ class Preset:
     step_rad: float
     effects: Mapping[str, Any]
     scatter: bool
+    plan: tuple[Mapping[str, Any], ...] = ()  # full position dicts (tour, start, temperature)
 
 
 _DEMO_EFFECTS = {"x4": 1.5e-4, "x6": 3e-5, "x7": -4e-5, "panel_offset": 1.5e-4}
@@ -227,6 +229,22 @@ PRESETS: dict[str, Preset] = {
     "paper": Preset("paper", "demo at the paper's resolution (0.63 mrad): benchmarks only",
                     (("r23", -35.0, -64.0),), 0.00063, _DEMO_EFFECTS, True),
 }
+
+
+def _plan_preset(name: str, description: str) -> Preset:
+    """A preset on the measurement plan of :mod:`._schedule` (tours, times, temperatures)."""
+    plan = tuple(plan_positions(PRESET_TOURS[name]))
+    return Preset(name, description,
+                  tuple((p["position"], p["ha_deg"], p["dec_deg"]) for p in plan),
+                  CAMPAIGN_STEP_RAD, _CAMPAIGN_EFFECTS, True, plan)
+
+
+_CAMPAIGN_EFFECTS = {**_DEMO_EFFECTS, "gravity_deformation": 1.0, "thermal": 1.3e-4}
+PRESETS["campaign"] = _plan_preset(
+    "campaign", "the paper's schedule: 4 tours, 88 positions x 2 cycles, start times and night "
+    "temperatures; calibration, panels, gravity deformation, thermal; coarse grid (--step)")
+PRESETS["tour-red"] = _plan_preset(
+    "tour-red", "the red tour of the campaign preset (23 positions x 2 cycles)")
 
 
 @dataclass(frozen=True)
@@ -810,7 +828,7 @@ def simulate_scan(meta: ScanMeta | None = None, *, campaign: Campaign | None = N
 
 def _positions(spec, preset: Preset) -> list[dict[str, Any]]:
     out = []
-    for i, p in enumerate(spec if spec is not None else preset.positions):
+    for i, p in enumerate(spec if spec is not None else (preset.plan or preset.positions)):
         d = dict(p) if isinstance(p, Mapping) else dict(zip(("position", "ha_deg", "dec_deg"), p))
         d.setdefault("temperature_c", round(18.0 - 0.4 * i, 2))
         d.setdefault("tour", "red")
@@ -872,8 +890,12 @@ def simulate_campaign(out_dir, preset: str = "demo", effects: Mapping[str, Any] 
                                   "temperature_c") if k in p}
         for c in cycles:
             sid = f"{p['position']}c{c}"
+            # a plan gives start times and temperatures per cycle: {cycle: value}
+            start = (p.get("start") or {}).get(c, t0 + dt.timedelta(minutes=8 * i + 4 * (c - 1)))
+            ck = {**keys, "temperature_c": (p.get("temperature") or {}).get(
+                c, keys.get("temperature_c"))}
             metas.append(ScanMeta(sid, p["position"], int(c), f"scans/{sid}.parquet",
-                                  start=t0 + dt.timedelta(minutes=8 * i + 4 * (c - 1)), **keys))
+                                  start=start, **ck))
         pose = _position_pose(metas[-1], camp, cfg, seed, i)
         poses[p["position"]] = pose
         f, fg = refl.focal_length(pose.g, p.get("temperature_c"))

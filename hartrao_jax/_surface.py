@@ -254,6 +254,10 @@ def panel_mask(X: np.ndarray, layout: PanelLayout | None, config: SurfaceConfig 
     X = np.asarray(X, float)
     if layout is None:
         return np.zeros(len(X), np.int32)
+    block = 1 << 20
+    if len(X) > block:  # bounded temporaries for large scans
+        return np.concatenate([panel_mask(X[i:i + block], layout, cfg)
+                               for i in range(0, len(X), block)])
     rho = np.hypot(X[:, 0], X[:, 1])
     psi = np.mod(np.arctan2(X[:, 1], X[:, 0]), 2 * np.pi)
     pid = panel_ids(rho, psi, layout.ring_edges_m, layout.panels_per_ring)
@@ -302,13 +306,14 @@ def _cell_keys(X: np.ndarray, panel: np.ndarray, side: float, origin: np.ndarray
 def cycle_average(X1: np.ndarray, d1: np.ndarray, p1: np.ndarray,
                   X2: np.ndarray | None = None, d2: np.ndarray | None = None,
                   p2: np.ndarray | None = None, radius_m: float = 0.01, *,
-                  return_groups: bool = False):
+                  return_groups: bool = False, chunk_points: int = 2_000_000):
     """Average two cycles' deviations, panel by panel, in circles of ``radius_m`` (module doc).
 
     ``X*`` (n, 3) telescope-frame points, ``d*`` deviations, ``p*`` panel ids (negative ids are
     ignored). With no second cycle the groups are single-cycle means. Returns
     :class:`AveragedPoints`; with ``return_groups`` also the output group of every input point
-    of each cycle (``-1``: not averaged).
+    of each cycle (``-1``: not averaged). Panels are processed in chunks of about
+    ``chunk_points`` points (memory stays bounded whatever the size of the scans).
     """
     X1 = np.asarray(X1, float)
     d1 = np.asarray(d1, float)
@@ -318,86 +323,129 @@ def cycle_average(X1: np.ndarray, d1: np.ndarray, p1: np.ndarray,
     X2 = np.asarray(X2, float)
     d2 = np.asarray(d2, float)
     p2 = np.asarray(p2)
-    two = len(d2) > 0 and len(d1) > 0
-    s1, s2 = np.flatnonzero(p1 >= 0), np.flatnonzero(p2 >= 0)
+    two = len(d1) > 0 and len(d2) > 0
+    top = int(max(p1.max(initial=-1), p2.max(initial=-1))) + 1
+    cnt = np.bincount(p1[p1 >= 0], minlength=top) + np.bincount(p2[p2 >= 0], minlength=top)
+    # panel ranges [lo, hi) of about chunk_points points each
+    edges, acc, lo = [], 0, 0
+    for k in range(top):
+        acc += int(cnt[k])
+        if acc >= chunk_points:
+            edges.append((lo, k + 1))
+            lo, acc = k + 1, 0
+    if lo < top:
+        edges.append((lo, top))
+    # one lattice for all chunks: the cells do not depend on the chunking
     side = radius_m * math.sqrt(2.0)
-    allxy = np.concatenate([X1[s1, :2], X2[s2, :2]])
-    if len(allxy) == 0:
-        empty = AveragedPoints(np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int32),
-                               np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+    ext = [a for a in (X1[:, :2], X2[:, :2]) if len(a)]
+    if ext:
+        lo_xy = np.min([a.min(axis=0) for a in ext], axis=0)
+        hi_xy = np.max([a.max(axis=0) for a in ext], axis=0)
+        origin = np.floor(lo_xy / side) * side - side
+        span = int(np.ceil((hi_xy - origin).max() / side)) + 2
+        if span * span * (top + 1) >= 2**62:
+            raise ValueError("cycle_average: the point cloud is too large for radius_m")
+    else:
+        origin, span = np.zeros(2), 1
+    parts: list[AveragedPoints] = []
+    g1 = np.full(len(d1), -1, np.int64) if return_groups else None
+    g2 = np.full(len(d2), -1, np.int64) if return_groups else None
+    offset = 0
+    whole = len(edges) == 1
+    for lo, hi in edges:
+        s1 = np.flatnonzero((p1 >= lo) & (p1 < hi)) if not whole else np.flatnonzero(p1 >= 0)
+        s2 = np.flatnonzero((p2 >= lo) & (p2 < hi)) if not whole else np.flatnonzero(p2 >= 0)
+        res, i1, i2 = _average_cells(X1[s1], d1[s1], p1[s1], X2[s2], d2[s2], p2[s2], radius_m,
+                                     two, return_groups, origin, span)
+        parts.append(res)
         if return_groups:
-            return empty, np.full(len(d1), -1), np.full(len(d2), -1)
-        return empty
-    origin = allxy.min(axis=0) - side
-    span = int(np.ceil((allxy.max(axis=0) - origin).max() / side)) + 2
-    if span * span * (max(int(p1.max(initial=0)), int(p2.max(initial=0))) + 1) >= 2**62:
-        raise ValueError("cycle_average: the point cloud is too large for radius_m")
-    del allxy
-    k = np.concatenate([_cell_keys(X1[s1], p1[s1], side, origin, span),
-                        _cell_keys(X2[s2], p2[s2], side, origin, span)])
+            g1[s1] = np.where(i1 >= 0, i1 + offset, -1)
+            g2[s2] = np.where(i2 >= 0, i2 + offset, -1)
+        offset += len(res)
+    if parts:
+        out = AveragedPoints(
+            np.concatenate([r.X for r in parts]), np.concatenate([r.deviation_m for r in parts]),
+            np.concatenate([r.panel for r in parts]), np.concatenate([r.n1 for r in parts]),
+            np.concatenate([r.n2 for r in parts]), np.concatenate([r.diff_m for r in parts]),
+            int(sum(r.n_unpaired for r in parts)))
+    else:
+        out = _empty_average()
+    return (out, g1, g2) if return_groups else out
+
+
+def _empty_average() -> AveragedPoints:
+    return AveragedPoints(np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int32),
+                          np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+
+
+def _average_cells(X1, d1, p1, X2, d2, p2, radius_m: float, two: bool, groups: bool,
+                   origin: np.ndarray, span: int):
+    """:func:`cycle_average` of points that all have panel ids >= 0 (one chunk of panels).
+
+    Returns the averaged points and, with ``groups``, the group of every input point."""
+    n1_, n2_ = len(d1), len(d2)
+    if n1_ + n2_ == 0:
+        return _empty_average(), np.zeros(0, np.int64), np.zeros(0, np.int64)
+    side = radius_m * math.sqrt(2.0)
+    k = np.concatenate([_cell_keys(X1, p1, side, origin, span),
+                        _cell_keys(X2, p2, side, origin, span)])
     _, inv = np.unique(k, return_inverse=True)
     del k
     inv = inv.reshape(-1)
     K = int(inv.max()) + 1
-    i1, i2 = inv[: len(s1)], inv[len(s1):]
-    del inv
+    i1, i2 = inv[:n1_], inv[n1_:]
 
-    def sums(i, X, d, s):
+    def means(i, X, d):
         c = np.bincount(i, minlength=K)
-        out = [np.bincount(i, weights=d[s], minlength=K)]
-        out += [np.bincount(i, weights=X[s, j], minlength=K) for j in range(3)]
-        return c, out
+        m = [np.bincount(i, weights=w, minlength=K).astype(np.float64, copy=False)
+             for w in (d, X[:, 0], X[:, 1], X[:, 2])]  # (empty input: int64 zeros)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            for a in m:
+                a /= c  # in place: NaN where the cycle has no point
+        return c, m
 
-    c1, S1 = sums(i1, X1, d1, s1)
-    c2, S2 = sums(i2, X2, d2, s2)
+    c1, m1 = means(i1, X1, d1)
+    c2, m2 = means(i2, X2, d2)
     pan = np.empty(K, np.int32)
-    pan[i1] = p1[s1]
-    pan[i2] = p2[s2]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        m1 = [a / c1 for a in S1]  # mean dev, X, Y, Z per cell (NaN where empty)
-        m2 = [a / c2 for a in S2]
+    pan[i1] = p1
+    pan[i2] = p2
     both = (c1 > 0) & (c2 > 0)
-    out_of_cell = np.full(K, -1, np.int64)
-    partner = np.full(K, -1, np.int64)  # cycle-2 cell paired with a cycle-1 orphan
     n_unpaired = 0
     if two:
         o1, o2 = np.flatnonzero((c1 > 0) & (c2 == 0)), np.flatnonzero((c2 > 0) & (c1 == 0))
+        partner = np.full(K, -1, np.int64)  # the cycle-2 cell paired with a cycle-1 orphan
         if len(o1) and len(o2):
             pairs = _mutual_nearest(
                 np.column_stack([m1[1][o1], m1[2][o1]]), pan[o1],
                 np.column_stack([m2[1][o2], m2[2][o2]]), pan[o2], radius_m)
             partner[o1[pairs[:, 0]]] = o2[pairs[:, 1]]
-        n_unpaired = int(c1[o1].sum() + c2[o2].sum()) - int(
-            c1[partner >= 0].sum() + c2[partner[partner >= 0]].sum())
-        groups1 = np.flatnonzero(both | (partner >= 0))  # the cycle-1 cell of every group
+        has = partner >= 0
+        n_unpaired = int(c1[o1].sum() + c2[o2].sum() - c1[has].sum() - c2[partner[has]].sum())
+        groups1 = np.flatnonzero(both | has)  # the cycle-1 cell of every group
         groups2 = np.where(both[groups1], groups1, partner[groups1])
-    else:
-        groups1 = np.flatnonzero(c1 > 0) if len(d1) else np.flatnonzero(c2 > 0)
-        groups2 = groups1
-    M = len(groups1)
-    out_of_cell[groups1] = np.arange(M)
-    out_of_cell[groups2] = np.arange(M)
-    if two:
+        del partner, has
         dev = 0.5 * (m1[0][groups1] + m2[0][groups2])
-        X = 0.5 * np.column_stack([m1[j][groups1] + m2[j][groups2] for j in (1, 2, 3)])
+        X = np.empty((len(groups1), 3))
+        for j in range(3):
+            X[:, j] = 0.5 * (m1[j + 1][groups1] + m2[j + 1][groups2])
         diff = m1[0][groups1] - m2[0][groups2]
         n1, n2 = c1[groups1], c2[groups2]
     else:
-        mm, cc = (m1, c1) if len(d1) else (m2, c2)
+        mm, cc = (m1, c1) if n1_ else (m2, c2)
+        groups1 = groups2 = np.flatnonzero(cc > 0)
         dev = mm[0][groups1]
         X = np.column_stack([mm[j][groups1] for j in (1, 2, 3)])
-        diff = np.full(M, np.nan)
-        n1, n2 = (cc[groups1], np.zeros(M, np.int64)) if len(d1) else (np.zeros(M, np.int64),
-                                                                       cc[groups1])
+        diff = np.full(len(groups1), np.nan)
+        z = np.zeros(len(groups1), np.int64)
+        n1, n2 = (cc[groups1], z) if n1_ else (z, cc[groups1])
     res = AveragedPoints(X, dev, pan[groups1].astype(np.int32), n1.astype(np.int64),
                          n2.astype(np.int64), diff, n_unpaired)
-    if not return_groups:
-        return res
-    g1 = np.full(len(d1), -1, np.int64)
-    g2 = np.full(len(d2), -1, np.int64)
-    g1[s1] = out_of_cell[i1]
-    g2[s2] = out_of_cell[i2]
-    return res, g1, g2
+    if not groups:
+        return res, None, None
+    out_of_cell = np.full(K, -1, np.int64)
+    out_of_cell[groups1] = np.arange(len(groups1))
+    out_of_cell[groups2] = np.arange(len(groups1))
+    return res, out_of_cell[i1], out_of_cell[i2]
 
 
 def _mutual_nearest(a: np.ndarray, pa: np.ndarray, b: np.ndarray, pb: np.ndarray,
@@ -547,8 +595,7 @@ def position_surface(position: str, cycles: Sequence[CyclePoints], layout: Panel
             notes.append(f"{frac:.0%} of the points have no partner of the other cycle within "
                          f"{radius * 100:.3g} cm (coarse scan or different grids): "
                          "consider a larger radius_m")
-    panels = cyc = None
-    cyc = {}
+    panels, cyc = None, {}
     if layout is not None:
         panels = panel_statistics(avg.X, avg.deviation_m, avg.panel, layout, cfg.min_points)
         for p in cycles:
@@ -600,11 +647,12 @@ def surface_from_fit(campaign_fit, config: SurfaceConfig | None = None, *,
                          {"model": list(campaign_fit.model_names), "campaign": str(camp.root)})
 
 
-def read_residuals(path) -> dict[str, np.ndarray]:
-    """A ``residuals/<scan>.parquet`` table of ``write_fit`` as NumPy columns."""
+def read_residuals(path, columns: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+    """A ``residuals/<scan>.parquet`` table of ``write_fit`` as NumPy columns (all or those
+    named)."""
     import pyarrow.parquet as pq
 
-    t = pq.read_table(path)
+    t = pq.read_table(path, columns=list(columns) if columns is not None else None)
     return {c: t.column(c).to_numpy() for c in t.column_names}
 
 
@@ -651,7 +699,8 @@ def surface_from_fit_dir(fit_dir, config: SurfaceConfig | None = None, *, campai
             if not path.exists():
                 raise FileNotFoundError(f"{path}: residual table of scan {s['id']} not found "
                                         "(was the fit written with residuals?)")
-            r = read_residuals(path)
+            r = read_residuals(path, ("used", "face", "phi_rad", "theta_rad", "deviation_m",
+                                      "X_m", "Y_m", "Z_m"))
             m = r["used"].astype(bool) if cfg.used_only else np.ones(len(r["used"]), bool)
             if keep is not None and s["id"] in keep:
                 m &= np.asarray(keep[s["id"]], bool)
@@ -705,7 +754,7 @@ def surface_campaign(campaign, config: SurfaceConfig | None = None, out_dir=None
         if disturbed == "cut" and bad:
             keep = {}
             for sid, rep in bad.items():
-                r = read_residuals(Path(fit_dir) / "residuals" / f"{sid}.parquet")
+                r = read_residuals(Path(fit_dir) / "residuals" / f"{sid}.parquet", ("phi_rad",))
                 keep[sid] = cut_keep(r["phi_rad"], rep)
         res = surface_from_fit_dir(fit_dir, cfg, campaign=campaign, keep=keep,
                                    exclude=bad if disturbed == "exclude" else ())
@@ -717,12 +766,18 @@ def surface_campaign(campaign, config: SurfaceConfig | None = None, out_dir=None
         reports = detect_disturbed_campaign(cf)
         bad = {r.scan: r for r in reports}
         if disturbed == "cut" and bad:
+            from ._align import mount_heading
+
+            heads = [mount_heading(s.alignment.kappa_rad, s.value("rx"), s.value("ry"),
+                                   s.gravity) for s in cf.scans if s.alignment.source == "gravity"]
+            hint = float(np.angle(np.mean(np.exp(1j * np.array(heads))))) if heads else None
             for i, s in enumerate(cf.scans):
                 if s.meta.id in bad:
                     k = cut_keep(s.data.phi_rad, bad[s.meta.id])
                     if base is not None:
                         k &= base(s.meta, s.data)
-                    cf.scans[i] = fit_scan(campaign, s.meta, cfg.model, data=s.data, keep=k)
+                    cf.scans[i] = fit_scan(campaign, s.meta, cfg.model, data=s.data, keep=k,
+                                           heading_hint_rad=hint)
         if out_dir is not None and write_fit_dir:
             write_fit(Path(out_dir) / "fit", cf)
         res = surface_from_fit(cf, cfg, exclude=bad if disturbed == "exclude" else ())

@@ -185,18 +185,61 @@ def _keep_fn(preprocess: bool):
               help="Fit all scans in one compiled call (padded, masked).")
 @click.option("--preprocess/--no-preprocess", default=True, show_default=True,
               help="Clean scans (range window, patches, RANSAC) before fitting.")
+@click.option("--exclude-disturbed", is_flag=True,
+              help="Detect scans disturbed along one phi (brake, settling) and drop them.")
+@click.option("--cut-disturbed", is_flag=True,
+              help="Detect disturbed scans and drop only the affected phi range, then refit.")
+@click.option("--joint", is_flag=True,
+              help="Calibration shared by the scans of a night (--group) solved by Schur complement.")
+@click.option("--shared", default="x4,x6,x7", show_default=True,
+              help="With --joint: the calibration parameters shared across scans.")
+@click.option("--group", type=click.Choice(["night", "campaign"]), default="night",
+              show_default=True, help="With --joint: share per night (tour) or campaign.")
 @command
-def fit(campaign, out_dir, model, scans, fixes, robust_k, batch, preprocess):
+def fit(campaign, out_dir, model, scans, fixes, robust_k, batch, preprocess, exclude_disturbed,
+        cut_disturbed, joint, shared, group):
     """Fit every scan of CAMPAIGN; writes OUT/fit.json and OUT/residuals/*.parquet."""
     from ._campaign import load_campaign
     from ._fit import fit_campaign, write_fit
 
+    if exclude_disturbed and cut_disturbed:
+        raise UserError("--exclude-disturbed and --cut-disturbed: choose one")
     camp = load_campaign(campaign)
     fixed = _parse_fixes(fixes)
-    cf = fit_campaign(
-        camp, model, scans=scans.split(",") if scans else None, fixed=fixed,
-        robust_k=robust_k or None, batch=batch, keep=_keep_fn(preprocess),
-    )
+    scan_ids = scans.split(",") if scans else None
+    keep = _keep_fn(preprocess)
+    if joint:
+        from ._joint import fit_joint, print_joint_summary, write_joint_fit
+
+        try:
+            jf = fit_joint(camp, model, shared=tuple(n.strip() for n in shared.split(",") if n.strip()),
+                           group=group, scans=scan_ids, fixed=fixed, keep=keep,
+                           robust_k=robust_k or None, batch=batch, progress=True)
+        except ValueError as e:
+            raise UserError(str(e)) from None
+        p = write_joint_fit(out_dir, jf)
+        print_joint_summary(jf, _console())
+        click.echo(f"wrote {p}")
+        return
+    cf = fit_campaign(camp, model, scans=scan_ids, fixed=fixed, robust_k=robust_k or None,
+                      batch=batch, keep=keep)
+    if exclude_disturbed or cut_disturbed:
+        from ._disturbed import detect_disturbed_campaign, keep_function, without_disturbed
+
+        reports = detect_disturbed_campaign(cf)
+        for r in reports:
+            click.echo(f"disturbed: scan {r.scan} cycle {r.cycle} from phi {r.phi_deg:.2f} deg "
+                       f"to {r.phi_end_deg:.2f} deg (jump {r.jump_m * 1e3:+.2f} mm)")
+        if reports:
+            ids = [s.meta.id for s in cf.scans]
+            if exclude_disturbed:
+                ids = without_disturbed(ids, reports)
+                cf = fit_campaign(camp, model, scans=ids, fixed=fixed,
+                                  robust_k=robust_k or None, batch=batch, keep=keep)
+            else:
+                cf = fit_campaign(camp, model, scans=ids, fixed=fixed,
+                                  robust_k=robust_k or None, batch=batch,
+                                  keep=keep_function(reports, base=keep))
     p = write_fit(out_dir, cf)
     print_fit_table(cf, title=f"{camp.telescope.name}: model {model}")
     click.echo(f"wrote {p}")
@@ -241,13 +284,10 @@ def demo(out_dir, seed):
     truth = camp.root / "truth.json"
     if truth.exists():
         _print_truth_comparison(cf, json.loads(truth.read_text()))
-    try:
-        from ._report import write_report
+    from ._report import write_report
 
-        html = write_report(out, campaign=camp)
-        click.echo(f"report: {html}")
-    except ImportError:
-        pass
+    html = write_report(out, campaign=camp)
+    click.echo(f"report: {html}")
     click.echo(f"demo done in {time.time() - t0:.1f} s; outputs in {out}/")
 
 
@@ -271,6 +311,7 @@ def _print_truth_comparison(cf, truth: dict) -> None:
 
 
 # commands defined beside their modules
+from . import _cli_campaign, _cli_diagnose, _cli_surface  # noqa: E402, F401
 from ._import import import_command  # noqa: E402
 
 main.add_command(import_command)

@@ -76,15 +76,18 @@ def test_panel_mask_margins_and_ids():
     assert (m[kept] == ids[kept]).all()
     g = LAYOUT.geometry()
     k = m[kept]
-    assert (rho[kept] - g["rho_in"][k] >= 0.05).all() and (g["rho_out"][k] - rho[kept] >= 0.05).all()
+    assert (rho[kept] - g["rho_in"][k] >= 0.05).all()
+    assert (g["rho_out"][k] - rho[kept] >= 0.05).all()
     assert (rho[kept] * (psi[kept] - g["psi_start"][k]) >= 0.03).all()
     assert (rho[kept] * (g["psi_end"][k] - psi[kept]) >= 0.03).all()
     # a point 1 cm inside a ring edge is masked, 6 cm inside is kept
     e = LAYOUT.ring_edges_m[3]
     P = np.array([[e + 0.01, 0.0, 0.0], [e + 0.06, 0.0, 0.0]])
-    P = P @ np.array([[np.cos(0.05), np.sin(0.05), 0], [-np.sin(0.05), np.cos(0.05), 0], [0, 0, 1]])
-    assert panel_mask(P, LAYOUT, SurfaceConfig(margin_radial_m=0.05)).tolist()[0] == -1
-    assert panel_mask(P, LAYOUT, SurfaceConfig(margin_radial_m=0.05, margin_tangential_m=0.02))[1] >= 0
+    c, s = np.cos(0.05), np.sin(0.05)
+    P = P @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]])
+    assert panel_mask(P, LAYOUT, SurfaceConfig(margin_radial_m=0.05))[0] == -1
+    cfg = SurfaceConfig(margin_radial_m=0.05, margin_tangential_m=0.02)
+    assert panel_mask(P, LAYOUT, cfg)[1] >= 0
 
 
 def test_cycle_average_never_mixes_panels():
@@ -94,24 +97,28 @@ def test_cycle_average_never_mixes_panels():
     e = LAYOUT.ring_edges_m[2]  # boundary between rings 1 and 2 (panels 15..38 | 39..68)
     n = 40_000
     r = rng.uniform(e - 0.3, e + 0.3, n)
-    psi = rng.uniform(0.01, 0.2, n)
+    psi = rng.uniform(0.01, 0.5, n)  # panels 15, 16 | 39, 40, 41
     X1 = np.column_stack([r * np.cos(psi), r * np.sin(psi), np.zeros(n)])
     X2 = X1 + rng.normal(scale=0.004, size=X1.shape)
     cfg = SurfaceConfig(margin_radial_m=0.0, margin_tangential_m=0.0)
     p1, p2 = panel_mask(X1, LAYOUT, cfg), panel_mask(X2, LAYOUT, cfg)
-    assert set(np.unique(p1)) == {15, 39}
-    d1 = np.where(p1 == 15, 1e-3, -1e-3)
-    d2 = np.where(p2 == 15, 1e-3, -1e-3)
+    assert set(np.unique(p1)) == {15, 16, 39, 40, 41}
+    d1 = np.where(p1 < 39, 1e-3, -1e-3)
+    d2 = np.where(p2 < 39, 1e-3, -1e-3)
     avg, g1, g2 = cycle_average(X1, d1, p1, X2, d2, p2, radius_m=0.01, return_groups=True)
     assert len(avg) > 1000
     for g, p in ((g1, p1), (g2, p2)):
         ok = g >= 0
         assert (avg.panel[g[ok]] == p[ok]).all()  # every point sits in a group of its panel
     assert np.allclose(np.abs(avg.deviation_m), 1e-3)
-    assert np.allclose(avg.deviation_m, np.where(avg.panel == 15, 1e-3, -1e-3))
+    assert np.allclose(avg.deviation_m, np.where(avg.panel < 39, 1e-3, -1e-3))
     assert (avg.n1 > 0).all() and (avg.n2 > 0).all()
     # most points are paired despite the offsets (cells + nearest-neighbour pairing)
     assert avg.n_unpaired < 0.05 * 2 * n
+    # processing the panels in chunks changes nothing
+    small = cycle_average(X1, d1, p1, X2, d2, p2, radius_m=0.01, chunk_points=5_000)
+    np.testing.assert_array_equal(small.deviation_m, avg.deviation_m)
+    np.testing.assert_array_equal(small.X, avg.X)
 
 
 def test_cycle_average_equal_weights_per_cycle():
@@ -195,7 +202,7 @@ def test_panel_deviations_recovered(panels):
 def test_kappa_and_panel_ids_at_several_positions(tmp_path):
     """North alignment and panel ids against the simulator's truth at tilted positions and at
     the zenith (where kappa comes from the quadrupod shadows, resolved by the mount heading)."""
-    step = 0.012
+    step = 0.015
     positions = [("p1", -60.0, -20.0), ("p2", 45.0, 10.0), ("zen", 0.0, -25.8897),
                  ("p4", 30.0, -75.0)]
     camp = simulate_campaign(tmp_path / "camp", preset="clean", seed=11, step_rad=step,
@@ -207,9 +214,10 @@ def test_kappa_and_panel_ids_at_several_positions(tmp_path):
         zenith = s.meta.position == "zen"
         k_true = truth[s.meta.id]["kappa_rad"]
         dk = math.remainder(s.alignment.kappa_rad - k_true, 2 * math.pi)
-        # away from the zenith gravity fixes kappa; at the zenith the leg shadows do, to about
-        # one angular step of the scan (coarse here)
-        assert abs(dk) < (1.5 * step if zenith else 1e-3), (s.meta.id, s.alignment, k_true)
+        # away from the zenith gravity fixes kappa; at the zenith the leg shadows do (the gaps'
+        # middles over many rings: a fraction of the step; what is left is the shadows' own
+        # offset from the leg azimuths, ~1 mrad for a scanner 1 cm off the axis)
+        assert abs(dk) < (3e-3 if zenith else 1e-3), (s.meta.id, s.alignment, k_true)
         t = pq.read_table(camp.root / "truth" / f"{s.meta.id}.parquet").to_pydict()
         tp = np.asarray(t["panel"])[s.data.row]
         # panel ids of the (masked) surface points against the simulator's panel column
@@ -217,7 +225,8 @@ def test_kappa_and_panel_ids_at_several_positions(tmp_path):
         sel = (mine >= 0) & (tp[s.used] >= 0)
         assert sel.sum() > 0.8 * s.used.sum()
         agree = np.mean(mine[sel] == tp[s.used][sel])
-        assert agree > (0.85 if zenith else 0.999), (s.meta.id, agree)
+        print(s.meta.id, s.alignment.source, f"dkappa {dk:+.2e} rad, panel ids agree {agree:.4f}")
+        assert agree > (0.995 if zenith else 0.999), (s.meta.id, agree)
         assert pos.kind == "single cycle"
         assert pos.kappa_rad[s.meta.id] == s.alignment.kappa_rad
 

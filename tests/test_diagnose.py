@@ -1,0 +1,194 @@
+"""Discrepancy engine: concealed effects are found, located and modelled, the fit improves;
+clean data (with panel deviations) give no instrument or motion finding; confounded parameters
+never appear among the findings; the loop is deterministic for a seed.
+
+Coarse grids (0.02 rad, ~16k points per cycle) keep this fast; the amplitudes are scaled to the
+smaller number of points (the proof in ``_prove.py`` uses 0.01 rad and smaller amplitudes).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from hartrao_jax._config import enable_compilation_cache
+from hartrao_jax._diagnose import (
+    DIAGNOSIS_SCHEMA,
+    DiagnoseConfig,
+    _box_search,
+    _log_sf,
+    _periodogram,
+    diagnose,
+    write_json,
+)
+from hartrao_jax._prove import CASES, PANELS, Case, _intensity_range_error, score
+from hartrao_jax._simulate import simulate_campaign
+
+STEP = 0.02
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _cache():
+    enable_compilation_cache()
+
+
+def _campaign(tmp_path_factory, name, effects, seed=3, positions=None, post=None):
+    out = tmp_path_factory.mktemp(name)
+    simulate_campaign(out, preset="clean", effects={**PANELS, **effects}, seed=seed,
+                      step_rad=STEP, positions=positions)
+    if post is not None:
+        post(out, seed)
+    return out
+
+
+def _run(out, **kw):
+    diag = diagnose(out, **kw)
+    doc = diag.to_json()
+    truth = json.loads((out / "truth.json").read_text())
+    return diag, doc, truth
+
+
+# ------------------------------------------------------------------------------ statistics
+
+
+def test_log_sf_matches_scipy_and_extends_the_tail():
+    from scipy import stats
+
+    for T, k in [(3.0, 1), (40.0, 3), (300.0, 32), (700.0, 4)]:
+        assert _log_sf(T, k) == pytest.approx(stats.chi2.logsf(T, k), rel=1e-6, abs=1e-9)
+    far = [_log_sf(T, 3) for T in (2000.0, 5000.0, 1e5)]
+    assert all(np.isfinite(far)) and far[0] > far[1] > far[2]
+    assert _log_sf(5000.0, 3) == pytest.approx(-2500.0 + 0.5 * math.log(2500.0)
+                                               - math.lgamma(1.5), rel=1e-3)
+
+
+def _bins(rng, B=200, q=5):
+    """Per-bin normal equations of random probe columns (translation 3, rotation 2)."""
+    A = rng.normal(size=(B, 40, q))
+    N = np.einsum("bki,bkj->bij", A, A)
+    return A, N
+
+
+def test_box_search_finds_a_planted_window():
+    rng = np.random.default_rng(0)
+    A, N = _bins(rng)
+    d = np.zeros((200, 5))
+    d[120:135, :3] = [0.0, 0.0, 0.4]  # a jump of the translation in bins 120..134
+    w = np.einsum("bki,bi->bk", A, d) + rng.normal(size=(200, 40))
+    n = -np.einsum("bki,bk->bi", A, w)
+    edges = np.linspace(0.0, 20.0, 201)
+    i, j, T, profile, _ = _box_search(edges, N, n, DiagnoseConfig())
+    assert (i, j) == (120, 135)
+    assert T > 100
+
+
+def test_periodogram_finds_a_planted_period():
+    rng = np.random.default_rng(1)
+    A, N = _bins(rng, B=400)
+    edges = np.linspace(0.0, 40.0, 401)
+    t = 0.5 * (edges[:-1] + edges[1:])
+    d = np.zeros((400, 5))
+    d[:, 3] = 0.3 * np.sin(2 * np.pi * t / 2.5 + 0.4)
+    w = np.einsum("bki,bi->bk", A, d) + rng.normal(size=(400, 40))
+    n = -np.einsum("bki,bk->bi", A, w)
+    periods, T = _periodogram(edges, N, n, DiagnoseConfig())
+    assert periods[np.argmax(T)] == pytest.approx(2.5, rel=0.02)
+
+
+# ------------------------------------------------------------------------ concealed effects
+
+# the default suite: x2, impulsive shift, oscillation, panel offsets, one unexplained
+FAST = {
+    "x2": Case("x2", "x2", {"x2": 3e-4}, 3e-4, "transit offset 0.3 mm"),
+    "impulsive_shift": Case(
+        "impulsive_shift", "impulsive_shift",
+        {"impulsive_shift": {"displacement_m": 1.2e-3, "phi_deg": 40.0, "duration_s": 1.0}},
+        1.2e-3, "1.2 mm jump for 1 s in cycle 1"),
+    "oscillation": Case("oscillation", "oscillation",
+                        {"oscillation": {"amplitude_rad": 8e-5, "period_s": 1.1}}, 8e-4,
+                        "gimbal swing 16 arcsec"),
+    "panel_offset": Case("panel_offset", "panel_offset", {"panel_offset": {"rms_m": 2e-4}},
+                         2e-4, "panel offsets 0.2 mm rms"),
+    "unexplained_bump": Case("unexplained_bump", "unexplained",
+                             {"unexplained": {"amplitude_m": 2.5e-3}}, 2.5e-3,
+                             "a local bump not in the catalog"),
+}
+SLOW = {
+    "x1n": Case("x1n", "x1n", {"x1n": 8e-4}, 4e-4, ""),
+    "x1z": Case("x1z", "x1z", {"x1z": 5e-3}, 2e-3, ""),
+    "x3": Case("x3", "x3", {"x3": 5e-3}, 1.5e-3, ""),
+    "x5n": Case("x5n", "x5n", {"x5n": 8e-5}, 8e-4, ""),
+    "x8x": Case("x8x", "x8x", {"x8x": 1.2e-4}, 1.2e-3, ""),
+    "drift": Case("drift", "drift", {"drift": {"rate_m_s": 1e-4,
+                                                "direction": (0.3, 0.5, 1.0)}}, 1.1e-3, ""),
+    "gravity_deformation": Case("gravity_deformation", "gravity_deformation",
+                                {"gravity_deformation": {"scale": 3.0}}, 4.5e-4, "",
+                                next(c for c in CASES if c.name == "gravity_deformation").positions),
+    "unexplained_intensity": Case("unexplained_intensity", "unexplained", {}, 5e-4, "",
+                                  post=lambda out, seed: _intensity_range_error(out, seed, 4e-3)),
+}
+PARAMS = [pytest.param(c, id=k) for k, c in FAST.items()] + [
+    pytest.param(c, id=k, marks=pytest.mark.slow) for k, c in SLOW.items()]
+
+
+@pytest.mark.parametrize("case", PARAMS)
+def test_concealed_effect_is_found_located_and_improves_the_fit(tmp_path_factory, case):
+    out = _campaign(tmp_path_factory, case.name, case.effects, positions=case.positions,
+                    post=case.post)
+    diag, doc, truth = _run(out)
+    sc = score(case, doc, truth, seed=3, time_s=0.0)
+    assert sc.found, [f["effect"] for f in doc["findings"]]
+    assert sc.located in (True, None), sc.detail
+    assert sc.improved, doc["findings"]
+    if sc.estimate_ok is not None:
+        assert sc.estimate_ok, sc.detail
+    assert not sc.false, sc.false
+    assert doc["sigma0_final"] < doc["sigma0_start"]
+    # every finding: one plain sentence and the schema's keys
+    for f in doc["findings"]:
+        assert f["explanation"] and "\n" not in f["explanation"]
+        for k in ("effect", "family", "scans", "where", "estimate", "statistic", "dof",
+                  "p_value", "sigma0_before", "sigma0_after", "rms_before_m", "rms_after_m"):
+            assert k in f
+
+
+def test_clean_data_with_panels_have_no_instrument_or_motion_finding(tmp_path_factory):
+    out = _campaign(tmp_path_factory, "clean", {}, seed=5)
+    diag, doc, truth = _run(out)
+    fams = {f["family"] for f in doc["findings"]}
+    assert not fams & {"instrument", "motion"}, doc["findings"]
+    assert [f["effect"] for f in doc["findings"]] == ["panel_offset"]
+    assert doc["schema"] == DIAGNOSIS_SCHEMA
+    assert doc["final_model"][-1] == "panel_offset"
+
+
+def test_confounded_parameters_are_never_findings(tmp_path_factory, tmp_path):
+    out = _campaign(tmp_path_factory, "confounded", {"x10": 1.5e-3, "range_scale": 5e-5,
+                                                     "x2": 3e-4}, seed=4)
+    diag, doc, truth = _run(out, report_dir=tmp_path / "report")
+    found = {f["effect"] for f in doc["findings"]}
+    conf = {c["effect"]: c for c in doc["confounded"]}
+    assert {"x10", "range_scale"} <= set(conf)
+    assert not found & set(conf)
+    assert "x2" in found
+    assert conf["range_scale"]["correlation"] > 0.9995
+    assert {"tz"} & set(conf["x10"]["with"]) and {"f", "tz"} & set(conf["range_scale"]["with"])
+    # the written document and the report
+    p = write_json(diag, tmp_path / "d.json")
+    back = json.loads(p.read_text())
+    assert back["schema"] == DIAGNOSIS_SCHEMA and back["findings"][0]["effect"]
+    assert (tmp_path / "report" / "index.html").exists()
+    assert list((tmp_path / "report").glob("step1_*_maps.png"))
+
+
+def test_the_loop_is_deterministic(tmp_path_factory):
+    out = _campaign(tmp_path_factory, "determinism", {"x2": 3e-4}, seed=6)
+    cfg = DiagnoseConfig(max_steps=3)
+    a = diagnose(out, config=cfg).to_json()
+    b = diagnose(out, config=cfg).to_json()
+    for d in (a, b):
+        d.pop("timing_s")
+    assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)

@@ -1,17 +1,23 @@
-"""Candidate linearisation kernels and Gauss-Helmert loops for ``hartrao_jax._ghm`` (benchmarks only).
+"""Candidate solver pieces for ``hartrao_jax._ghm`` (benchmarks only; tested by bench_ghm.py).
 
-Everything here is written so that it can be copied into ``_ghm.py`` as is:
+Everything here is written so that it can be copied into ``_ghm.py``:
 
 * :func:`materialize_trig` -- wraps any per-point condition so that ``sin``/``cos``/``tan`` of
-  each distinct argument are computed ONCE per point and stored, instead of being recomputed by
-  XLA in every fusion that uses them (the dominant cost of the linearisation on the CPU).
+  each distinct argument are computed ONCE per point (a custom-JVP ``sincos`` behind a runtime
+  ``lax.cond``), instead of being recomputed by XLA in every fusion that uses them; it also
+  merges expressions the model traces twice (CSE on the jaxpr).
+* :func:`_materialize` -- the same fusion boundary for the linearisation ``(F, a, b)``: with
+  several consumers (store, masked normals) XLA otherwise re-runs the derivative per consumer.
 * :func:`linearize_rev` / :func:`linearize_fwd` -- ``(F, a, b)`` of a chunk of points by
   reverse mode (``value_and_grad`` under ``vmap``, what ``_ghm`` does now) or forward mode
-  (``jacfwd`` over the concatenated ``(x, l)`` tangents).
-* :func:`gh_one_pass` -- the Gauss-Helmert iteration with ONE linearisation per point and
-  iteration: the residual update of iteration k is fused into the normal-equation pass of
-  iteration k+1, from per-point quantities stored by pass k (``a``, ``b``, ``w``, ``m``; storage
-  dtype selectable, float32 by default).
+  (``jacfwd`` over the concatenated ``(x, l)`` tangents; 3-4x slower here).
+* :func:`gh_one_pass` / :func:`fit` -- the Gauss-Helmert iteration with ONE linearisation per
+  point and iteration: the residual update of iteration k is fused into the normal-equation
+  pass of iteration k+1, from per-point ``a, b`` (float32) and ``w, m`` (float64) stored in
+  place by pass k; no padding copy of the observations (the last chunk overlaps).
+
+All of them need ``on``: a runtime boolean scalar (True) passed into the jitted function as an
+argument and not batched by ``vmap``.
 """
 
 from __future__ import annotations
@@ -294,7 +300,7 @@ def make_pass(condition, l, consts, weights, sigma_l, on, *, lin, chunk, trig=Tr
 
 @partial(jax.jit, static_argnames=("lin", "chunk", "max_iter", "store_dtype", "trig"))
 def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *, lin,
-                chunk=1 << 16, max_iter=30, store_dtype=jnp.float32, trig=True):
+                chunk=4096, max_iter=30, store_dtype=jnp.float32, trig=True):
     """Rigorous Gauss-Helmert adjustment with ONE linearisation per point and iteration.
 
     Pass k (a ``fori_loop`` over chunks), per chunk:
@@ -364,7 +370,7 @@ def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *,
 
 
 def fit(condition, l, x0, sigma_l, consts=None, weights=None, v0=None, *, lin=None,
-        chunk_size=1 << 16, tol=1e-6, max_iter=30, store_dtype=jnp.float32, trig=True):
+        chunk_size=4096, tol=1e-6, max_iter=30, store_dtype=jnp.float32, trig=True):
     """Python wrapper: defaults, chunk size, the runtime ``on`` flag (must be an argument)."""
     l = jnp.asarray(l, jnp.float64)
     n = l.shape[0]

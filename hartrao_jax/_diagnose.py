@@ -64,7 +64,9 @@ log = logging.getLogger("hartrao_jax")
 DIAGNOSIS_SCHEMA = "hartrao-diagnosis/1"
 
 MOTION: dict[str, tuple[str, ...]] = {
-    "impulsive_shift": SHIFT, "oscillation": OSCILLATION, "drift": DRIFT,
+    # a steady rotation of the scanner about x or y moves the far points like a translation:
+    # within one scan the drift rotations are inseparable from the drift translations
+    "impulsive_shift": SHIFT, "oscillation": OSCILLATION, "drift": DRIFT[:3],
 }
 ZERNIKE_TESTED: tuple[int, ...] = (5, 6, 7, 8, 9, 10, 11)  # Noll; defocus (4) is the focal length
 PROBE = ("shift_x", "shift_y", "shift_z", "osc_cx", "osc_cy")  # translation (3), rotation x, y
@@ -192,6 +194,7 @@ class _Spec:
     panels: dict[str, np.ndarray] | None = None  # offset, tilt_r, tilt_t per panel
     accepted: list[str] = field(default_factory=list)
     skip: set[str] = field(default_factory=set)  # found confounded: not tested again
+    modelled: set[tuple[str, str]] = field(default_factory=set)  # (scan, covariate) maps
 
     def names(self) -> list[str]:
         out = list(self.start) + list(self.shared)
@@ -992,7 +995,7 @@ def _local_candidates(ctx: _Context, scans: Sequence[_Scan], spec: _Spec) -> dic
             if "period_s" not in mot and sc.period_s and _want(wanted, "oscillation"):
                 names += list(OSCILLATION)
             if not any(n in DRIFT for n in mot.get("names", ())) and _want(wanted, "drift"):
-                names += list(DRIFT)
+                names += list(MOTION["drift"])
         out[sc.id] = names
     return out
 
@@ -1522,7 +1525,8 @@ def _options(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint,
             add(_Option("dish", "unexplained", "generic", _log_sf(T, dof) + lm, T, dof, eff,
                         {"flagged": flagged, "est": est, "cells": cells, "Tg": Tg}))
         for i, sc in enumerate(S):
-            ct = _covariate_tests(sc, cfg, s0)
+            ct = {k: v for k, v in _covariate_tests(sc, cfg, s0).items()
+                  if (sc.id, k) not in spec.modelled}
             if not ct:
                 continue
             name = min(ct, key=lambda k: _log_sf(ct[k][0], ct[k][1]))
@@ -1923,6 +1927,7 @@ def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Op
             where[f"{name}_range"] = [float(v.min()), float(v.max())]
             pn, cnt = np.unique(sc.panel[hit & (sc.panel >= 0)], return_counts=True)
             where["panels"] = [int(p) for p in pn[np.argsort(-cnt)][:20]]
+        spec.modelled.add((sc.id, name))
         if name == "time":
             sc.cut = sc.cut | (np.isin(ids, sig_bins) & (ids >= 0))
             action = f"cut {int(sc.cut.sum())} points of the affected time range"

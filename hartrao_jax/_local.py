@@ -75,6 +75,18 @@ def _bump(params, x, y):
     return A * np.exp(-((x - x0) ** 2 + (y - y0) ** 2) / (2 * w * w)) + b0 + bx * (x - x0) + by * (y - y0)
 
 
+def _coverage(xy: np.ndarray, x0: float, y0: float, w: float, n: int = 15) -> float:
+    """Share of a grid over the disc of radius ``w`` at (x0, y0) that has a data point nearby."""
+    from scipy.spatial import cKDTree
+
+    g = np.linspace(-w, w, n)
+    gx, gy = np.meshgrid(g, g)
+    inside = gx**2 + gy**2 <= w * w
+    pts = np.column_stack([x0 + gx[inside], y0 + gy[inside]])
+    d, _ = cKDTree(xy).query(pts)
+    return float(np.mean(d < 2 * w / n + 1e-9))
+
+
 def fit_bump(xy: np.ndarray, dev: np.ndarray, x0: float, y0: float, w0: float, sigma_dev: float):
     """Least-squares 2-D Gaussian bump on a plane around ``(x0, y0)``; returns (params, sigmas)."""
     sel = np.hypot(xy[:, 0] - x0, xy[:, 1] - y0) < 4 * w0
@@ -104,11 +116,15 @@ def find_local_deformations(
     z_min: float = 8.0,
     min_amplitude_m: float = 0.0,
     max_count: int = 3,
+    min_coverage: float = 0.7,
+    max_tries: int = 12,
 ) -> list[LocalDeformation]:
     """Localised deformations in deviations ``dev`` (m) at surface coordinates ``xy`` (m).
 
     ``sigma_dev_m``: noise of one point's deviation (m); ``z_min``: significance needed;
-    ``min_amplitude_m``: practical size needed (|A|). Returns the deformations, strongest first.
+    ``min_amplitude_m``: practical size needed (|A|); ``min_coverage``: share of the disc of
+    radius ``width`` around a candidate that must hold data (else it is an edge effect).
+    Returns the deformations, strongest first.
     """
     xy = np.asarray(xy, float)
     dev = np.asarray(dev, float)
@@ -122,7 +138,9 @@ def find_local_deformations(
     cell = min(scales_m) / 2
     origin = xy.min(axis=0) - 8 * max(scales_m)
     shape = tuple(np.ceil((xy.max(axis=0) + 8 * max(scales_m) - origin) / cell).astype(int) + 1)
-    for _ in range(max_count):
+    for _ in range(max_tries):
+        if len(out) >= max_count:
+            break
         best = None
         for sc in scales_m:
             z, ij = _bandpass_z(xy[mask], dev[mask], sigma_dev_m, sc, cell, origin, shape)
@@ -141,6 +159,10 @@ def find_local_deformations(
         w = float(np.exp(lw))
         if not np.isfinite(A) or abs(A) < min_amplitude_m or w > 20 * max(scales_m):
             break
+        if _coverage(xy[mask], x0, y0, w) < min_coverage:
+            # a blob at the border of the data is an edge effect of the fit, not a bump
+            mask &= np.hypot(xy[:, 0] - cx, xy[:, 1] - cy) > 2 * sc
+            continue
         out.append(LocalDeformation(float(x0), float(y0), float(A), float(sg[0]), w, float(zmax),
                                     n, float(sc)))
         mask &= np.hypot(xy[:, 0] - x0, xy[:, 1] - y0) > 2.5 * w

@@ -108,25 +108,34 @@ def print_fit_table(cf, title="fit") -> None:
         t.add_column(escape(c), justify="right")
     extra = [n for n in cf.model_names if n not in ("tx", "ty", "tz", "rx", "ry", "f")]
     units = {n: parameter_unit(n) for n in extra}
-    for n in extra:
-        u = units[n]
-        t.add_column(escape(f'{n} [{"″" if u == "rad" else "mm" if u == "m" else u}]'), justify="right")
     import math
 
     for s in cf.scans:
-        est = s.estimates
         f, sf = s.value("f"), s.sigma_of("f")
-        row = [
+        t.add_row(
             s.meta.id, f"{f:.5f}", f"{sf * 1e3:.3f}", f"{s.sigma0:.3f}", f"{s.n_points}",
             f"{s.n_rejected}", f"{s.iterations}{'' if s.converged else '!'}",
             f"{math.degrees(s.alignment.kappa_rad):.1f}",
-        ]
-        for n in extra:
-            scale = 206264.806 if units[n] == "rad" else 1000.0 if units[n] == "m" else 1.0
-            v, sg = est[n]
-            row.append(_pm(v * scale, sg * scale, 1 if scale > 1 else 6))
-        t.add_row(*row)
+        )
     _console().print(t)
+    if extra:
+        ct = Table(title="calibration (″ = arcsec)", padding=(0, 1))
+        ct.add_column("scan", justify="right")
+        for n in extra:
+            u = units[n]
+            ct.add_column(escape(f'{n} [{"″" if u == "rad" else "mm" if u == "m" else u}]'),
+                          justify="right")
+        for s in cf.scans:
+            row = [s.meta.id]
+            for n in extra:
+                scale = 206264.806 if units[n] == "rad" else 1000.0 if units[n] == "m" else 1.0
+                if n in s.names:
+                    v, sg = s.estimates[n]
+                    row.append(_pm(v * scale, sg * scale, 2 if scale > 1 else 6))
+                else:
+                    row.append("fixed")
+            ct.add_row(*row)
+        _console().print(ct)
     pt = Table(title="positions", padding=(0, 1))
     for c in ("position", "elevation [°]", "f [m]", "σf [mm]"):
         pt.add_column(escape(c), justify="right")
@@ -301,7 +310,8 @@ def _print_truth_comparison(cf, truth: dict) -> None:
         t.add_column(c, justify="right")
     scans = {s["id"]: s for s in truth.get("scans", [])}
     for s in cf.scans:
-        tr = scans.get(s.meta.id, {}).get("fit_frame", scans.get(s.meta.id, {}))
+        tr = dict(scans.get(s.meta.id, {}))
+        tr.update(tr.get("model_parameters", {}))
         for n, (v, sg) in s.estimates.items():
             if n in tr and isinstance(tr[n], (int, float)):
                 t.add_row(s.meta.id, n, f"{tr[n]:.7g}", f"{v:.7g}", f"{sg:.2g}",

@@ -238,3 +238,30 @@ def test_gravity_json_and_figures(gravity_fit):
         assert (results / f).is_file()
     # the same model from the directory as from memory
     np.testing.assert_allclose(gm.c, np.array(list(doc["focal_length"]["df_dg_m"].values())))
+
+
+def test_cli_schedule_and_gravity(gravity_fit, tmp_path):
+    from click.testing import CliRunner
+
+    import hartrao_jax._cli_campaign  # noqa: F401  (registers the commands)
+    from hartrao_jax.cli import main
+
+    r = CliRunner().invoke(main, ["schedule", "--json", str(tmp_path / "plan.json")])
+    assert r.exit_code == 0, r.output
+    assert "| r23 | red | -35.0 | -64.00 |" in r.output
+    plan = json.loads((tmp_path / "plan.json").read_text())
+    assert len(plan["positions"]) == 88
+    _, _, _, results = gravity_fit
+    r = CliRunner().invoke(main, ["gravity", str(results), "--out", str(tmp_path / "g"),
+                                  "--grid-step", "10", "--no-figures"])
+    assert r.exit_code == 0, r.output
+    doc = json.loads((tmp_path / "g" / "gravity.json").read_text())
+    assert doc["schema"] == "hartrao-gravity/1"
+    r = CliRunner().invoke(main, ["gravity", str(results), "--out", str(tmp_path / "g2"),
+                                  "--temperature", "--no-figures", "--grid-step", "10"])
+    assert r.exit_code == 0, r.output
+    doc = json.loads((tmp_path / "g2" / "gravity.json").read_text())
+    assert "dT" in doc["focal_length"]["coefficients"]
+    (tmp_path / "empty").mkdir()
+    r = CliRunner().invoke(main, ["gravity", str(tmp_path / "empty")])
+    assert r.exit_code == 2 and "fit.json" in r.output

@@ -33,6 +33,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
@@ -89,11 +91,23 @@ def stage_simulate(a) -> None:
 
 
 def _keep(camp, preprocess: bool):
-    if not preprocess:
-        return None
-    from hartrao_jax._preprocess import PreprocessConfig, keep_mask_fn
+    """The preprocessing mask per scan -- and, as fit_campaign calls it once per scan, the place
+    to drop JAX's in-memory compilation caches now and then (176 scans of 176 sizes compile
+    some thousand programs: without this the process runs out of memory maps, see
+    ``_distributed.release_compiled``)."""
+    from hartrao_jax._distributed import release_compiled
 
-    return keep_mask_fn(PreprocessConfig(), camp)
+    k = None
+    if preprocess:
+        from hartrao_jax._preprocess import PreprocessConfig, keep_mask_fn
+
+        k = keep_mask_fn(PreprocessConfig(), camp)
+
+    def keep(meta, data):
+        release_compiled()
+        return k(meta, data) if k is not None else np.ones(len(data), bool)
+
+    return keep
 
 
 def stage_fit_local(a) -> None:

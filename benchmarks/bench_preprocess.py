@@ -224,6 +224,87 @@ def open3d_fit_planes(pts, n, eps, *, seed=0, ransac_iterations=64, **_):
 
 
 # --------------------------------------------------------------------------------------------
+# The refinement alternative: the generic Gauss-Helmert solver on every patch (batched)
+# --------------------------------------------------------------------------------------------
+
+
+def gh_comparison(n_rows: float, n_patches: int) -> dict:
+    """Rigorous GH plane per patch (``gauss_helmert_batch``) vs the TLS kernel, same patches.
+
+    Patches of the scanner-frame preprocessing of the scan; the GH condition is
+    ``_preprocess.PlaneCondition`` with its rotation passed per patch as constants.
+    """
+    import dataclasses
+
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    import hartrao_jax  # noqa: F401
+    from hartrao_jax import _preprocess as pp
+    from hartrao_jax._campaign import ScanMeta, default_campaign
+    from hartrao_jax._geometry import polar_to_cartesian
+    from hartrao_jax._ghm import gauss_helmert_batch
+
+    class PlaneC(eqx.Module):
+        def __call__(self, l, x, c):
+            v = jnp.stack([x[0], x[1], jnp.ones_like(x[0])])
+            nrm = c[:9].reshape(3, 3) @ (v / jnp.sqrt(jnp.sum(v * v)))
+            return nrm @ polar_to_cartesian(l[0], l[1], l[2]) - x[2]
+
+    data, cls, step = load_scan(n_rows)
+    camp = default_campaign()
+    camp = dataclasses.replace(camp, scanner=dataclasses.replace(camp.scanner,
+                                                                 angular_step_rad=step))
+    meta = ScanMeta("r23c1", "r23", 1, "", ha_deg=-35.0, dec_deg=-64.0)
+    res = pp.preprocess_scan(camp, meta, data, pp.PreprocessConfig(frame="scanner"))
+    cand = np.flatnonzero(res.patch_inliers >= 20)
+    ids = np.sort(np.random.default_rng(0).choice(cand, min(n_patches, len(cand)), replace=False))
+    rows = [np.flatnonzero((res.patch == i) & res.keep) for i in ids]
+    P = max(len(r) for r in rows)
+    L = np.zeros((len(ids), P, 3))
+    W = np.zeros((len(ids), P))
+    X = np.zeros((len(ids), P, 3))
+    C = np.zeros((len(ids), P, 9))
+    X0 = np.zeros((len(ids), 3))
+    for b, (i, rr) in enumerate(zip(ids, rows)):
+        l = np.stack([data.range_m[rr], data.phi_rad[rr], data.theta_rad[rr]], 1)
+        L[b, : len(rr)], L[b, len(rr):] = l, l[0]
+        W[b, : len(rr)] = 1.0
+        A, B, Cc, D = res.planes[i]
+        cond = pp.PlaneCondition.around([A, B, Cc])
+        C[b] = np.asarray(cond.R0).ravel()
+        X0[b] = [0.0, 0.0, -D]
+        xs = np.asarray(polar_to_cartesian(l[:, 0], l[:, 1], l[:, 2]))
+        X[b, : len(rr)] = xs - xs.mean(0)
+    sig = np.array([camp.scanner.sigma_range_m, camp.scanner.sigma_angle_rad,
+                    camp.scanner.sigma_angle_rad])
+    out = {"n_patches": len(ids), "padded_points": P}
+    for tag in ("first", "warm"):
+        t = time.perf_counter()
+        gh = gauss_helmert_batch(PlaneC(), L, X0, sig, C, W)
+        jax.block_until_ready(gh.x)
+        out[f"gh_{tag}_s"] = time.perf_counter() - t
+    n_valid = W.sum(1).astype(int)
+    for tag in ("first", "warm"):
+        t = time.perf_counter()
+        tls = pp.fit_planes(X.astype(np.float32), n_valid, 1.0, refine_iterations=2)
+        out[f"tls_{tag}_s"] = time.perf_counter() - t
+    # the TLS normal in the GH parameters (x0, x1); Mahalanobis distance with the GH covariance
+    R0 = C[:, 0].reshape(-1, 3, 3)
+    v = np.einsum("bji,bj->bi", R0, tls["normal"])  # R0^T n
+    v = v / v[:, 2:3]
+    dx = v[:, :2] - np.asarray(gh.x)[:, :2]
+    cov = np.asarray(gh.cov)[:, :2, :2]
+    z = np.sqrt(np.einsum("bi,bij,bj->b", dx, np.linalg.inv(cov), dx))
+    out["mahalanobis_median"] = float(np.median(z))
+    out["mahalanobis_p95"] = float(np.percentile(z, 95))
+    out["mahalanobis_max"] = float(np.max(z))
+    out["gh_converged"] = float(np.mean(np.asarray(gh.converged)))
+    return out
+
+
+# --------------------------------------------------------------------------------------------
 # Worker: one method on one scan, in its own process
 # --------------------------------------------------------------------------------------------
 
@@ -306,6 +387,29 @@ def run_worker(method: str, n_rows: float, timeout: float, calls: int) -> dict:
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
+def _gh_md(gh: dict | None) -> str:
+    if not gh:
+        return ""
+    if "error" in gh:
+        return f"## Refinement: generic Gauss-Helmert per patch\n\nfailed: {gh['error']}\n\n"
+    return (
+        "## Refinement: generic Gauss-Helmert per patch vs the vmapped TLS kernel\n\n"
+        f"{gh['n_patches']} patches of the smallest scan (scanner frame, kept points, padded to "
+        f"{gh['padded_points']}): `gauss_helmert_batch` with the plane condition in raw "
+        f"observations (`PlaneCondition`) took {gh['gh_first_s']:.2f} s first call, "
+        f"{gh['gh_warm_s']:.2f} s warm; the TLS kernel (`fit_planes`, RANSAC included) "
+        f"{gh['tls_first_s']:.2f} s / {gh['tls_warm_s']:.3f} s. The TLS normal lies "
+        f"{gh['mahalanobis_median']:.3f} (median), {gh['mahalanobis_p95']:.3f} (95 %), "
+        f"{gh['mahalanobis_max']:.3f} (max) standard deviations (Mahalanobis, GH covariance) "
+        f"from the GH normal; GH converged on {100 * gh['gh_converged']:.0f} % of the patches. "
+        "Patches drawn at random among those with at least 20 kept points; the largest "
+        "differences are in the sample rings around the scanner's nadir, where a patch is a "
+        "few-centimetre arc and the tilt across it is barely determined (GH then also trades "
+        "the tilt against the noise's anisotropy, which TLS ignores; the classification is "
+        "unaffected).\n\n"
+    )
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sizes", default="1e6,1.3e7")
@@ -317,8 +421,14 @@ def main(argv=None):
                     help="workers per method and size, interleaved (best of: shared machine)")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--xla-cache", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--gh-patches", type=int, default=500,
+                    help="patches of the 1e6 scan for the GH-vs-TLS refinement comparison "
+                         "(0: skip)")
     ap.add_argument("--size", type=float, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.worker == "gh":
+        print(json.dumps(gh_comparison(args.size, args.gh_patches), default=float))
+        return
     if args.worker:
         print(json.dumps(worker(args.worker, args.size, args.calls, args.xla_cache),
                          default=float))
@@ -328,12 +438,12 @@ def main(argv=None):
     load_start = os.getloadavg()
     import shutil
 
-    shutil.rmtree(CACHE / "xla", ignore_errors=True)  # round 1 compiles cold, later rounds hit
     sizes = [float(s) for s in args.sizes.split(",")]
     methods = args.methods.split(",")
     rows = []
     for n in sizes:
         make_scan(n)
+        shutil.rmtree(CACHE / "xla", ignore_errors=True)  # round 1 compiles cold, then hits
         best: dict[str, dict] = {}
         for rnd in range(args.rounds):
             for m in methods:
@@ -366,6 +476,15 @@ def main(argv=None):
                     r["agree_with_jax"] = float(np.mean(np.load(ref) == np.load(mine)))
                 r["throughput_Mpts_s"] = r["n_rows"] / r["total_s"] / 1e6
             rows.append(r)
+    gh = None
+    if args.gh_patches:
+        print("GH vs TLS refinement ...", flush=True)
+        cmd = [sys.executable, __file__, "--worker", "gh", "--size", repr(min(sizes)),
+               "--gh-patches", str(args.gh_patches)]
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
+        gh = (json.loads(p.stdout.strip().splitlines()[-1]) if p.returncode == 0 else
+              {"error": " | ".join((p.stderr or p.stdout).strip().splitlines()[-3:])})
+        print(json.dumps(gh), flush=True)
     info = machine_info()
     info["loadavg_start"] = [round(v, 1) for v in load_start]
     info["loadavg_end"] = [round(v, 1) for v in os.getloadavg()]
@@ -415,6 +534,7 @@ def main(argv=None):
         "process's `ru_maxrss`; *baseline* is its peak after loading the scan (Python, JAX, "
         "the scan's columns). *same mask as jax*: fraction of rows with the same keep flag.\n\n"
         + md_table(rows, cols) + "\n" + "\n".join(verdict) + "\n\n"
+        + _gh_md(gh)
         + "Machine: " + ", ".join(f"{k}={v}" for k, v in info.items()) + "\n"
     )
     p_md, _ = write_results("preprocess", md, {"machine": info, "rows": rows})

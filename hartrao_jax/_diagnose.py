@@ -57,7 +57,7 @@ from ._campaign import Campaign, ScanData, ScanMeta, load_campaign
 from ._geometry import face_of, panel_geometry, panel_ids, paraboloid_normal_scale
 from ._ghm import gauss_helmert, normal_equations, robust_gauss_helmert
 from ._model import DRIFT, OSCILLATION, SHIFT, ZERNIKE_PREFIX, make_model, parse_model
-from ._physics import EFFECTS, INSTRUMENT, OBJECT_PARAMETERS, inseparable_pairs
+from ._physics import EFFECTS, INSTRUMENT, inseparable_pairs
 
 log = logging.getLogger("hartrao_jax")
 
@@ -194,7 +194,7 @@ class _Spec:
     panels: dict[str, np.ndarray] | None = None  # offset, tilt_r, tilt_t per panel
     accepted: list[str] = field(default_factory=list)
     skip: set[str] = field(default_factory=set)  # found confounded: not tested again
-    modelled: set[tuple[str, str]] = field(default_factory=set)  # (scan, covariate) maps
+    modelled: set[str] = field(default_factory=set)  # covariates modelled by a map
 
     def names(self) -> list[str]:
         out = list(self.start) + list(self.shared)
@@ -232,7 +232,8 @@ def _scan_model(sc: _Scan, spec: _Spec, aperture: float, extra: Sequence[str] = 
 
 @eqx.filter_jit
 def _pointwise(model, probe, l, x, xp, c, s2):
-    """Per point: ``m = b Sigma b^T``, ``dF/dr`` and the probe derivatives (translation, rotation)."""
+    """Per point: ``m = b Sigma b^T``, ``dF/dr`` and the probe derivatives (translation,
+    rotation)."""
     k = len(PROBE)
 
     def one(args):
@@ -606,35 +607,81 @@ def _covariate_values(sc: _Scan) -> dict[str, np.ndarray]:
     }
 
 
-def _covariate_tests(sc: _Scan, cfg: DiagnoseConfig, sigma0: float, names=COVARIATES):
-    """Binned structure of the range-equivalent mismatch along each covariate, per face.
+def _covariate_tests(ctx: _Context, scans: Sequence[_Scan], sigma0: float, names=COVARIATES,
+                     skip=frozenset()):
+    """Binned structure of the range-equivalent mismatch along each covariate, all scans jointly.
 
-    A range error per (face, quantile bin) is the alternative: ``T = sum_bins (sum q b0 F)^2 /
-    sum q b0^2 / sigma0^2`` (chi-square with one dof per bin under the null; conservative, the
-    object parameters are not eliminated). Returns ``{covariate: (T, dof, bin ids, bin means)}``.
+    The alternative is a range error per (scan, face, quantile bin of the covariate). One plane
+    per panel (offset and two tilts, common to all scans) is eliminated, so panel-level
+    reflector deviations do not show as covariate structure. Returns ``{covariate: dict(T, dof,
+    ids (per scan), est (range error per bin, m), se (m), per_scan)}``; the object parameters
+    are not eliminated (conservative).
     """
-    u = sc.used & (sc.m > 0)
-    q = np.where(u, 1.0 / np.where(sc.m > 0, sc.m, 1.0), 0.0)
-    vals = _covariate_values(sc)
-    out = {}
+    cfg = ctx.config
     nb = cfg.covariate_bins
+    G = ctx.n_panels
+    per_scan = 2 * nb
+    out = {}
+    base = []
+    Mgg = np.zeros((G, 3, 3))
+    ug = np.zeros((G, 3))
+    for sc in scans:
+        u = sc.used & (sc.m > 0)
+        q = np.where(u, 1.0 / np.where(sc.m > 0, sc.m, 1.0), 0.0)
+        pp = u & (sc.panel >= 0)
+        D = _panel_columns(ctx, sc) * sc.s_rho[:, None]  # d condition / d plane parameters
+        base.append((sc, u, q, pp, D, _covariate_values(sc)))
+        for a in range(3):
+            ug[:, a] += np.bincount(sc.panel[pp], (q * D[:, a] * sc.F)[pp], minlength=G)
+            for b in range(3):
+                Mgg[:, a, b] += np.bincount(sc.panel[pp], (q * D[:, a] * D[:, b])[pp],
+                                            minlength=G)
+    Mi = np.linalg.pinv(Mgg, rcond=1e-10)
     for name in names:
-        v = vals[name]
-        ids = np.full(len(v), -1)
-        for fc in (1, 2):
-            sel = u & (sc.face == fc)
-            if sel.sum() < 4 * nb:
-                continue
-            qs = np.quantile(v[sel], np.linspace(0, 1, nb + 1)[1:-1])
-            ids[sel] = (fc - 1) * nb + np.searchsorted(qs, v[sel], side="right")
-        ok = ids >= 0
-        G = 2 * nb
-        num = np.bincount(ids[ok], (q * sc.b0 * sc.F)[ok], minlength=G)
-        den = np.bincount(ids[ok], (q * sc.b0**2)[ok], minlength=G)
-        live = den > 0
-        T = float(np.sum(num[live] ** 2 / den[live])) / sigma0**2
-        means = np.where(live, num / np.where(live, den, 1.0), 0.0)  # range error per bin (m)
-        out[name] = (T, int(live.sum()), ids, means)
+        if name in skip:
+            continue
+        B = per_scan * len(scans)
+        Mbb = np.zeros(B)
+        ub = np.zeros(B)
+        Mbg = np.zeros((B * G, 3))
+        ids_all = []
+        for k, (sc, u, q, pp, D, vals) in enumerate(base):
+            v = vals[name]
+            ids = np.full(len(v), -1)
+            for fc in (1, 2):
+                sel = u & (sc.face == fc)
+                if sel.sum() < 4 * nb:
+                    continue
+                qs = np.quantile(v[sel], np.linspace(0, 1, nb + 1)[1:-1])
+                ids[sel] = (fc - 1) * nb + np.searchsorted(qs, v[sel], side="right")
+            ids_all.append(ids)
+            ok = ids >= 0
+            gid = k * per_scan + ids[ok]
+            Mbb += np.bincount(gid, (q * sc.b0**2)[ok], minlength=B)
+            ub += np.bincount(gid, (q * sc.b0 * sc.F)[ok], minlength=B)
+            okp = ok & pp
+            cell = (k * per_scan + ids[okp]) * G + sc.panel[okp]
+            for a in range(3):
+                Mbg[:, a] += np.bincount(cell, (q * sc.b0 * D[:, a])[okp], minlength=B * G)
+        live = Mbb > 0
+        if live.sum() < 2:
+            continue
+        Mbg = Mbg.reshape(B, G, 3)
+        W = np.einsum("bgi,gij->bgj", Mbg, Mi)
+        Sm = np.diag(Mbb) - np.einsum("bgj,cgj->bc", W, Mbg)
+        m = ub - np.einsum("bgj,gj->b", W, ug)
+        Sm, m = Sm[np.ix_(live, live)], m[live]
+        w, V = np.linalg.eigh(0.5 * (Sm + Sm.T))
+        keep = w > 1e-9 * w.max()
+        proj = V[:, keep].T @ m
+        T = float(np.sum(proj**2 / w[keep])) / sigma0**2
+        est = np.zeros(B)
+        est[live] = V[:, keep] @ (proj / w[keep])
+        se = np.zeros(B)
+        se[live] = sigma0 * np.sqrt(np.maximum(np.einsum("ij,j,ij->i", V[:, keep],
+                                                         1.0 / w[keep], V[:, keep]), 0.0))
+        out[name] = {"T": T, "dof": int(keep.sum()), "ids": ids_all, "est": est, "se": se,
+                     "per_scan": per_scan}
     return out
 
 
@@ -929,9 +976,10 @@ class _Joint:
         T = float(np.sum(proj**2 / lam[keep])) / s0**2 if keep.any() else 0.0
         dof = int(keep.sum())
         delta = -U[:, keep] @ (proj / lam[keep]) if keep.any() else np.zeros(len(m))
-        cov = (U[:, keep] / lam[keep]) @ U[:, keep].T * s0**2 if keep.any() else np.zeros((len(m),) * 2)
+        cov = ((U[:, keep] / lam[keep]) @ U[:, keep].T * s0**2 if keep.any()
+               else np.zeros((len(m),) * 2))
         sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
-        effect = math.sqrt(max(T, 0.0) * s0**2 / max(self.sum_q, 1e-300))
+        effect = math.sqrt(max(T - dof, 0.0) * s0**2 / max(self.sum_q, 1e-300))
         # correlation of each tested parameter with the null unknowns (for "with")
         with_, cw = [], []
         if len(m) == 1:
@@ -962,9 +1010,18 @@ class _Joint:
         return max(0.0, t.T - test.T), t.dof - test.dof
 
 
-@functools.lru_cache(maxsize=256)
+@functools.lru_cache(maxsize=1)
+def _inseparable_table() -> dict[frozenset, float]:
+    """Every pair of instrument parameters with the same correction shape (computed once)."""
+    return {frozenset((a, b)): c for a, b, c in inseparable_pairs(list(INSTRUMENT))}
+
+
 def _inseparable(names: tuple[str, ...]) -> tuple:
-    return tuple(inseparable_pairs(list(names)))
+    """The inseparable pairs among ``names`` (as :func:`inseparable_pairs`)."""
+    tab = _inseparable_table()
+    inst = [n for n in names if n in INSTRUMENT]
+    return tuple((a, b, tab[frozenset((a, b))]) for i, a in enumerate(inst) for b in inst[i + 1:]
+                 if frozenset((a, b)) in tab)
 
 
 def _local_candidates(ctx: _Context, scans: Sequence[_Scan], spec: _Spec) -> dict[str, list[str]]:
@@ -1069,7 +1126,6 @@ class Finding:
     rms_after_m: float
     explanation: str
     effect_size_m: float = 0.0
-    z: float = 0.0
     extra: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
@@ -1276,7 +1332,7 @@ def _where_of_signature(ctx: _Context, sc: _Scan, sig: np.ndarray, motion: bool)
     return out
 
 
-def _dish_map(sc: _Scan, values: np.ndarray, n: int = 96, R: float = 13.0):
+def _dish_map(sc: _Scan, values: np.ndarray, n: int = 96, R: float = 13.0):  # R: > rim
     """Binned mean of ``values`` on an ``n x n`` grid of telescope X, Y (for figures)."""
     u = sc.used
     X, Y = sc.X_tel[u, 0], sc.X_tel[u, 1]
@@ -1417,7 +1473,10 @@ def diagnose(
         options = _options(ctx, S, spec, joint, tests, confounded, wanted)
         spec.skip |= set(confounded)
         best = None
-        for o in sorted((o for o in options if o.eligible), key=lambda o: o.log_p):
+        # structure no catalog entry explains is considered once the catalog has nothing left
+        tier = sorted((o for o in options if o.eligible), key=lambda o: (
+            o.kind in ("dish", "covariate"), o.log_p))
+        for o in tier:
             why = _signature_check(ctx, S, spec, joint, o, options)
             if why:
                 o.eligible, o.reason = False, why
@@ -1480,7 +1539,7 @@ def _options(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint,
     cfg = ctx.config
     s0 = joint.sigma0
     do_unexp = _want(wanted, "unexplained")
-    m_tests = len(tests) + 2 + (len(S) * len(COVARIATES) if do_unexp else 0)
+    m_tests = len(tests) + 3
     la = math.log(cfg.alpha)
     lm = math.log(m_tests)
     opts: list[_Option] = []
@@ -1509,7 +1568,7 @@ def _options(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint,
     if spec.panels is None and _want(wanted, "panel_offset") and joint.G_live > 1:
         T = (joint.omega0_raw - joint.omega0) / s0**2
         dof = joint.G_live - 1
-        eff = math.sqrt(max(T, 0.0) * s0**2 / joint.sum_q)
+        eff = math.sqrt(max(T - dof, 0.0) * s0**2 / joint.sum_q)
         add(_Option("panel", "panel_offset", "reflector", _log_sf(T, dof) + lm, T, dof, eff,
                     None))
     if do_unexp:
@@ -1521,25 +1580,23 @@ def _options(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint,
             T = float(np.sum(Tg[flagged]))
             dof = int(np.sum(dofg[flagged]))
             qf = sum(float(np.sum((1.0 / sc.m)[sc.used & np.isin(sc.panel, flagged)])) for sc in S)
-            eff = math.sqrt(T * s0**2 / max(qf, 1e-300))
+            eff = math.sqrt(max(T - dof, 0.0) * s0**2 / max(qf, 1e-300))
             add(_Option("dish", "unexplained", "generic", _log_sf(T, dof) + lm, T, dof, eff,
                         {"flagged": flagged, "est": est, "cells": cells, "Tg": Tg}))
-        for i, sc in enumerate(S):
-            ct = {k: v for k, v in _covariate_tests(sc, cfg, s0).items()
-                  if (sc.id, k) not in spec.modelled}
-            if not ct:
-                continue
-            name = min(ct, key=lambda k: _log_sf(ct[k][0], ct[k][1]))
-            T, dof, ids, means = ct[name]
-            qs = float(np.sum(1.0 / sc.m[sc.used]))
-            eff = math.sqrt(max(T, 0.0) * s0**2 / qs)
-            add(_Option("covariate", "unexplained", "generic", _log_sf(T, dof) + lm, T, dof, eff,
-                        {"scan": i, "covariate": name, "ids": ids, "means": means,
-                         "all": {k: (v[0], v[1]) for k, v in ct.items()}}))
+        ct = _covariate_tests(ctx, S, s0, skip=spec.modelled)
+        if ct:
+            name = min(ct, key=lambda k: _log_sf(ct[k]["T"], ct[k]["dof"]))
+            r = ct[name]
+            eff = math.sqrt(max(r["T"] - r["dof"], 0.0) * s0**2 / joint.sum_q)
+            add(_Option("covariate", "unexplained", "generic",
+                        _log_sf(r["T"], r["dof"]) + lm + math.log(len(COVARIATES)), r["T"],
+                        r["dof"], eff, {"covariate": name, **r,
+                                        "all": {k: (v["T"], v["dof"]) for k, v in ct.items()}}))
     return opts
 
 
-def _detectability(ctx: _Context, joint: _Joint, tests: Sequence[_Test], m_tests: int) -> list[dict]:
+def _detectability(ctx: _Context, joint: _Joint, tests: Sequence[_Test],
+                   m_tests: int) -> list[dict]:
     """Minimal detectable amplitude of every candidate at the final solution (Baarda).
 
     The noncentrality ``lam`` gives 80 % power at the Bonferroni-adjusted level of a step; the
@@ -1856,19 +1913,21 @@ def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Op
                                if k in ("tilt_r", "tilt_t")}}  # tilts: reported, not modelled
         live = P["n_points"] > 0
         off = P["offset"]
-        order = np.argsort(-np.abs(np.where(live, off, 0.0)))
+        Sg = joint.group[0]
+        sig = np.where(Sg > 0, joint.sigma0 / np.sqrt(np.where(Sg > 0, Sg, 1.0)), np.inf)
+        order = np.argsort(-np.abs(np.where(live, off / sig, 0.0)))
         top = [int(g) for g in order[:12]]
         where = {"panels": top, "covariate": "panel"}
+        # sigma of the rms: the standard deviation of one offset (the noise floor of the rms)
         estimate = {"offset_rms_m": {"value": float(np.sqrt(np.mean(off[live] ** 2))),
-                                     "sigma": float(_panel_sigma(S, P))}}
+                                     "sigma": float(np.sqrt(np.mean(sig[live] ** 2)))}}
         for g in top[:5]:
-            estimate[f"panel_{g}_offset_m"] = {"value": float(off[g]),
-                                               "sigma": float(_panel_sigma(S, P, g))}
+            estimate[f"panel_{g}_offset_m"] = {"value": float(off[g]), "sigma": float(sig[g])}
         extra["panels"] = {"offset_m": [float(v) for v in off],
                            "tilt_radial_rad": [float(v) for v in P["tilt_r"]],
                            "tilt_tangential_rad": [float(v) for v in P["tilt_t"]]}
-        expl = (f"{expl}; {int(live.sum())} panels, offsets {1e3 * estimate['offset_rms_m']['value']:.3f}"
-                f" mm rms")
+        rms_mm = 1e3 * estimate["offset_rms_m"]["value"]
+        expl = f"{expl}; {int(live.sum())} panels, offsets {rms_mm:.3f} mm rms"
     elif o.kind in ("dish", "covariate"):
         dz = _joint_step(joint, None)
         _update_panels(spec, joint, dz)
@@ -1889,77 +1948,78 @@ def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Op
         pc = np.array([g["psi_c"][p] for p in flagged])
         wts = pl["Tg"][flagged]
         psi_m = float(np.degrees(np.angle(np.sum(wts * np.exp(1j * pc)))) % 360)
-        where = {"panels": [int(p) for p in flagged], "rho_m": float(np.sum(wts * rc) / np.sum(wts)),
+        where = {"panels": [int(p) for p in flagged],
+                 "rho_m": float(np.sum(wts * rc) / np.sum(wts)),
                  "psi_deg": psi_m,
                  "covariate": "rho" if np.ptp(rc) < np.ptp(pc) * np.mean(rc) else "psi"}
         a = np.concatenate(amp) if amp else np.zeros(1)
         estimate = {"amplitude_m": {"value": float(np.max(np.abs(a))) if a.size else 0.0,
                                     "sigma": float(joint.sigma0 * 0.0008)},
                     "rms_m": {"value": float(np.sqrt(np.mean(a**2))) if a.size else 0.0,
-                              "sigma": float(0.0)}}
+                              "sigma": 0.0}}
         expl = (f"structure within {len(flagged)} panel(s) common to all scans that neither panel "
-                f"offsets and tilts nor any catalog effect explain, near rho {where['rho_m']:.1f} m, "
+                f"offsets and tilts nor any catalog effect explain, near rho "
+                f"{where['rho_m']:.1f} m, "
                 f"psi {psi_m:.0f} deg; modelled as a measured deviation map")
         fam = "generic"
     elif o.kind == "covariate":
         pl = o.payload
-        sc = S[pl["scan"]]
         name = pl["covariate"]
-        ids, means = pl["ids"], pl["means"]
-        scans = [sc.id]
-        nb = ctx.config.covariate_bins
-        # significant bins
-        u = sc.used & (ids >= 0) & (sc.m > 0)
-        q = 1.0 / np.where(sc.m > 0, sc.m, 1.0)
-        den = np.bincount(ids[u], (q * sc.b0**2)[u], minlength=2 * nb)
-        se = joint.sigma0 / np.sqrt(np.where(den > 0, den, np.inf))
-        zb = np.where(den > 0, means / np.where(se > 0, se, 1.0), 0.0)
-        sig_bins = np.nonzero(np.abs(zb) > 4.0)[0]
-        hit = u & np.isin(ids, sig_bins)
-        where = {"cycle": sc.meta.cycle, "covariate": name}
-        faces = sorted({int(b // nb) + 1 for b in sig_bins})
-        if len(faces) == 1:
-            where["face"] = faces[0]
-        if hit.any():
+        nb, ps = ctx.config.covariate_bins, pl["per_scan"]
+        est, se = pl["est"], pl["se"]
+        spec.modelled.add(name)
+        scans, where, parts = [], {"covariate": name}, []
+        zmax = 0.0
+        for k, sc in enumerate(S):
+            ids = pl["ids"][k]
+            e = est[k * ps: (k + 1) * ps]
+            sg = se[k * ps: (k + 1) * ps]
+            z = np.where(sg > 0, e / np.where(sg > 0, sg, 1.0), 0.0)
+            big = np.nonzero((np.abs(z) > 5.0) & (np.abs(e) > ctx.config.min_effect_m))[0]
+            if not len(big):
+                continue
+            zmax = max(zmax, float(np.max(np.abs(z))))
+            scans.append(sc.id)
+            hit = sc.used & np.isin(ids, big)
             ph = np.degrees(sc.data.phi_rad[hit])
-            where["phi_deg"] = [float(ph.min()), float(ph.max())]
             v = _covariate_values(sc)[name][hit]
-            where[f"{name}_range"] = [float(v.min()), float(v.max())]
-            pn, cnt = np.unique(sc.panel[hit & (sc.panel >= 0)], return_counts=True)
-            where["panels"] = [int(p) for p in pn[np.argsort(-cnt)][:20]]
-        spec.modelled.add((sc.id, name))
+            parts.append({"scan": sc.id, "cycle": sc.meta.cycle,
+                          "faces": sorted({int(b // nb) + 1 for b in big}),
+                          "phi_deg": [float(ph.min()), float(ph.max())],
+                          f"{name}_range": [float(v.min()), float(v.max())],
+                          "range_error_m": [float(e[b]) for b in big]})
+            if name == "time":
+                sc.cut = sc.cut | np.isin(ids, big)
+            else:
+                ok = ids >= 0
+                sc.extra_known = sc.extra_known + np.where(
+                    ok, -sc.b0 * e[np.where(ok, ids, 0)] / sc.s_rho, 0.0)
+        if len(parts) == 1:
+            where.update({k: v for k, v in parts[0].items() if k not in ("scan", "faces",
+                                                                         "range_error_m")})
+            if len(parts[0]["faces"]) == 1:
+                where["face"] = parts[0]["faces"][0]
+        elif parts:
+            where["cycle"] = [p["cycle"] for p in parts]
+            where[f"{name}_range"] = [min(p[f"{name}_range"][0] for p in parts),
+                                      max(p[f"{name}_range"][1] for p in parts)]
+        extra["by_scan"] = parts
         if name == "time":
-            sc.cut = sc.cut | (np.isin(ids, sig_bins) & (ids >= 0))
-            action = f"cut {int(sc.cut.sum())} points of the affected time range"
+            action = f"cut {sum(int(sc.cut.sum()) for sc in S)} points of the affected time range"
         else:
-            ok = ids >= 0
-            corr = np.where(ok, -sc.b0 * means[np.where(ok, ids, 0)] / sc.s_rho, 0.0)
-            sc.extra_known = sc.extra_known + corr
-            action = f"modelled as a range correction per {name} bin"
-        _refit_all(ctx, S, spec, only=[sc], from_used=False)
-        estimate = {"range_error_rms_m": {"value": float(np.sqrt(np.mean(means[sig_bins] ** 2)))
-                                          if len(sig_bins) else 0.0,
-                                          "sigma": float(np.mean(se[sig_bins])) if len(sig_bins)
-                                          else 0.0}}
+            action = f"modelled as a range correction per {name.replace('_', ' ')} bin"
+        _refit_all(ctx, S, spec, only=[sc for sc in S if sc.id in scans], from_used=False)
+        allb = np.concatenate([p["range_error_m"] for p in parts]) if parts else np.zeros(1)
+        estimate = {"range_error_rms_m": {"value": float(np.sqrt(np.mean(allb**2))),
+                                          "sigma": float(np.median(se[se > 0]))}}
         extra["covariate_statistics"] = {k: {"statistic": _num(v[0]), "dof": v[1]}
                                          for k, v in pl["all"].items()}
-        expl = (f"residual structure in scan {sc.id} following {name.replace('_', ' ')} that no "
-                f"catalog effect explains; {action}")
+        expl = (f"residual structure in {', '.join(scans) or 'the scans'} following "
+                f"{name.replace('_', ' ')} that no catalog effect explains; {action}")
         fam = "generic"
     return Finding(effect=o.effect, family=fam, scans=scans, where=where, estimate=estimate,
                    statistic=o.T, dof=o.dof, p_value=0.0, sigma0_before=0.0, sigma0_after=0.0,
                    rms_before_m=0.0, rms_after_m=0.0, explanation=expl, extra=extra)
-
-
-def _panel_sigma(S, P, g: int | None = None) -> float:
-    """Approximate standard deviation of a panel offset (m) from the points per panel."""
-    s = np.sqrt(np.mean([sc.sigma0 for sc in S])) * 0.0
-    n = P["n_points"]
-    sig_pt = float(np.median([np.sqrt(np.median(sc.m[sc.used])) / np.median(sc.s_rho[sc.used])
-                              for sc in S]))
-    if g is None:
-        return sig_pt / math.sqrt(max(float(np.mean(n[n > 0])), 1.0)) + s
-    return sig_pt / math.sqrt(max(float(n[g]), 1.0)) + s
 
 
 def _fmt(name: str, v: float, s: float) -> str:

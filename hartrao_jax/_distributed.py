@@ -115,6 +115,29 @@ def close_client(client, cluster) -> None:
 # --------------------------------------------------------------------------------------------
 
 
+CLEAR_EVERY = 16  # tasks between jax.clear_caches() in a worker (see release_compiled)
+_tasks_since_clear = [0]
+
+
+def release_compiled(every: int = CLEAR_EVERY) -> bool:
+    """Drop JAX's in-memory compilation caches every ``every`` calls.
+
+    Every scan of a campaign has its own number of points, hence its own compiled programs;
+    after some thousand executables a process runs out of memory maps (``vm.max_map_count``,
+    65530 by default: LLVM then fails with "Cannot allocate memory" and the process dies).
+    Clearing the in-memory caches now and then bounds that; programs used again come back from
+    the persistent compilation cache. Returns True when it cleared.
+    """
+    _tasks_since_clear[0] += 1
+    if _tasks_since_clear[0] < every:
+        return False
+    import jax
+
+    jax.clear_caches()
+    _tasks_since_clear[0] = 0
+    return True
+
+
 @functools.lru_cache(maxsize=8)
 def _campaign(root: str):
     from ._campaign import load_campaign
@@ -161,6 +184,7 @@ def task_fit_scan(root: str, scan_id: str, model, fixed: dict | None, robust_k: 
     from ._campaign import read_scan
     from ._fit import fit_scan
 
+    release_compiled()
     t0 = time.perf_counter()
     camp = _campaign(root)
     meta = camp.scan(scan_id)
@@ -422,5 +446,5 @@ def _joint_on_workers(client, root, campaign, metas, fits, summaries, names, sha
 
 
 __all__ = ["DaskBackend", "DaskFit", "JaxWorkerPlugin", "ScanSummary", "WORKER_ENV",
-           "close_client", "fit_dask", "fit_document", "start_client", "thin_scan_fit",
-           "worker_setup"]
+           "close_client", "fit_dask", "fit_document", "release_compiled", "start_client",
+           "thin_scan_fit", "worker_setup"]

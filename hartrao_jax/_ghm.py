@@ -33,6 +33,8 @@ import lineax as lx
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from ._kernel import gh_one_pass, linearize_rev
+
 Condition = Callable[[Float[Array, "3"], Float[Array, " u"], Float[Array, " k"]], Float[Array, ""]]
 
 
@@ -168,52 +170,18 @@ def _pass_misclosure(condition, L, C, x):
     return jax.lax.map(lambda lc: f(lc[0], x, lc[1]), (L, C))
 
 
-@eqx.filter_jit
 def _gauss_helmert(condition, l, x0, sigma_l, consts, weights, v0, tol, *, max_iter, chunk_size):
-    n_pts = l.shape[0]
+    """One adjustment: the one-pass kernel (:mod:`._kernel`) and the result's statistics."""
     u = x0.shape[0]
-    s2 = jnp.broadcast_to(jnp.asarray(sigma_l, l.dtype) ** 2, l.shape)
-    (L, C, W, S2, V0), n = _chunked([l, consts, weights, s2, v0], chunk_size)
-    W = W.reshape(-1).at[n_pts:].set(0.0).reshape(W.shape)
-
-    def step(state):
-        x, V, it, _, _ = state
-        N, nvec = _pass_normals(condition, L, V, C, W, S2, x)
-        dx = _solve_normal(N, -nvec)
-        Vn, _, _ = _pass_residuals(condition, L, V, C, W, S2, x, dx)
-        Ninv_diag = jnp.diagonal(_inverse(N))
-        ratio = jnp.max(jnp.abs(dx) / jnp.sqrt(jnp.where(Ninv_diag > 0, Ninv_diag, 1.0)))
-        return x + dx, Vn, it + 1, ratio, ratio < tol
-
-    def cond(state):
-        _, _, it, _, done = state
-        return (it < max_iter) & ~done
-
-    state = (x0, V0, jnp.array(0), jnp.array(jnp.inf, l.dtype), jnp.array(False))
-    x, V, it, ratio, done = jax.lax.while_loop(cond, step, state)
-
-    # final statistics at the solution: one more linearisation (dx ~ 0)
-    N, nvec = _pass_normals(condition, L, V, C, W, S2, x)
-    dx = _solve_normal(N, -nvec)
-    Vn, E, omega = _pass_residuals(condition, L, V, C, W, S2, x, dx)
-    x = x + dx
-    n_used = jnp.sum(weights > 0)
-    red = n_used - u
+    x, N, Ninv, V, K, M, F0, omega, it, done = gh_one_pass(
+        condition, l, x0, sigma_l, consts, weights, v0, jnp.ones((), bool), tol,
+        lin=linearize_rev, chunk=chunk_size, max_iter=max_iter)
+    red = jnp.sum(weights > 0) - u
     sigma0 = jnp.sqrt(omega / jnp.maximum(red, 1).astype(omega.dtype))
-    Ninv = _inverse(N)
-    wmis = _pass_misclosure(condition, L, C, x)
     return GHResult(
-        x=x,
-        cov=sigma0**2 * Ninv,
-        N=N,
-        sigma0=sigma0,
-        v=_unchunk(Vn, n),
-        misclosure=_unchunk(wmis, n),
-        normalized=_unchunk(E, n) / sigma0,
-        weights=weights,
-        redundancy=red,
-        iterations=it,
-        converged=done,
+        x=x, cov=sigma0**2 * Ninv, N=N, sigma0=sigma0, v=V, misclosure=F0,
+        normalized=jnp.abs(K) * jnp.sqrt(M) / sigma0, weights=weights, redundancy=red,
+        iterations=it, converged=done,
     )
 
 
@@ -228,7 +196,7 @@ def gauss_helmert(
     v0: Float[Array, "n 3"] | None = None,
     max_iter: int = 30,
     tol: float = 1e-6,
-    chunk_size: int = 1 << 16,
+    chunk_size: int = 4096,
 ) -> GHResult:
     """Rigorous Gauss-Helmert adjustment of ``condition(l_i + v_i, x, c_i) = 0`` for all points.
 
@@ -251,8 +219,8 @@ def gauss_helmert(
     n = l.shape[0]
     consts = jnp.zeros((n, 0), l.dtype) if consts is None else jnp.asarray(consts, l.dtype)
     weights = jnp.ones((n,), l.dtype) if weights is None else jnp.asarray(weights, l.dtype)
-    v0 = jnp.zeros_like(l) if v0 is None else jnp.asarray(v0, l.dtype)
-    chunk = int(min(chunk_size, max(256, 1 << int(np.ceil(np.log2(max(n, 1)))))))
+    v0 = None if v0 is None else jnp.asarray(v0, l.dtype)
+    chunk = int(min(chunk_size, n))
     return _gauss_helmert(
         condition, l, jnp.asarray(x0, l.dtype), jnp.asarray(sigma_l, l.dtype), consts, weights,
         v0, float(tol), max_iter=max_iter, chunk_size=chunk,
@@ -269,7 +237,7 @@ def gauss_helmert_batch(
     *,
     max_iter: int = 30,
     tol: float = 1e-6,
-    chunk_size: int = 1 << 16,
+    chunk_size: int = 4096,
 ) -> GHResult:
     """Fit a batch of problems padded to one shape (weights 0 on padding) in one compiled call.
 
@@ -279,9 +247,9 @@ def gauss_helmert_batch(
     """
     l = jnp.asarray(l, jnp.float64)
     n = l.shape[1]
-    chunk = int(min(chunk_size, max(256, 1 << int(np.ceil(np.log2(max(n, 1)))))))
+    chunk = int(min(chunk_size, n))
     fn = lambda ll, xx, cc, ww: _gauss_helmert(
-        condition, ll, xx, jnp.asarray(sigma_l, l.dtype), cc, ww, jnp.zeros_like(ll),
+        condition, ll, xx, jnp.asarray(sigma_l, l.dtype), cc, ww, None,
         float(tol), max_iter=max_iter, chunk_size=chunk,
     )
     return eqx.filter_jit(jax.vmap(fn))(l, jnp.asarray(x0, l.dtype), jnp.asarray(consts, l.dtype),

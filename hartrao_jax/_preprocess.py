@@ -23,13 +23,17 @@ first stage that removed it (:data:`REASONS`):
    ``patch_size_m`` x ``patch_size_m`` at the reflector's range: ``dtheta = s / R`` and, per
    theta band, ``dphi = s / (R sin theta)`` (so patches near the nadir are not slivers). Faces
    are keyed separately, so a patch never mixes face 1 (theta < pi) and face 2. Patches with
-   more points than the power of two above the median patch (and than ``max_patch_points``)
-   are cut into strips of consecutive rows (so one padded size serves almost every patch),
-   patches with fewer than ``min_patch_points`` are removed (``small_patch``).
+   more points than the power of two above the median patch (and than ``max_patch_points``),
+   that is the cells near the nadir, where the scanner's constant angular steps crowd the
+   points, are subdivided in theta and phi into sub-patches of at least 4 x 4 grid lines (so
+   one padded size serves almost every patch, and no patch is a line); patches with fewer
+   than ``min_patch_points`` are removed (``small_patch``; a sparse sub-patch joins its
+   fullest sibling instead).
 5. RANSAC (JAX, vmapped over all patches of a scan, chunked with ``lax.map(batch_size=...)``):
    ``ransac_iterations`` minimal samples (3 distinct points) per patch, scored by the MSAC cost
-   ``sum min(d^2, eps^2)`` over up to ``score_points`` points spread over the patch, then a
-   plane refinement on all its points (see below). Points beyond ``epsilon`` from
+   ``sum min(d^2, eps^2)`` over up to ``score_points`` points spread over the patch, the
+   best plane refined on those points (see below), then one pass over all the patch's points
+   classifies them and fits the reported plane to the inliers. Points beyond ``epsilon`` from
    the refined plane are removed (paper eq. 4, ``ransac_outlier``); a patch whose plane holds
    fewer than ``min_patch_points`` inliers is removed as a whole (``small_patch``).
 
@@ -53,7 +57,8 @@ Plane refinement: the rigorous Gauss-Helmert plane adjustment in the raw observa
 distance from the plane. Inside one patch (0.3 m seen from ~12 m: ray directions within
 +-0.7 deg, ranges within +-1 %) ``m_i`` varies by ~1 %, so the GH solution is, to a small
 fraction of its standard deviation, the total-least-squares plane of the inliers (smallest
-eigenvector of their scatter matrix), iterated with the inlier set. That is what runs here,
+eigenvector of their scatter matrix), iterated with the inlier set. That is what runs here
+(iterated on the scoring points, then once on all inliers of the patch),
 vmapped over thousands of patches in one compiled call; the generic GH solver once per patch
 (a while-loop of chunked passes per patch, 5000 patches per scan) would cost seconds to
 minutes. The test suite checks on one patch that both give the same plane (measured: 0.08
@@ -134,13 +139,15 @@ class PreprocessConfig:
         allowance_m: added to the automatic ``epsilon``; None: frame-dependent (module doc).
         ransac_iterations: minimal samples (hypotheses) per patch.
         score_points: hypotheses are scored on this many points spread over the patch (all
-            points when the patch is smaller); refinement and inliers use every point.
+            points when the patch is smaller) and the RANSAC plane refined on them; the
+            classification (and the reported plane) use every point.
         refine_iterations: total-least-squares refinements after RANSAC.
         min_patch_points: smaller patches (and planes with fewer inliers) are removed.
-        max_patch_points: larger patches are cut into strips of at most this many points.
+        max_patch_points: hard size limit: larger patches are cut into strips of consecutive
+            rows (a memory bound; the subdivision below normally keeps patches smaller).
         split_quantile: patches above the power of two covering this quantile of the patch
-            sizes are cut into strips too: with the median, almost every patch lands in one
-            padded size (one compilation, at most 2x padding).
+            sizes are subdivided: with the median, almost every patch lands in one padded
+            size (one compilation, at most 2x padding).
         seed: seeds the RANSAC samples and the initial-value search: same seed, same result.
         use_initial_values: derive the windows and the "flat" frame from the initial values.
         geometry_window_m: half-width of the window about the initial paraboloid (vertical).
@@ -152,8 +159,8 @@ class PreprocessConfig:
             inside the height window, :func:`refine_pose`) before the radius tests.
         frame: "flat", "scanner" or None (flat when initial values exist, else scanner).
         batch_size: patches per vmapped chunk of ``lax.map``; None: from ``memory_mb``.
-        memory_mb: budget of one vmapped chunk's intermediates (float64 copies of the padded
-            patches, the scoring points x hypotheses matrices).
+        memory_mb: working set of one vmapped step (its patches' copies and scoring
+            matrices). Small is fast: a cache-sized step (8 MB) ran 3x faster than 64 MB.
         ransac_float32: fit the planes in float32 (coordinates relative to the patch
             centroid, distances rounded to ~0.1 um); False: float64.
     """
@@ -183,7 +190,7 @@ class PreprocessConfig:
     pose_sample: int = 20000
     frame: str | None = None
     batch_size: int | None = None
-    memory_mb: float = 64.0
+    memory_mb: float = 8.0
     ransac_float32: bool = True
 
     def __post_init__(self):
@@ -397,7 +404,12 @@ def default_range_window(
 
 
 class _Bins:
-    """Angular discretisation: dense int32 patch key (face, theta band, phi bin) of a point."""
+    """Angular discretisation: dense int32 patch key (face, theta band, phi bin) of a point.
+
+    :meth:`subdivide` splits crowded cells into ``a x b`` sub-cells (theta x phi): the
+    scanner's grid of constant angular steps puts ``1 / sin(theta)`` times more points per
+    square metre near the nadir, so cells there hold many times the typical count.
+    """
 
     def __init__(self, cycle: int, size_m: float, range_m: float):
         self.dth = size_m / range_m
@@ -409,19 +421,91 @@ class _Bins:
         self.n_phi = np.maximum(1, np.round(self.span * range_m * np.sin(centres) / size_m)
                                 ).astype(np.int64)
         self.J = int(self.n_phi.max())
-        self.n_keys = 2 * self.n_band * self.J
-        if self.n_keys >= 2**31:
+        self.n_cells = 2 * self.n_band * self.J
+        if self.n_cells >= 2**31:
             raise ValueError(f"patch size {size_m} m is too small for this scan")
+        self.sub_a = self.sub_b = None
+        self.n_sub = 1
+
+    @property
+    def n_keys(self) -> int:
+        return self.n_cells * self.n_sub
+
+    def cell_extent(self) -> tuple[np.ndarray, np.ndarray]:
+        """Angular size (theta, phi; rad) of every cell."""
+        band = (np.arange(self.n_cells) // self.J) % self.n_band
+        return np.full(self.n_cells, self.dth), self.span / self.n_phi[band]
+
+    def grid_step(self, occ: np.ndarray, nominal: float) -> float:
+        """The scan's angular step (rad): the campaign's, or coarser if the data say so.
+
+        A fully covered cell of ``dtheta x dphi`` holds ``dtheta dphi / step^2`` points; the
+        first quartile over the cells (partly covered ones overestimate) is the estimate.
+        """
+        dth, dph = self.cell_extent()
+        ok = occ >= 4
+        if not ok.any():
+            return float(nominal)
+        est = float(np.quantile(np.sqrt(dth[ok] * dph[ok] / occ[ok]), 0.25))
+        return max(float(nominal), est)
+
+    def subdivide(self, occ: np.ndarray, cap: int, step: float, min_lines: int = 4) -> bool:
+        """Give every cell with more than ``cap`` points ``a x b >= count / cap`` sub-cells.
+
+        Sub-cells keep at least ``min_lines`` rows and lines of the scan's grid (``step``):
+        thinner ones would be (nearly) collinear, and a plane through a line cannot reject
+        points off the surface. Counts per angular cell are uniform, so are the sub-cells'.
+        """
+        dth, dph = self.cell_extent()
+        a_max = np.maximum(1, np.floor(dth / (min_lines * step))).astype(np.int64)
+        b_max = np.maximum(1, np.floor(dph / (min_lines * step))).astype(np.int64)
+        m = np.maximum(1, -(-occ // cap))
+        a = np.clip(np.ceil(np.sqrt(m)), 1, a_max).astype(np.int64)
+        b = np.clip(-(-m // a), 1, b_max).astype(np.int64)
+        a = np.clip(-(-m // b), 1, a_max).astype(np.int64)
+        n_sub = int((a * b).max())
+        if n_sub == 1 or self.n_cells * n_sub >= 2**31:
+            return False
+        self.sub_a, self.sub_b, self.n_sub = a, b, n_sub
+        return True
 
     def keys(self, phi: np.ndarray, theta: np.ndarray) -> np.ndarray:
         face2 = theta >= np.pi
         th0 = np.where(face2, 2 * np.pi - theta, theta)
-        band = np.minimum((th0 * (1.0 / self.dth)).astype(np.int64), self.n_band - 1)
+        tb = th0 * (1.0 / self.dth)
+        band = np.minimum(tb.astype(np.int64), self.n_band - 1)
         nb = self.n_phi[band]
         u = phi - self.lo
         u = np.where(u < 0, u + 2 * np.pi, u)
-        j = np.minimum((u * (1.0 / self.span) * nb).astype(np.int64), nb - 1)
-        return ((face2 * self.n_band + band) * self.J + j).astype(np.int32)
+        tj = u * (1.0 / self.span) * nb
+        j = np.minimum(tj.astype(np.int64), nb - 1)
+        cell = (face2 * self.n_band + band) * self.J + j
+        if self.sub_a is None:
+            return cell.astype(np.int32)
+        a, b = self.sub_a[cell], self.sub_b[cell]
+        sa = np.clip(((tb - band) * a).astype(np.int64), 0, a - 1)
+        sb = np.clip(((tj - j) * b).astype(np.int64), 0, b - 1)
+        return (cell * self.n_sub + sa * b + sb).astype(np.int32)
+
+    def merge_sparse(self, keys: np.ndarray, occ: np.ndarray, min_points: int):
+        """Move the points of sub-cells with fewer than ``min_points`` (whose cell has enough)
+        to the fullest sub-cell of their cell; returns the new keys and counts."""
+        if self.n_sub == 1:
+            return keys, occ
+        o2 = occ.reshape(self.n_cells, self.n_sub)
+        cell_total = o2.sum(1)
+        tiny = (o2 > 0) & (o2 < min_points) & (cell_total >= min_points)[:, None]
+        if not tiny.any():
+            return keys, occ
+        target = np.arange(self.n_cells)[:, None] * self.n_sub + np.argmax(o2, 1)[:, None]
+        remap = np.arange(self.n_keys, dtype=np.int32).reshape(self.n_cells, self.n_sub)
+        remap = np.where(tiny, target, remap).astype(np.int32).reshape(-1)
+        out = np.empty_like(keys)
+        new_occ = np.zeros(self.n_keys, np.int64)
+        for s, e in _blocks(len(keys)):
+            out[s:e] = remap[keys[s:e]]
+            new_occ += np.bincount(out[s:e], minlength=self.n_keys)
+        return out, new_occ
 
 
 def _keys(phi, theta, idx, bins: _Bins) -> tuple[np.ndarray, np.ndarray]:
@@ -432,20 +516,6 @@ def _keys(phi, theta, idx, bins: _Bins) -> tuple[np.ndarray, np.ndarray]:
         out[s:e] = bins.keys(phi[idx[s:e]], theta[idx[s:e]])
         occ += np.bincount(out[s:e], minlength=bins.n_keys)
     return out, occ
-
-
-def _auto_patch_size(phi, theta, idx, cycle, range_m: float, cfg: PreprocessConfig):
-    """Patch side (m) for about ``target_patch_points`` per patch; and the 0.3-m median."""
-    s0 = 0.30
-    bins = _Bins(cycle, s0, range_m)
-    occ = np.zeros(bins.n_keys, np.int64)
-    for s, e in _blocks(len(idx)):
-        occ += np.bincount(bins.keys(phi[idx[s:e]], theta[idx[s:e]]), minlength=bins.n_keys)
-    occ = occ[occ > 0]
-    typical = float(np.median(occ)) if len(occ) else 0.0
-    if typical <= 0:
-        return s0, typical
-    return s0 * max(1.0, math.sqrt(cfg.target_patch_points / typical)), typical
 
 
 # --------------------------------------------------------------------------------------------
@@ -605,8 +675,8 @@ def ransac_uniforms(seed: int, ids: np.ndarray, n_hyp: int) -> np.ndarray:
 def fit_planes(
     pts: np.ndarray, n: np.ndarray, eps: np.ndarray | float, *, seed: int = 0,
     ransac_iterations: int = 64, refine_iterations: int = 2, ransac_float32: bool = True,
-    score_points: int = 256, batch_size: int | None = None, memory_mb: float = 64.0,
-    ids: np.ndarray | None = None, max_chunk: int = 8192,
+    score_points: int = 256, batch_size: int | None = None, memory_mb: float = 8.0,
+    ids: np.ndarray | None = None, max_chunk: int = 1024,
 ) -> dict[str, np.ndarray]:
     """RANSAC + TLS planes of padded patches (the JAX core, usable on its own).
 
@@ -619,7 +689,7 @@ def fit_planes(
             patch does not depend on the chunking or on the other patches.
         score_points: points (spread over the patch) that score the hypotheses.
         batch_size: patches per vmapped step of ``lax.map``; None: as many as fit in
-            ``memory_mb`` (the (P, 3) float64 copies and the scoring matrices).
+            ``memory_mb`` (the patches' working copies and scoring matrices).
         max_chunk: patches per compiled call; calls use power-of-two patch counts up to this,
             so the same few shapes (and compilations) serve every scan.
     Returns a dict of NumPy arrays: ``inlier`` (n_patches, P) bool, ``normal`` (n_patches, 3),
@@ -641,7 +711,7 @@ def fit_planes(
     n_run = np.where(good, np.minimum(n, P), 3).astype(np.int32)  # dummies: 3-point fits
     U = ransac_uniforms(seed, ids, H)
     dt_pts = np.float32 if ransac_float32 else np.float64
-    fit = int(max(1, memory_mb * 2**20 // (P * 3 * 8)))  # patches of float64 copies per call
+    fit = int(max(1, 64 * 2**20 // (P * 3 * 8)))  # patches per call: inputs below 64 MB
     per_call = max(batch_size, _next_pow2(fit + 1) // 2)
     n_call = int(min(max_chunk, per_call, _next_pow2(max(n_p, 1))))
     bs = int(min(batch_size, n_call))
@@ -729,7 +799,8 @@ def _size_buckets(counts: np.ndarray, ids: np.ndarray, min_share: float = 0.2) -
 
 
 def _segment(keys: np.ndarray, occ: np.ndarray, max_pp: int):
-    """Sort points by patch; cut patches larger than ``max_pp`` into consecutive strips.
+    """Sort points by patch; cut patches still larger than ``max_pp`` (a memory bound; after
+    :meth:`_Bins.subdivide` a rare case) into strips of consecutive rows.
 
     ``occ``: points per dense key (``bincount(keys)``).
 
@@ -810,7 +881,7 @@ def preprocess_scan(
     if frame == "flat" and init is None:
         notes.append("frame 'flat' needs initial values: using 'scanner'")
         frame = "scanner"
-    pose = None
+    pose, R_ref = None, None
     if init is not None:
         pose = dict(init.x)
         if cfg.refine_pose:
@@ -823,17 +894,25 @@ def preprocess_scan(
                                   <= cfg.geometry_window_m)[: cfg.pose_sample]
             if len(near) >= 100:
                 pose = refine_pose(tuple(c[near] for c in xs), pose)
+                R_ref = float(np.median(r[rows[near]]))
     f_use = pose["f"] if pose is not None else tel.focal_length_m
 
     # ---- range window (eq. 3), from the (refined) pose
     auto_lo, auto_hi = default_range_window(campaign, pose, cfg)
     d_min = auto_lo if cfg.d_min_m is None else float(cfg.d_min_m)
     d_max = auto_hi if cfg.d_max_m is None else float(cfg.d_max_m)
+    if R_ref is None:  # the reflector's typical range sets the angular size of the patches
+        rows = sample_rows(lambda c: finite[c] & (r[c] >= d_min) & (r[c] <= d_max), 20000)
+        R_ref = float(np.median(r[rows])) if len(rows) else float(tel.focal_length_m)
 
     # ---- range and geometry windows, block by block; survivors' coordinates for the planes
     rim = tel.diameter_m / 2 + abs(tel.offset_m)
     inner = tel.cone_radius_m - cfg.cone_margin_m if tel.offset_m == 0 else -np.inf
-    idx_parts, coord_parts = [], []
+    # patch keys computed here for the survivors, at the requested size or at 0.3 m (the
+    # automatic size starts from the points per 0.3-m patch and is 0.3 m on fine scans)
+    bins = _Bins(meta.cycle, cfg.patch_size_m or 0.30, R_ref)
+    occ_all = np.zeros(bins.n_keys, np.int64)
+    idx_parts, coord_parts, key_parts = [], [], []
     for s, e in _blocks(n):
         alive = finite[s:e] & (r[s:e] >= d_min) & (r[s:e] <= d_max)
         reason[s:e][finite[s:e] & ~alive] = RANGE_WINDOW
@@ -849,19 +928,25 @@ def preprocess_scan(
             xs = tuple(c[good] for c in (Xf if frame == "flat" else xs))
         idx_parts.append((s + ia).astype(np.int64))
         coord_parts.append(xs)
+        key_parts.append(bins.keys(phi[s + ia], th[s + ia]))
+        occ_all += np.bincount(key_parts[-1], minlength=bins.n_keys)
     idx = np.concatenate(idx_parts) if idx_parts else np.zeros(0, np.int64)
     coords = [np.concatenate([c[k] for c in coord_parts]) if coord_parts else np.zeros(0)
               for k in range(3)]
-    del idx_parts, coord_parts
+    keys = np.concatenate(key_parts) if key_parts else np.zeros(0, np.int32)
+    del idx_parts, coord_parts, key_parts
     timing["windows"] = time.perf_counter() - t0
 
     # ---- patches
     t0 = time.perf_counter()
-    R_ref = float(np.median(r[idx[:: max(1, len(idx) // 100_000)]])) if len(idx) else \
-        float(tel.focal_length_m)
     typical = None
     if cfg.patch_size_m is None:
-        size, typical = _auto_patch_size(phi, th, idx, meta.cycle, R_ref, cfg)
+        occ0 = occ_all[occ_all > 0]
+        typical = float(np.median(occ0)) if len(occ0) else 0.0
+        size = 0.30 * (max(1.0, math.sqrt(cfg.target_patch_points / typical)) if typical else 1)
+        if size > 0.30:  # a coarse scan: larger patches
+            bins = _Bins(meta.cycle, size, R_ref)
+            keys, occ_all = _keys(phi, th, idx, bins)
     else:
         size = float(cfg.patch_size_m)
     sigma_n = math.hypot(sc.sigma_range_m, sc.sigma_angle_rad * d_max)
@@ -873,14 +958,16 @@ def preprocess_scan(
         allowance = (1.3 * size) ** 2 / (12 * f_use)
     eps = cfg.k_sigma * sigma_n + allowance if cfg.epsilon_m is None else float(cfg.epsilon_m)
 
-    bins = _Bins(meta.cycle, size, R_ref)
-    keys, occ_all = _keys(phi, th, idx, bins)
     occ = occ_all[occ_all >= cfg.min_patch_points]
     cap = cfg.max_patch_points
-    if len(occ):  # the few outsized patches (near the nadir) become strips of the common size
+    if len(occ):  # crowded cells (near the nadir) are subdivided to the common size
         q = float(np.quantile(occ, cfg.split_quantile))
         cap = int(min(cap, max(64, _next_pow2(int(math.ceil(q))))))
-    order, pid, counts, starts = _segment(keys, occ_all, cap)
+        step = bins.grid_step(occ_all, sc.angular_step_rad)
+        if bins.subdivide(occ_all, cap, step):
+            keys, occ_all = _keys(phi, th, idx, bins)
+            keys, occ_all = bins.merge_sparse(keys, occ_all, cfg.min_patch_points)
+    order, pid, counts, starts = _segment(keys, occ_all, cfg.max_patch_points)
     del keys
     n_patches = len(counts)
     patch_of = np.full(n, -1, np.int32)

@@ -172,7 +172,8 @@ def score(case: Case, diag: dict, truth: dict, seed: int, time_s: float) -> Scor
     if not hits:
         return sc
     f = hits[0]
-    sc.improved = (f["sigma0_after"] < f["sigma0_before"]) and (f["rms_after_m"] < f["rms_before_m"])
+    sc.improved = (f["sigma0_after"] < f["sigma0_before"]
+                   and f["rms_after_m"] < f["rms_before_m"])
     tscans = {s["id"]: s for s in truth["scans"]}
     e = case.expect
     est = f["estimate"]
@@ -311,7 +312,8 @@ def run_prove(out_dir, *, seeds: int = 3, cases=None, step_rad: float = 0.01,
                 sc, doc = Score(case.name, seed, False, None, None, None, [f"error: {e}"], 0.0), {}
             scores.append(sc)
             docs.setdefault(case.name, []).append(
-                {"seed": seed, "findings": [(f["effect"], f["scans"]) for f in doc.get("findings", [])],
+                {"seed": seed,
+                 "findings": [(f["effect"], f["scans"]) for f in doc.get("findings", [])],
                  "confounded": [c["effect"] for c in doc.get("confounded", [])]})
             if progress:
                 log.info("%s seed %d: found=%s located=%s estimate=%s improved=%s false=%s "

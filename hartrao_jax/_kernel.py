@@ -1,0 +1,324 @@
+"""The Gauss-Helmert iteration kernel: ONE linearisation per point and iteration.
+
+Used by :func:`hartrao_jax._ghm.gauss_helmert`. Two measures make autodiff as fast as
+hand-derived derivatives on XLA-CPU (``benchmarks/results/kernels.md``):
+
+* :func:`materialize_trig` rewrites the per-point condition's jaxpr so that ``sin``/``cos``/
+  ``tan`` of each distinct argument are computed once per point (a custom-JVP ``sincos`` behind a
+  runtime ``lax.cond``, a fusion boundary XLA cannot see through) and merges expressions the
+  model builds twice; XLA otherwise recomputes the trig in every fusion that uses it.
+* :func:`gh_one_pass` fuses the residual update of iteration k into the normal-equation pass of
+  iteration k+1, from per-point ``a, b`` (float32) and ``w, m`` (float64) stored in place, so
+  each iteration linearises every point once; the observations are never padded or copied.
+
+Every function needs ``on``: a runtime boolean scalar (True) passed into the jitted function as
+an argument and not batched by ``vmap``.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jax.extend import core as jcore
+
+# --------------------------------------------------------------------------------------------
+# sin/cos computed once: custom-JVP sincos materialised behind a runtime lax.cond
+# --------------------------------------------------------------------------------------------
+
+
+def _sincos_impl(x, on):
+    # A conditional is a fusion boundary: XLA cannot duplicate sin/cos into each consumer fusion.
+    # ``on`` must be a runtime, unbatched boolean (True), else XLA folds the cond away (constant)
+    # or vmap turns it into a select (batched) and the trig is duplicated again.
+    return lax.cond(on, lambda v: (jnp.sin(v), jnp.cos(v)),
+                    lambda v: (jnp.zeros_like(v), jnp.ones_like(v)), x)
+
+
+@jax.custom_jvp
+def sincos(x, on):
+    """``(sin x, cos x)`` computed once and stored (see ``_sincos_impl``)."""
+    return _sincos_impl(x, on)
+
+
+@sincos.defjvp
+def _sincos_jvp(primals, tangents):
+    x, on = primals
+    dx, _ = tangents
+    s, c = sincos(x, on)
+    return (s, c), (c * dx, -s * dx)
+
+
+_TRIG = {"sin", "cos", "tan"}
+
+
+def _hashable(params):
+    try:
+        key = tuple(sorted(params.items()))
+        hash(key)
+        return key
+    except TypeError:
+        return None
+
+
+def _eval_cse(jaxpr, consts, args, on, memo):
+    """Evaluate ``jaxpr`` with common-subexpression elimination and materialised trig.
+
+    ``memo`` maps (primitive, params, ids of inputs) -> outputs, so an expression traced twice
+    by the model (e.g. the corrected theta, built once for the range/angle terms and again for
+    the phi terms) is evaluated once, and sin/cos/tan of one argument share one ``sincos``.
+    """
+    env = {}
+
+    def read(v):
+        return v.val if isinstance(v, jcore.Literal) else env[v]
+
+    def key_of(v):
+        if isinstance(v, jcore.Literal):
+            try:
+                return ("lit", float(v.val), str(v.aval))
+            except TypeError:
+                return ("lit", id(v.val))
+        return id(env[v])
+
+    for v, x in zip(jaxpr.constvars, consts):
+        env[v] = x
+    for v, x in zip(jaxpr.invars, args):
+        env[v] = x
+    for eqn in jaxpr.eqns:
+        name = eqn.primitive.name
+        invals = [read(v) for v in eqn.invars]
+        if name in _TRIG:
+            x = invals[0]
+            k = ("sincos", id(x))
+            if k not in memo:
+                memo[k] = (x, sincos(x, on))
+            s, c = memo[k][1]
+            out = [s if name == "sin" else c if name == "cos" else s / c]
+        elif name in ("pjit", "jit", "closed_call", "core_call") and "jaxpr" in eqn.params:
+            sub = eqn.params["jaxpr"]
+            out = _eval_cse(sub.jaxpr, sub.consts, invals, on, memo)
+        else:
+            pk = None if eqn.effects else _hashable(eqn.params)  # never merge effectful ops
+            k = None if pk is None else (name, pk, tuple(key_of(v) for v in eqn.invars))
+            if k is not None and k in memo:
+                out = memo[k][1]
+            else:
+                ans = eqn.primitive.bind(*invals, **eqn.primitive.get_bind_params(eqn.params))
+                out = list(ans) if eqn.primitive.multiple_results else [ans]
+                if k is not None:
+                    memo[k] = (invals, out)  # keep the inputs alive: ids stay unique
+        for v, x in zip(eqn.outvars, out):
+            if not isinstance(v, jcore.DropVar):
+                env[v] = x
+    return [read(v) for v in jaxpr.outvars]
+
+
+def materialize_trig(fun, on):
+    """``fun`` with each distinct ``sin``/``cos``/``tan`` argument evaluated once per call.
+
+    ``fun`` is any pure JAX function (here the per-point condition ``(l, x, c) -> F``); ``on``
+    a runtime boolean scalar equal to True that is NOT batched (pass it into the jitted solver
+    as an argument). Works under ``vmap``, ``jacfwd``, ``grad`` and ``jit``.
+    """
+
+    def wrapped(*args):
+        flat, tree = jax.tree_util.tree_flatten(args)
+        closed, out_shape = jax.make_jaxpr(lambda *f: fun(*jax.tree_util.tree_unflatten(tree, f)),
+                                           return_shape=True)(*flat)
+        out = _eval_cse(closed.jaxpr, closed.consts, flat, on, {})
+        return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(out_shape), out)
+
+    return wrapped
+
+
+# --------------------------------------------------------------------------------------------
+# Linearisations of a chunk of points: (F (n,), a (n, u), b (n, 3))
+# --------------------------------------------------------------------------------------------
+
+
+def linearize_rev(condition, l, x, c, on=None):
+    """``(F, a, b)`` of a chunk: reverse mode under vmap; ``on``: materialise the trig."""
+    if on is not None:
+        condition = materialize_trig(condition, on)
+
+    def one(ll, cc):
+        F, (a, b) = jax.value_and_grad(lambda xx, l2: condition(l2, xx, cc), argnums=(0, 1))(x, ll)
+        return F, a, b
+
+    return jax.vmap(one)(l, c)
+
+
+# --------------------------------------------------------------------------------------------
+# Gauss-Helmert loop: one linearisation per point and iteration
+# --------------------------------------------------------------------------------------------
+
+
+def _solve(N, rhs):
+    """``N^-1 rhs`` and ``N^-1`` with Jacobi scaling and Cholesky (as ``_ghm._solve_normal``)."""
+    d = 1.0 / jnp.sqrt(jnp.where(jnp.diagonal(N) > 0, jnp.diagonal(N), 1.0))
+    Ns = N * d[:, None] * d[None, :]
+    L = jnp.linalg.cholesky(Ns)
+    Li = jax.scipy.linalg.solve_triangular(L, jnp.eye(N.shape[0], dtype=N.dtype), lower=True)
+    Ninv_s = Li.T @ Li
+    return (Ninv_s @ (rhs * d)) * d, Ninv_s * d[:, None] * d[None, :]
+
+
+def _materialize(on, tree):
+    """Identity behind a runtime ``lax.cond``: a fusion boundary, so XLA computes ``tree``
+    once instead of duplicating its producers into every consumer fusion."""
+    return lax.cond(on, lambda t: t, lambda t: jax.tree_util.tree_map(jnp.zeros_like, t), tree)
+
+
+def _window(i, chunk, n):
+    """Start of chunk ``i`` (the last one is shifted back to end at ``n``: no padding copy) and
+    the mask of its points not already covered by chunk ``i - 1``."""
+    start = jnp.minimum(i * chunk, n - chunk)
+    fresh = start + jnp.arange(chunk) >= i * chunk
+    return start, fresh
+
+
+def make_pass(condition, l, consts, weights, sigma_l, on, *, lin, chunk, trig=True,
+              store_dtype=jnp.float32, mat=True):
+    """The per-iteration pass of :func:`gh_one_pass`: ``one_pass(x, dx_prev, store)``.
+
+    Returns ``(one_pass, residuals, store0(v0), nc)``; ``one_pass`` gives ``(N, n, store)``.
+    """
+    n = l.shape[0]
+    nc = -(-n // chunk)
+    f = l.dtype
+    s2 = jnp.asarray(sigma_l, f) ** 2  # (3,) or (n, 3)
+    per_point_s2 = s2.ndim == 2
+
+    def sl(a, start):
+        return lax.dynamic_slice_in_dim(a, start, chunk, axis=0)
+
+    def chunk_s2(start):
+        return sl(s2, start) if per_point_s2 else s2
+
+    def store0(u, v0=None):
+        if v0 is None:
+            b_start = jnp.zeros((nc, chunk, 3), store_dtype)
+        else:
+            b0 = (v0 / s2).astype(store_dtype)
+            b_start = jax.vmap(lambda i: sl(b0, _window(i, chunk, n)[0]))(jnp.arange(nc))
+        return (jnp.zeros((nc, chunk, u), store_dtype), b_start,
+                -jnp.ones((nc, chunk), f), jnp.ones((nc, chunk), f))
+
+    def residuals(st, i, dx, start):
+        # materialise the chunk's slice of the store before it is overwritten in place: else
+        # XLA fuses the slice into several consumers and, unable to order them before the
+        # in-place update, copies the WHOLE store every chunk (O(n^2 / chunk) traffic). The
+        # runtime cond is a fusion boundary (an optimization_barrier is not: XLA drops it).
+        a, b, wm, m = lax.cond(on, lambda st: tuple(s[i] for s in st),
+                               lambda st: tuple(jnp.zeros(s.shape[1:], s.dtype) for s in st), st)
+        k = -((a.astype(f) @ dx) + wm) / m
+        return k, chunk_s2(start) * b.astype(f) * k[:, None], m
+
+    def one_pass(x, dx_prev, store):
+        u = x.shape[0]
+
+        def body(i, carry):
+            N, nv, store = carry
+            start, fresh = _window(i, chunk, n)
+            s2c = chunk_s2(start)
+            w8 = jnp.where(fresh, sl(weights, start), 0.0)
+            _, v, _ = residuals(store, i, dx_prev, start)
+            F, a, b = lin(condition, sl(l, start) + v, x, sl(consts, start), on if trig else None)
+            # materialise the linearisation once: a, b have several consumers (store, masked
+            # normals) and XLA would otherwise re-run the whole derivative per consumer (2x)
+            if mat:
+                F, a, b = _materialize(on, (F, a, b))
+            wm = F - jnp.sum(b * v, axis=-1)
+            m = jnp.sum(b * b * s2c, axis=-1)
+            ok = (w8 > 0) & (m > 0)
+            q = jnp.where(ok, w8 / jnp.where(ok, m, 1.0), 0.0)
+            a0 = jnp.where(ok[:, None], a, 0.0)
+            aq = a0 * q[:, None]
+            N = N + aq.T @ a0
+            nv = nv + aq.T @ jnp.where(ok, wm, 0.0)
+            new = (a.astype(store_dtype), b.astype(store_dtype), wm, jnp.where(m > 0, m, 1.0))
+            store = tuple(s.at[i].set(v_) for s, v_ in zip(store, new))
+            return N, nv, store
+
+        init = (jnp.zeros((u, u), f), jnp.zeros((u,), f), store)
+        return lax.fori_loop(0, nc, body, init)
+
+    return one_pass, residuals, store0, nc
+
+
+@eqx.filter_jit
+def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *, lin,
+                chunk=4096, max_iter=30, store_dtype=jnp.float32, trig=True):
+    """Rigorous Gauss-Helmert adjustment with ONE linearisation per point and iteration.
+
+    Pass k (a ``fori_loop`` over chunks), per chunk:
+
+    1. residuals of iteration k-1 from the stored ``a, b, w, m`` and ``dx_{k-1}``:
+       ``k = -(a.dx + w) / m``, ``v = Sigma b k``;
+    2. linearise at ``(l + v, x_k)`` -> ``F, a, b``; ``w = F - b.v``; ``m = b Sigma b``;
+    3. accumulate ``N``, ``n`` and overwrite the chunk's stored ``a, b, w, m`` in place.
+
+    ``dx_k = -N^-1 n``. After convergence one sweep over the store gives ``v``, ``k`` at the
+    solution (no further linearisation). The start store encodes ``v0``: ``a = 0``,
+    ``b = v0 / sigma^2``, ``w = -1``, ``m = 1`` gives ``k = 1``, ``v = v0``.
+
+    ``a`` and ``b`` are stored in ``store_dtype`` (float32: 48 instead of 96 bytes per point):
+    they only enter the correction ``a.dx`` (-> 0 at convergence) and ``v = Sigma b k`` (to
+    1e-7 relative, ~1e-10 m); ``w``, ``m`` stay float64. The observations are never copied
+    or padded: the last chunk overlaps the previous one, its repeated points masked.
+
+    Returns ``(x, N, N^-1, v (n, 3), k (n,), m (n,), F(l, x) (n,), omega, iterations,
+    converged)``; ``normalized = |k| sqrt(m) / sigma0``.
+    """
+    n, u = l.shape[0], x0.shape[0]
+    f = l.dtype
+    one_pass, residuals, store0_fn, nc = make_pass(
+        condition, l, consts, weights, sigma_l, on, lin=lin, chunk=chunk, trig=trig,
+        store_dtype=store_dtype)
+    store0 = store0_fn(u, v0)
+
+    def step(state):
+        x, dx_prev, store, it, _, _, _ = state
+        N, nv, store = one_pass(x, dx_prev, store)
+        dx, Ninv = _solve(N, -nv)
+        ratio = jnp.max(jnp.abs(dx) / jnp.sqrt(jnp.where(jnp.diagonal(Ninv) > 0, jnp.diagonal(Ninv), 1.0)))
+        return x + dx, dx, store, it + 1, N, Ninv, ratio < tol
+
+    def cond(state):
+        return (state[3] < max_iter) & ~state[6]
+
+    zu = jnp.zeros((u, u), f)
+    state = (x0, jnp.zeros_like(x0), store0, jnp.array(0), zu, zu, jnp.array(False))
+    x, dx, store, it, N, Ninv, done = lax.while_loop(cond, step, state)
+
+    # at the solution: residuals from the store (no linearisation) and the misclosure F(l, x)
+    # at the observations (a primal-only evaluation), in one sweep
+    cond_mt = materialize_trig(condition, on) if trig else condition
+    misclosure = jax.vmap(cond_mt, in_axes=(0, None, 0))
+
+    def fin(i, carry):
+        omega, V, K, M, F0 = carry
+        start, fresh = _window(i, chunk, n)
+        sl = partial(lax.dynamic_slice_in_dim, start_index=start, slice_size=chunk)
+        w8 = jnp.where(fresh, sl(weights), 0.0)
+        k, v, m = residuals(store, i, dx, start)
+        omega = omega + jnp.sum(jnp.where(w8 > 0, w8 * k * k * m, 0.0))
+        f0 = misclosure(sl(l), x, sl(consts))
+        # rows of the overlapped last chunk already written by chunk i-1 keep their value
+        V = lax.dynamic_update_slice_in_dim(V, jnp.where(fresh[:, None], v, sl(V)), start, 0)
+        K = lax.dynamic_update_slice_in_dim(K, jnp.where(fresh, k, sl(K)), start, 0)
+        M = lax.dynamic_update_slice_in_dim(M, jnp.where(fresh, m, sl(M)), start, 0)
+        F0 = lax.dynamic_update_slice_in_dim(F0, jnp.where(fresh, f0, sl(F0)), start, 0)
+        return omega, V, K, M, F0
+
+    z = jnp.zeros((n,), f)
+    omega, V, K, M, F0 = lax.fori_loop(
+        0, nc, fin, (jnp.zeros((), f), jnp.zeros((n, 3), f), z, jnp.ones((n,), f), z))
+    return x, N, Ninv, V, K, M, F0, omega, it, done
+
+

@@ -403,10 +403,9 @@ def _gh_md(gh: dict | None) -> str:
         f"{gh['mahalanobis_max']:.3f} (max) standard deviations (Mahalanobis, GH covariance) "
         f"from the GH normal; GH converged on {100 * gh['gh_converged']:.0f} % of the patches. "
         "Patches drawn at random among those with at least 20 kept points; the largest "
-        "differences are in the sample rings around the scanner's nadir, where a patch is a "
-        "few-centimetre arc and the tilt across it is barely determined (GH then also trades "
-        "the tilt against the noise's anisotropy, which TLS ignores; the classification is "
-        "unaffected).\n\n"
+        "differences come from elongated patches (near the scanner's nadir) whose tilt across "
+        "is barely determined: GH then also trades that tilt against the anisotropy of the "
+        "noise, which TLS ignores; the classification is unaffected.\n\n"
     )
 
 

@@ -27,11 +27,20 @@ def main(argv=None) -> int:
     ap.add_argument("--step", type=float, default=0.01, help="angular step (rad)")
     ap.add_argument("--seed0", type=int, default=1, help="first seed")
     ap.add_argument("--keep-campaigns", action="store_true")
+    ap.add_argument("--detectability", action="store_true",
+                    help="only the minimal detectable amplitudes on a clean campaign")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     logging.getLogger("hartrao_jax").setLevel(logging.INFO)
     import hartrao_jax  # noqa: F401
-    from hartrao_jax._prove import print_table, run_prove
+    from hartrao_jax._prove import detectability, print_table, run_prove
+
+    if args.detectability:
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        for r in detectability(args.out, step_rad=args.step, seed=args.seed0):
+            print(f"{r['effect']:16s} {r['parameter']:12s} {r['minimal_detectable']:10.3g} "
+                  f"{r['unit']:5s} {r['relative_to_range_noise']:7.3f} x noise ({r['limited_by']})")
+        return 0
 
     res = run_prove(args.out, seeds=args.seeds,
                     cases=args.cases.split(",") if args.cases else None, step_rad=args.step,

@@ -63,7 +63,7 @@ def fit_joint_command(campaign, out_dir, model, shared, group, scans, fixes, rob
     try:
         jf = fit_joint(camp, model, shared=_names(shared), group=group,
                        scans=scans.split(",") if scans else None, fixed=_parse_fixes(fixes),
-                       keep=_keep_fn(preprocess), robust_k=robust_k or None, batch=batch,
+                       keep=_keep_fn(preprocess, camp), robust_k=robust_k or None, batch=batch,
                        progress=True)
     except ValueError as e:
         raise UserError(str(e)) from None
@@ -127,7 +127,7 @@ def sensitivity(campaign, json_file, model, params, fixes, scans, joint, batch, 
     camp = load_campaign(campaign)
     t0 = time.time()
     start = fit_campaign(camp, model, scans=scans.split(",") if scans else None,
-                         fixed=_parse_fixes(fixes), keep=_keep_fn(preprocess), batch=batch)
+                         fixed=_parse_fixes(fixes), keep=_keep_fn(preprocess, camp), batch=batch)
     if joint:
         start = fit_joint(camp, model, shared=[p for p in _names(params) if p in start.model_names],
                           group="campaign", start=start).campaign_fit()

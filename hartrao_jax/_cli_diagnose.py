@@ -96,11 +96,25 @@ def diagnose_command(campaign, json_path, start, report_dir, scans, effects, alp
               help="Angular step of the simulated scans (rad).")
 @click.option("--list", "list_cases", is_flag=True, help="List the cases and exit.")
 @click.option("--keep-campaigns", is_flag=True, help="Keep the simulated campaigns.")
+@click.option("--detectability", is_flag=True,
+              help="Only the minimal detectable amplitudes on a clean campaign.")
 @command
-def prove_command(out_dir, seeds, cases, step_rad, list_cases, keep_campaigns):
+def prove_command(out_dir, seeds, cases, step_rad, list_cases, keep_campaigns, detectability):
     """Prove the diagnosis on simulated campaigns where each effect is concealed."""
-    from ._prove import CASES, print_table, run_prove
+    from pathlib import Path
 
+    from ._prove import CASES, print_table, run_prove
+    from ._prove import detectability as mda
+
+    if detectability:
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+        rows = mda(out_dir, step_rad=step_rad)
+        for r in rows:
+            click.echo(f"{r['effect']:16s} {r['parameter']:12s} {r['minimal_detectable']:10.3g} "
+                       f"{r['unit']:5s} {r['relative_to_range_noise']:7.3f} x noise "
+                       f"({r['limited_by']})")
+        click.echo(f"wrote {out_dir}/detectability-{step_rad:g}.md")
+        return
     if list_cases:
         for c in CASES:
             click.echo(f"{c.name:22s} {c.description}")

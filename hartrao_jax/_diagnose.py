@@ -677,9 +677,15 @@ def _covariate_tests(ctx: _Context, scans: Sequence[_Scan], sigma0: float, names
         T = float(np.sum(proj**2 / w[keep])) / sigma0**2
         est = np.zeros(B)
         est[live] = V[:, keep] @ (proj / w[keep])
-        se = np.zeros(B)
-        se[live] = sigma0 * np.sqrt(np.maximum(np.einsum("ij,j,ij->i", V[:, keep],
-                                                         1.0 / w[keep], V[:, keep]), 0.0))
+        # a common range offset of all bins is absorbed by the surface (x10 is confounded):
+        # report the bins' contrast, per scan and face, with the information of each bin
+        for k in range(len(scans)):
+            for fc in range(2):
+                sl = slice(k * per_scan + fc * nb, k * per_scan + (fc + 1) * nb)
+                wl = Mbb[sl]
+                if wl.sum() > 0:
+                    est[sl] -= np.sum(wl * est[sl]) / wl.sum()
+        se = np.where(live, sigma0 / np.sqrt(np.where(live, Mbb, 1.0)), 0.0)
         out[name] = {"T": T, "dof": int(keep.sum()), "ids": ids_all, "est": est, "se": se,
                      "per_scan": per_scan}
     return out
@@ -970,7 +976,10 @@ class _Joint:
         U = (Li.T @ V) / d[:, None]  # directions in parameter space with U^T Draw U = I
         lam = np.clip(lam, 0.0, 1.0)
         thr = 1.0 - cfg.confounded_correlation**2
-        keep = lam > thr
+        # one parameter: confounded beyond the threshold is not tested; several (motion,
+        # gravity): every numerically identifiable direction is kept (large variances show the
+        # weak ones), so estimates and covariances stay comparable with any truth
+        keep = lam > (thr if len(lam) == 1 else 1e-10)
         rho = float(math.sqrt(max(0.0, 1.0 - lam.min()))) if len(lam) else 0.0
         proj = U[:, keep].T @ m
         T = float(np.sum(proj**2 / lam[keep])) / s0**2 if keep.any() else 0.0
@@ -1461,6 +1470,7 @@ def diagnose(
     t_loop = time.time()
     step_done = False
     joint, tests, options = None, [], []
+    refused: set[tuple] = set()
     for step in range(1, cfg.max_steps + 1):
         ts = time.time()
         step_done = True
@@ -1472,10 +1482,16 @@ def diagnose(
         tests = [joint.test(c) for c in cands]
         options = _options(ctx, S, spec, joint, tests, confounded, wanted)
         spec.skip |= set(confounded)
+        for o in options:
+            if _option_key(o) in refused:
+                o.eligible, o.reason = False, "did not survive the refit"
         best = None
-        # structure no catalog entry explains is considered once the catalog has nothing left
-        tier = sorted((o for o in options if o.eligible), key=lambda o: (
-            o.kind in ("dish", "covariate"), o.log_p))
+        # structure no catalog entry explains comes after the catalog, unless it is far
+        # stronger (twice the orders of magnitude): a catalog effect then explains only part
+        ok = [o for o in options if o.eligible]
+        lp_cat = min((o.log_p for o in ok if o.kind in ("catalog", "panel")), default=0.0)
+        tier = sorted(ok, key=lambda o: (o.kind in ("dish", "covariate")
+                                         and not o.log_p < 2.0 * lp_cat, o.log_p))
         for o in tier:
             why = _signature_check(ctx, S, spec, joint, o, options)
             if why:
@@ -1489,8 +1505,19 @@ def diagnose(
         if best is None:
             break
         before = (_global_sigma0(S), _rms(S))
+        saved = _save(S, spec)
         f = _apply(ctx, S, spec, joint, best)
         after = (_global_sigma0(S), _rms(S))
+        lost = any(st["converged"] and not sc.converged for sc, st in zip(S, saved[0]))
+        if after[0] > before[0] * (1.0 + 1e-3) or lost:
+            # a finding must survive the refit: undo, refuse, and look again
+            log.info("refused %s: the refit did not improve the fit (sigma0 %.4f -> %.4f)",
+                     best.effect, before[0], after[0])
+            spec = _restore(S, saved)
+            refused.add(_option_key(best))
+            notes.append(f"{best.effect} ({', '.join(f.scans)}) was significant but did not "
+                         f"survive the refit (sigma0 {before[0]:.4f} -> {after[0]:.4f})")
+            continue
         f.sigma0_before, f.rms_before_m = before
         f.sigma0_after, f.rms_after_m = after
         f.statistic, f.dof = best.T, best.dof
@@ -1531,6 +1558,30 @@ def diagnose(
     if report_dir is not None:
         write_report(diag, report_dir)
     return diag
+
+
+_STATE = ("names", "x", "cov", "sigma0", "omega", "redundancy", "v", "used", "F", "m", "b0",
+          "probe", "converged", "known", "extra_known", "cut")
+
+
+def _save(S: Sequence[_Scan], spec: _Spec):
+    import copy
+
+    return [{k: getattr(sc, k) for k in _STATE} for sc in S], copy.deepcopy(spec)
+
+
+def _restore(S: Sequence[_Scan], saved) -> _Spec:
+    states, spec = saved
+    for sc, st in zip(S, states):
+        for k, v in st.items():
+            setattr(sc, k, v)
+    return spec
+
+
+def _option_key(o: _Option) -> tuple:
+    scans = tuple(o.payload.cand.scans) if o.kind == "catalog" else ()
+    sub = o.payload.get("covariate") if o.kind == "covariate" else None
+    return (o.kind, o.effect, scans[:1], sub)
 
 
 def _options(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint,
@@ -1755,16 +1806,17 @@ def _update_shared(spec: _Spec, joint: _Joint, dz: np.ndarray) -> None:
         spec.zern_C = spec.zern_C + d
 
 
-def _refit_all(ctx, S, spec, only: Sequence[_Scan] | None = None, hints=None, panels=True,
-               from_used: bool = True):
+def _refit_all(ctx, S, spec, only: Sequence[_Scan] | None = None, hints=None,
+               from_used: bool = True, others: bool = False):
+    """Refit the scans ``only`` (default all) from the window or from their points in use;
+    ``others``: the remaining scans too, from their points in use (the panel offsets or the
+    shared parameters moved)."""
     for sc in S:
-        if only is not None and sc not in only:
-            if spec.panels is not None and panels:  # new panel offsets: misclosures only
-                _set_known(ctx, sc, spec)
-                _evaluate(ctx, sc, spec)
+        mine = only is None or sc in only
+        if not mine and not others:
             continue
         _set_known(ctx, sc, spec)
-        _refit(ctx, sc, spec, (hints or {}).get(sc.id), from_used=from_used)
+        _refit(ctx, sc, spec, (hints or {}).get(sc.id), from_used=from_used or not mine)
 
 
 def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Option) -> Finding:
@@ -1864,7 +1916,8 @@ def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Op
             if "common_slope" in c.info:
                 extra["other_cycle_slope"] = _num(c.info["common_slope"][0])
             log.debug("%s one-step estimate %s", c.effect, hints)
-            _refit_all(ctx, S, spec, only=[s for s, _ in refit], hints=hints, from_used=False)
+            _refit_all(ctx, S, spec, only=[s for s, _ in refit], hints=hints, from_used=False,
+                       others=True)
             # values from the refit; covariance from the joint system (the panel offsets,
             # estimated from the same points, are eliminated there, not held fixed)
             sel = []
@@ -1928,10 +1981,6 @@ def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Op
                            "tilt_tangential_rad": [float(v) for v in P["tilt_t"]]}
         rms_mm = 1e3 * estimate["offset_rms_m"]["value"]
         expl = f"{expl}; {int(live.sum())} panels, offsets {rms_mm:.3f} mm rms"
-    elif o.kind in ("dish", "covariate"):
-        dz = _joint_step(joint, None)
-        _update_panels(spec, joint, dz)
-        _update_shared(spec, joint, dz)
     if o.kind == "dish":
         pl = o.payload
         flagged = pl["flagged"]

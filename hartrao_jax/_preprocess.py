@@ -59,10 +59,11 @@ distance from the plane. Inside one patch (0.3 m seen from ~12 m: ray directions
 fraction of its standard deviation, the total-least-squares plane of the inliers (smallest
 eigenvector of their scatter matrix), iterated with the inlier set. That is what runs here
 (iterated on the scoring points, then once on all inliers of the patch),
-vmapped over thousands of patches in one compiled call; the generic GH solver once per patch
-(a while-loop of chunked passes per patch, 5000 patches per scan) would cost seconds to
-minutes. The test suite checks on one patch that both give the same plane (measured: 0.08
-sigma apart in the normal).
+vmapped over thousands of patches in one compiled call. The generic GH solver
+(``gauss_helmert_batch`` with :class:`PlaneCondition`) took 3.1 s per 500 patches (about a
+minute per scan) against 0.02 s, and its normals differ from these by 0.05 sigma (median;
+95 % below 0.16 sigma; ``benchmarks/results/preprocess.md``); the test suite checks the
+agreement on one patch.
 
 The default ``epsilon`` is ``k_sigma * sqrt(sigma_range^2 + (sigma_angle * D_max)^2)`` (an upper
 bound of the standard deviation of a point's distance from the surface, whatever the incidence)
@@ -71,8 +72,9 @@ the initial focal length in the ``"flat"`` frame; the curvature bound above in t
 ``"scanner"`` frame).
 
 Patch size: ``patch_size_m=None`` chooses the paper's "about 30 cm^2", read as patches of
-0.3 m x 0.3 m (about 5000 patches on the 26-m dish; 500-2500 points per patch at the paper's
-0.63 mrad step), enlarged on coarser scans so that a typical patch holds about
+0.3 m x 0.3 m (about 5800 cells on the 26-m dish, ~7700 patches once the crowded cells near
+the nadir are subdivided; 700-2000 points per patch at the paper's 0.63 mrad step, measured
+at 0.77 mrad: median 1400), enlarged on coarser scans so that a typical patch holds about
 ``target_patch_points`` points (measured on the data, whatever the row order): 0.3 m up to
 ~3 mrad, ~0.6 m at 10 mrad, ~1.2 m at 20 mrad.
 
@@ -108,6 +110,7 @@ log = logging.getLogger("hartrao_jax")
 PREPROCESS_SCHEMA = "hartrao-preprocess/1"
 
 KEPT, NON_FINITE, RANGE_WINDOW, GEOMETRY_WINDOW, RANSAC_OUTLIER, SMALL_PATCH = range(6)
+SPARSE_SHARE = 0.2  # share of points in too-small patches above which a scan counts as sparse
 REASONS: dict[int, str] = {
     KEPT: "kept",
     NON_FINITE: "non_finite",
@@ -862,9 +865,9 @@ def preprocess_scan(
         g = pointing_gravity(meta, tel, campaign.site)
         rows = sample_rows(lambda c: finite[c], cfg.init_sample)
         try:
-            iv = initial_values(r[rows], phi[rows], th[rows], g,
-                                focal_length_m=tel.focal_length_m, n_sample=len(rows),
-                                seed=cfg.seed)
+            from ._fit import choose_initial_values  # pointing, else pose-free (any reflector)
+
+            iv = choose_initial_values(campaign, meta, data.subset(rows), g, seed=cfg.seed)
             if (all(np.isfinite(v) for v in iv.x.values()) and iv.x["f"] > 0
                     and iv.inlier_fraction >= 0.2):
                 init = iv
@@ -1031,13 +1034,18 @@ def preprocess_scan(
     timing["ransac"] = time.perf_counter() - t0
 
     weak = n_inl < cfg.min_patch_points  # includes the small patches (0 inliers)
+    # A scan too sparse for patches of this size (a random subsample of an export, say) would
+    # lose most of its points as "small patches": then the patch test cannot judge them, and
+    # they are kept for the fitter's robust rejection instead of being thrown away.
+    sparse = bool(np.sum(counts[small]) > SPARSE_SHARE * max(int(np.sum(counts)), 1))
     for s, e in _blocks(len(order)):
         rows = idx[order[s:e]]
         p = pid[s:e]
         inl = inlier_sorted[s:e]
         patch_of[rows] = p
-        reason[rows[~inl]] = RANSAC_OUTLIER
-        reason[rows[small[p] | (weak[p] & inl)]] = SMALL_PATCH
+        reason[rows[~inl & ~small[p]]] = RANSAC_OUTLIER
+        if not sparse:
+            reason[rows[small[p] | (weak[p] & inl)]] = SMALL_PATCH
     keep = reason == KEPT
 
     counts_reason = np.bincount(reason, minlength=len(REASONS))

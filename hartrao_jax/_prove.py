@@ -91,8 +91,9 @@ CASES: tuple[Case, ...] = (
     Case("x3", "x3", {"x3": 2e-3}, 2e-3 * 0.3,
          "mirror offset 2 mm, 97 % absorbed by x6 (same 1/sin(theta) shape up to 1/r)"),
     Case("x5n", "x5n", {"x5n": 3e-5}, 3e-5 * 10.0, "beam tilt 6 arcsec, below the angle noise"),
-    Case("x8x", "x8x", {"x8x": 2e-5}, 2e-5 * 10.0,
-         "horizontal encoder eccentricity 4 arcsec, below the angle noise"),
+    Case("x8x", "x8x", {"x8x": 6e-5}, 6e-5 * 10.0,
+         "horizontal encoder eccentricity 12 arcsec (0.6 mm at 10 m, along the surface), "
+         "90 % absorbed by the pose"),
     Case("x10", "confounded:x10", {"x10": 1e-3}, 1e-3,
          "range offset 1 mm: inseparable from tz and f, must be reported as confounded"),
     Case("range_scale", "confounded:range_scale", {"range_scale": 3e-5}, 3e-5 * 10.0,
@@ -217,9 +218,11 @@ def score(case: Case, diag: dict, truth: dict, seed: int, time_s: float) -> Scor
         if len(off_e) == len(off_t):
             live = off_e != 0
             r = float(np.corrcoef(off_e[live], off_t[live])[0, 1])
-            top_t = set(np.argsort(-np.abs(off_t))[:25].tolist())
-            top_e = set(f["where"].get("panels", []))
-            sc.located = len(top_e & top_t) >= 0.5 * len(top_e)
+            named = [int(g) for g in f["where"].get("panels", [])]
+            rms_t = float(np.sqrt(np.mean(off_t**2)))
+            # the panels named are really displaced, in the direction found
+            real = [g for g in named if abs(off_t[g]) > rms_t and off_t[g] * off_e[g] > 0]
+            sc.located = len(real) >= 0.5 * len(named) if named else False
             sc.estimate_ok = r > 0.5
             sc.detail = {"correlation": r, "rms_truth": float(np.sqrt(np.mean(off_t**2))),
                          "rms_estimate": float(np.sqrt(np.mean(off_e[live] ** 2)))}
@@ -323,6 +326,43 @@ def run_prove(out_dir, *, seeds: int = 3, cases=None, step_rad: float = 0.01,
     if not keep_campaigns:
         shutil.rmtree(work, ignore_errors=True)
     return _write(out, chosen, scores, docs, seeds, step_rad, time.time() - t_all)
+
+
+def detectability(out_dir, *, step_rad: float = 0.01, seed: int = 1) -> list[dict]:
+    """Minimal detectable amplitude of every catalog candidate on a clean campaign (panels
+    only), at the final solution of a blind diagnosis (Baarda: 80 % power at the step's
+    Bonferroni level, and at least the practical effect size). Writes ``detectability.md``."""
+    from ._diagnose import diagnose
+    from ._model import parameter_unit
+    from ._simulate import simulate_campaign
+
+    out = Path(out_dir)
+    camp = out / f"clean-mda-{step_rad:g}"
+    simulate_campaign(camp, preset="clean", effects=PANELS, seed=seed, step_rad=step_rad)
+    d = diagnose(camp)
+    n = sum(c["n_points"] for c in d.comparison)
+    rows = []
+    seen = set()
+    for r in d.detectability:
+        key = (r["effect"], r["parameter"])
+        if key in seen:  # motion: one scan is enough
+            continue
+        seen.add(key)
+        rows.append({**r, "unit": parameter_unit(r["parameter"]), "n_points": n,
+                     "step_rad": step_rad})
+    lines = [f"Minimal detectable amplitudes, clean two-cycle scan, {n} points (step "
+             f"{step_rad:g} rad), range noise {SIGMA_RANGE_M * 1e3:.1f} mm", "",
+             "| effect | parameter | minimal detectable | unit | rms effect on the points [mm] "
+             "| relative to range noise | limited by | correlation with model |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['effect']} | {r['parameter']} | {r['minimal_detectable']:.3g} | "
+                     f"{r['unit']} | {1e3 * r['rms_effect_m']:.4f} | "
+                     f"{r['relative_to_range_noise']:.3f} | {r['limited_by']} | "
+                     f"{r['correlation_with_model']:.4f} |")
+    (out / f"detectability-{step_rad:g}.md").write_text("\n".join(lines) + "\n")
+    shutil.rmtree(camp, ignore_errors=True)
+    return rows
 
 
 def _rate(xs) -> str:

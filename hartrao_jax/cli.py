@@ -170,14 +170,36 @@ def simulate(out, preset, effects, seed, step_rad):
     click.echo(f"wrote {len(camp.scans)} scans to {out} ({time.time() - t0:.1f} s)")
 
 
-def _keep_fn(preprocess: bool):
+def _keep_fn(preprocess: bool, campaign=None):
+    """The preprocessing's keep mask for ``fit_campaign`` (None: no preprocessing)."""
     if not preprocess:
         return None
-    try:
-        from ._preprocess import PreprocessConfig, keep_mask_fn
-    except ImportError:
-        return None
-    return keep_mask_fn(PreprocessConfig())
+    from ._preprocess import PreprocessConfig, keep_mask_fn
+
+    return keep_mask_fn(PreprocessConfig(), campaign=campaign)
+
+
+@main.command()
+@click.argument("campaign", type=click.Path(exists=True))
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False))
+@click.option("--d-min", "d_min_m", type=float, default=None, help="Range window minimum (m).")
+@click.option("--d-max", "d_max_m", type=float, default=None, help="Range window maximum (m).")
+@click.option("--patch-size", "patch_size_m", type=float, default=None,
+              help="Patch side at the reflector's range (m); default automatic (0.3 m).")
+@click.option("--epsilon", "epsilon_m", type=float, default=None,
+              help="RANSAC inlier distance (m); default 4.5 sigma + allowance.")
+@click.option("--seed", default=0, show_default=True, type=int)
+@command
+def preprocess(campaign, out_dir, d_min_m, d_max_m, patch_size_m, epsilon_m, seed):
+    """Clean every scan: range window, angular patches, RANSAC planes; OUT/preprocess.json."""
+    from ._campaign import load_campaign
+    from ._preprocess import PreprocessConfig, preprocess_campaign
+
+    camp = load_campaign(campaign)
+    cfg = PreprocessConfig(d_min_m=d_min_m, d_max_m=d_max_m, patch_size_m=patch_size_m,
+                           epsilon_m=epsilon_m, seed=seed)
+    preprocess_campaign(camp, cfg, out_dir=out_dir, progress=True)
+    click.echo(f"wrote {Path(out_dir) / 'preprocess.json'}")
 
 
 @main.command()
@@ -216,7 +238,7 @@ def fit(campaign, out_dir, model, scans, fixes, robust_k, batch, preprocess, exc
     camp = load_campaign(campaign)
     fixed = _parse_fixes(fixes)
     scan_ids = scans.split(",") if scans else None
-    keep = _keep_fn(preprocess)
+    keep = _keep_fn(preprocess, camp)
     if joint:
         from ._joint import fit_joint, print_joint_summary, write_joint_fit
 
@@ -285,7 +307,7 @@ def demo(out_dir, seed):
         click.echo("simulating the demo campaign (position r23, two cycles) ...")
         simulate_campaign(camp_dir, preset="demo", seed=seed)
     camp = load_campaign(camp_dir)
-    keep = _keep_fn(True)
+    keep = _keep_fn(True, camp)
     for model in ("simplified", "extended"):
         cf = fit_campaign(camp, model, keep=keep)
         write_fit(out / model, cf)

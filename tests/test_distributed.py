@@ -64,12 +64,23 @@ def test_stream_with_its_own_initial_values(scatter_campaign, tmp_path):
     np.testing.assert_allclose((st.x - ref.x) / ref.sigma, 0.0, atol=0.05)
 
 
-@pytest.fixture(scope="module")
-def small_campaign(tmp_path_factory):
+def _small(tmp_path_factory, *names):
     out = tmp_path_factory.mktemp("dask")
-    return simulate_campaign(out / "camp", preset="clean", positions=_pos("r23", "r1"),
+    return simulate_campaign(out / "camp", preset="clean", positions=_pos(*names),
                              step_rad=0.03, seed=4,
                              effects={"x4": 1e-4, "x6": 3e-5, "x7": -4e-5})
+
+
+@pytest.fixture(scope="module")
+def small_campaign(tmp_path_factory):
+    return _small(tmp_path_factory, "r23")
+
+
+@pytest.fixture(scope="module")
+def zenith_campaign(tmp_path_factory):
+    """A tilted position and the zenith: the zenith's north alignment needs the heading from
+    the tilted one (two phases on the workers)."""
+    return _small(tmp_path_factory, "r23", "r1")
 
 
 def _compare_docs(a, b, rtol=1e-9):
@@ -91,11 +102,19 @@ def _compare_docs(a, b, rtol=1e-9):
 def test_dask_local_cluster_equals_in_process(small_campaign, tmp_path):
     """Per-scan fits on 2 workers, then the joint adjustment over the worker-resident scans
     (only normal matrices travel): both equal to the in-process results."""
+    _dask_equals_in_process(small_campaign, tmp_path)
+
+
+@pytest.mark.slow
+def test_dask_with_the_zenith_equals_in_process(zenith_campaign, tmp_path):
+    _dask_equals_in_process(zenith_campaign, tmp_path)
+
+
+def _dask_equals_in_process(camp, tmp_path):
     pytest.importorskip("distributed")
     from hartrao_jax._distributed import fit_dask, fit_document
     from hartrao_jax._joint import fit_joint, joint_json
 
-    camp = small_campaign
     local = fit_campaign(camp, "extended", progress=False)
     res = fit_dask(camp, "extended", n_workers=2, preprocess=False, joint=True,
                    group="campaign", out_dir=tmp_path / "dask")

@@ -561,6 +561,31 @@ def _periodogram(edges, Nb, nbv, cfg: DiagnoseConfig):
     return 1.0 / freqs, T
 
 
+def _periodogram_points(sc: _Scan, freqs: np.ndarray, F: np.ndarray | None = None) -> np.ndarray:
+    """The periodogram statistic at a few frequencies from the points' own times (exact);
+    ``F``: misclosures to use instead of the scan's."""
+    u = sc.used & (sc.m > 0)
+    t = sc.data.time_s[u]
+    a = sc.probe[u][:, 3:]
+    q = 1.0 / sc.m[u]
+    F = (sc.F if F is None else F)[u]
+    qa = a * q[:, None]
+    N0 = qa.T @ a
+    N0i = np.linalg.pinv(N0)
+    out = np.zeros(len(freqs))
+    for k, f in enumerate(freqs):
+        ph = 2 * np.pi * f * t
+        h = np.stack([np.sin(ph), np.cos(ph)], 1)
+        C = (h[:, :, None] * a[:, None, :]).reshape(len(t), 4)  # (sin, cos) x (x, y)
+        qC = C * q[:, None]
+        M = qC.T @ C
+        K = qC.T @ a
+        uu = qC.T @ F
+        S = M - K @ N0i @ K.T
+        out[k] = float(uu @ np.linalg.solve(S + 1e-12 * np.trace(S) * np.eye(4), uu))
+    return out
+
+
 def _locate_time(sc: _Scan, cfg: DiagnoseConfig) -> None:
     """Window of the strongest box (change points) and the strongest period of one scan."""
     edges, b, Nb, nbv = _time_bins(sc, cfg)
@@ -569,15 +594,18 @@ def _locate_time(sc: _Scan, cfg: DiagnoseConfig) -> None:
     periods, P = _periodogram(edges, Nb, nbv, cfg)
     if len(P):
         k = int(np.argmax(P))
-        per = periods[k]
-        if 0 < k < len(P) - 1:  # parabolic refinement in frequency
-            f = 1.0 / periods[k - 1: k + 2]
-            y = P[k - 1: k + 2]
-            den = y[0] - 2 * y[1] + y[2]
+        # zoom on the peak with the points' own times
+        f0 = 1.0 / periods[k]
+        df = abs(1.0 / periods[min(k + 1, len(P) - 1)] - 1.0 / periods[max(k - 1, 0)]) / 2
+        fz = f0 + np.linspace(-1.5, 1.5, 31) * df
+        Pz = _periodogram_points(sc, fz)
+        j = int(np.argmax(Pz))
+        fbest = fz[j]
+        if 0 < j < len(Pz) - 1:  # parabolic refinement in frequency
+            den = Pz[j - 1] - 2 * Pz[j] + Pz[j + 1]
             if den < 0:
-                d = 0.5 * (y[0] - y[2]) / den
-                per = 1.0 / (f[1] + d * (f[2] - f[1]))
-        sc.period_s, sc.period_stat = float(per), float(P[k])
+                fbest = fz[j] + 0.5 * (Pz[j - 1] - Pz[j + 1]) / den * (fz[1] - fz[0])
+        sc.period_s, sc.period_stat = float(1.0 / fbest), float(max(Pz[j], P[k]))
     B = len(nbv)
     sc.search = {
         "edges": edges, "box_profile": profile, "n_windows": B * Lmax,
@@ -1403,7 +1431,8 @@ class _Option:
                 "log10_p_adjusted": _num(self.log_p / math.log(10)),
                 "effect_size_m": _num(self.effect_m), "eligible": self.eligible,
                 "reason": self.reason,
-                "scans": getattr(self.payload, "cand", None) and self.payload.cand.scans}
+                "scans": getattr(self.payload, "cand", None) and self.payload.cand.scans,
+                **({"covariate": self.payload["covariate"]} if self.kind == "covariate" else {})}
 
 
 def _static_confounded(start: Sequence[str], wanted) -> list[dict]:
@@ -1819,6 +1848,29 @@ def _refit_all(ctx, S, spec, only: Sequence[_Scan] | None = None, hints=None,
         _refit(ctx, sc, spec, (hints or {}).get(sc.id), from_used=from_used or not mine)
 
 
+def _refine_periods(ctx: _Context, spec: _Spec, refit) -> None:
+    """Period of a modelled oscillation from the periodogram of the misclosures without it,
+    now that the panel offsets no longer hold part of it; refit when it moved."""
+    for sc, names in refit:
+        mot = spec.motion[sc.id]
+        vals = np.array([sc.value(n) for n in names])
+        sig = _signature(ctx, sc, spec, names, vals)
+        f0 = 1.0 / mot["period_s"]
+        fz = f0 * (1.0 + np.linspace(-0.01, 0.01, 41))
+        Pz = _periodogram_points(sc, fz, sc.F - sig)
+        j = int(np.argmax(Pz))
+        fbest = fz[j]
+        if 0 < j < len(Pz) - 1:
+            den = Pz[j - 1] - 2 * Pz[j] + Pz[j + 1]
+            if den < 0:
+                fbest = fz[j] + 0.5 * (Pz[j - 1] - Pz[j + 1]) / den * (fz[1] - fz[0])
+        if abs(fbest / f0 - 1.0) > 2e-4:
+            log.debug("period of %s refined: %.5f -> %.5f s", sc.id, 1 / f0, 1 / fbest)
+            mot["period_s"] = sc.period_s = float(1.0 / fbest)
+            _set_known(ctx, sc, spec)
+            _refit(ctx, sc, spec, from_used=True)
+
+
 def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Option) -> Finding:
     """Model the accepted explanation, refit, and describe it as a finding."""
     eff = EFFECTS.get(o.effect)
@@ -1918,6 +1970,8 @@ def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Op
             log.debug("%s one-step estimate %s", c.effect, hints)
             _refit_all(ctx, S, spec, only=[s for s, _ in refit], hints=hints, from_used=False,
                        others=True)
+            if c.effect == "oscillation":
+                _refine_periods(ctx, spec, refit)
             # values from the refit; covariance from the joint system (the panel offsets,
             # estimated from the same points, are eliminated there, not held fixed)
             sel = []

@@ -24,13 +24,20 @@ One step of the loop (``physics.md``, "Statistics"):
    (Schur complement). For every candidate the score statistic, its one-step estimate, the
    predicted improvement in metres and its multiple correlation with the model follow from the
    partitioned system; candidates inseparable from the model are reported as ``confounded``.
-3. *Decide.* The candidate (or unexplained structure) with the largest equivalent normal score
-   that is significant (Bonferroni over candidates and searched windows/periods) and large
-   enough (``min_effect_m``) and has its family's signature (instrument: one value explains
-   every scan; motion: not common to the other cycle) is accepted.
-4. *Model.* It is added to the functional model (shared instrument parameter, motion parameters
-   of one scan with their window or period, panel planes or an empirical map as known deviation,
-   gravity Zernike coefficients, a cut of the affected time range) and every scan is refitted.
+3. *Decide.* Among the candidates that are significant (Bonferroni over the candidates and
+   the windows/periods searched), large enough (``min_effect_m``, the predicted rms change of
+   the fit, debiased by the degrees of freedom) and show their family's signature (instrument:
+   one value explains every scan; motion: not the same deviation in the other cycle unless the
+   same motion is there too), the one with the smallest adjusted p-value is accepted. Catalog
+   explanations come first; unexplained structure (within-panel cells after one plane per
+   panel, covariate bins after the panel planes) is taken before them only when it is far
+   stronger.
+4. *Model.* It is added to the functional model (instrument parameter shared by all scans;
+   motion parameters of a scan with their window or period; panel offsets from the group
+   elimination and an empirical map as known deviation ``c[1]``; Zernike coefficients linear in
+   gravity; a cut of the affected time range), the panel offsets and shared parameters follow
+   the joint step, and the scans are refitted. A finding must survive the refit: if sigma0
+   does not drop, the state is restored and the candidate refused.
 
 Units: metres, radians, seconds; ``_deg`` keys are degrees.
 """
@@ -313,8 +320,8 @@ def _adjust(ctx: _Context, model, l, x0, c, w, v0=None):
                     converged=res.converged)
 
 
-def _start_scans(ctx: _Context, start: tuple[str, ...], keep, scans: Sequence[str] | None,
-                 progress: bool) -> list[_Scan]:
+def _start_scans(ctx: _Context, start: tuple[str, ...], keep,
+                 scans: Sequence[str] | None) -> list[_Scan]:
     """Fit every scan with the start model (as ``fit`` does) and freeze its geometry."""
     from ._align import mount_heading
     from ._campaign import read_scan
@@ -1458,7 +1465,6 @@ def diagnose(
     scans: Sequence[str] | None = None,
     keep: Callable[[ScanMeta, ScanData], np.ndarray] | None = None,
     report_dir: str | Path | None = None,
-    progress: bool = False,
 ) -> Diagnosis:
     """Find, explain and model the mismatch between the recordings and the model.
 
@@ -1469,7 +1475,6 @@ def diagnose(
         scans: scan ids to diagnose (default all: they are tested jointly).
         keep: optional ``keep(meta, data) -> bool mask`` of points to consider (preprocessing).
         report_dir: write figures and an HTML summary there.
-        progress: show progress bars of the start fit.
 
     Returns:
         a :class:`Diagnosis` (``to_json()``: schema ``hartrao-diagnosis/1``).
@@ -1481,7 +1486,7 @@ def diagnose(
     start_names = parse_model(start)
     timing: dict[str, float] = {}
     t0 = time.time()
-    S = _start_scans(ctx, start_names, keep, scans, progress)
+    S = _start_scans(ctx, start_names, keep, scans)
     spec = _Spec(start=start_names)
     for sc in S:
         _evaluate(ctx, sc, spec)
@@ -1750,7 +1755,9 @@ def _signature_check(ctx, S, spec, joint, o: _Option, options: Sequence[_Option]
         # both (a significant candidate there too) shows the same pattern in both
         twin = [x for x in options if x is not o and x.kind == "catalog" and x.effect == o.effect
                 and x.log_p < math.log(cfg.alpha)
-                and set(x.payload.cand.scans) & {s.id for s in others}]
+                and set(x.payload.cand.scans) & {s.id for s in others}
+                and _same_motion(o.effect, sc, next(s for s in others
+                                                   if s.id == x.payload.cand.scans[0]))]
         if twin:  # modelled together (one step), see _apply
             best = {}
             for x in sorted(twin, key=lambda x: x.log_p):
@@ -1761,6 +1768,17 @@ def _signature_check(ctx, S, spec, joint, o: _Option, options: Sequence[_Option]
             return (f"the other cycle shows the same deviation in the same dish cells "
                     f"(slope {slope:.2f}, z {z:.1f}): a reflector effect, not motion")
     return ""
+
+
+def _same_motion(effect: str, a: _Scan, b: _Scan) -> bool:
+    """The same motion in two cycles: overlapping windows, or periods within 5 %."""
+    if effect == "impulsive_shift":
+        (s0, d0), (s1, d1) = a.window_s, b.window_s
+        inter = max(0.0, min(s0 + d0, s1 + d1) - max(s0, s1))
+        return inter > 0.5 * max(d0, d1)
+    if effect == "oscillation":
+        return abs(a.period_s / b.period_s - 1.0) < 0.05
+    return True
 
 
 def _common_slope(ctx, sc: _Scan, others: Sequence[_Scan], pred: np.ndarray):
@@ -1972,6 +1990,10 @@ def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Op
                        others=True)
             if c.effect == "oscillation":
                 _refine_periods(ctx, spec, refit)
+                where["period_s"] = spec.motion[sc.id]["period_s"]
+                if multi:
+                    where["period_s_by_scan"] = {s.id: spec.motion[s.id]["period_s"]
+                                                 for s, _ in refit}
             # values from the refit; covariance from the joint system (the panel offsets,
             # estimated from the same points, are eliminated there, not held fixed)
             sel = []
@@ -2184,7 +2206,8 @@ def write_report(diag: Diagnosis, out_dir: str | Path) -> Path:
                                cmap="RdBu_r", vmin=-vmax, vmax=vmax)
                 ax.set_title(f"{i}: {lab}", fontsize=9)
                 ax.set_xlabel("X [m]")
-                ax.set_ylabel("Y [m]")
+                if c == 0:
+                    ax.set_ylabel("Y [m]")
                 ax.set_aspect("equal")
         fig.colorbar(im, ax=axes, shrink=0.6, label="recording - simulation, normal [mm]")
         fig.suptitle(title, fontsize=10)
@@ -2205,6 +2228,8 @@ def write_report(diag: Diagnosis, out_dir: str | Path) -> Path:
             tr = 1e3 * np.asarray(ev["translation"])
             for j, ax_name in enumerate("xyz"):
                 a1.plot(tb, tr[:, j], lw=0.7, label=f"d{ax_name}")
+            lo, hi = np.nanpercentile(tr, [2, 98])
+            a1.set_ylim(lo - 0.5 * (hi - lo), hi + 0.5 * (hi - lo))  # weak bins clipped
             a1.set_ylabel("translation per time bin [mm]")
             a1.legend(fontsize=8)
             a2.plot(tb, ev["profile"], lw=0.8, color="k")
@@ -2225,6 +2250,7 @@ def write_report(diag: Diagnosis, out_dir: str | Path) -> Path:
             ax.set_xlabel("period [s]")
             ax.set_ylabel("score statistic T (4 dof)")
             ax.set_title(f"{ev['scan']}: periodogram of the scanner rotation", fontsize=10)
+            fig.tight_layout()
             name = f"step{k}_periodogram.png"
             fig.savefig(out / name, dpi=90)
             plt.close(fig)

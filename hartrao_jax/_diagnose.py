@@ -707,11 +707,15 @@ def _covariate_tests(ctx: _Context, scans: Sequence[_Scan], sigma0: float, names
         m = ub - np.einsum("bgj,gj->b", W, ug)
         Sm, m = Sm[np.ix_(live, live)], m[live]
         w, V = np.linalg.eigh(0.5 * (Sm + Sm.T))
-        keep = w > 1e-9 * w.max()
+        # the near-null directions are a common range offset of the bins against the panel
+        # planes (x10 against the surface): confounded, left out
+        keep = w > 1e-6 * w.max()
         proj = V[:, keep].T @ m
         T = float(np.sum(proj**2 / w[keep])) / sigma0**2
         est = np.zeros(B)
         est[live] = V[:, keep] @ (proj / w[keep])
+        planes = np.einsum("gij,gj->gi", Mi, ug - np.einsum("bgi,b->gi", Mbg, est))
+        raw = est.copy()
         # a common range offset of all bins is absorbed by the surface (x10 is confounded):
         # report the bins' contrast, per scan and face, with the information of each bin
         for k in range(len(scans)):
@@ -722,7 +726,7 @@ def _covariate_tests(ctx: _Context, scans: Sequence[_Scan], sigma0: float, names
                     est[sl] -= np.sum(wl * est[sl]) / wl.sum()
         se = np.where(live, sigma0 / np.sqrt(np.where(live, Mbb, 1.0)), 0.0)
         out[name] = {"T": T, "dof": int(keep.sum()), "ids": ids_all, "est": est, "se": se,
-                     "per_scan": per_scan}
+                     "per_scan": per_scan, "raw": raw, "planes": planes}
     return out
 
 
@@ -796,7 +800,7 @@ def _dish_test(ctx: _Context, scans: Sequence[_Scan], sigma0: float):
         S = np.diag(mcc) - mcp @ Pinv @ mcp.T
         m = ucg - mcp @ Pinv @ up[g]
         w_, V = np.linalg.eigh(S)
-        keep = w_ > 1e-9 * w_.max()
+        keep = w_ > 1e-6 * w_.max()
         proj = V[:, keep].T @ m
         Tg[g] = float(np.sum(proj**2 / w_[keep])) / sigma0**2
         dof[g] = int(keep.sum())
@@ -1522,9 +1526,12 @@ def diagnose(
         best = None
         # structure no catalog entry explains comes after the catalog, unless it is far
         # stronger (twice the orders of magnitude): a catalog effect then explains only part
+        # (never before the panel offsets: their maps are modelled on top of the panels)
         ok = [o for o in options if o.eligible]
         lp_cat = min((o.log_p for o in ok if o.kind in ("catalog", "panel")), default=0.0)
-        tier = sorted(ok, key=lambda o: (o.kind in ("dish", "covariate")
+        panel_first = any(o.kind == "panel" for o in ok)
+        tier = sorted(ok, key=lambda o: (o.kind != "panel" if panel_first else False,
+                                         o.kind in ("dish", "covariate")
                                          and not o.log_p < 2.0 * lp_cat, o.log_p))
         for o in tier:
             why = _signature_check(ctx, S, spec, joint, o, options)
@@ -1540,7 +1547,10 @@ def diagnose(
             break
         before = (_global_sigma0(S), _rms(S))
         saved = _save(S, spec)
+        alternatives = _alternatives(joint, best, options)
         f = _apply(ctx, S, spec, joint, best)
+        if alternatives:
+            f.extra["alternatives"] = alternatives
         after = (_global_sigma0(S), _rms(S))
         lost = any(st["converged"] and not sc.converged for sc, st in zip(S, saved[0]))
         if after[0] > before[0] * (1.0 + 1e-3) or lost:
@@ -1566,7 +1576,7 @@ def diagnose(
                  f.effect, ",".join(f.scans), best.T, best.dof, before[0], after[0],
                  1e3 * before[1], 1e3 * after[1])
     timing["loop"] = time.time() - t_loop
-    detect = _detectability(ctx, joint, tests, len(options)) if step_done else []
+    detect = _detectability(ctx, joint, tests, len(options), S) if step_done else []
     scans_final = {}
     for sc in S:
         cv = np.sqrt(np.maximum(np.diag(sc.cov), 0.0)) if sc.cov.size else np.zeros(0)
@@ -1681,13 +1691,13 @@ def _options(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint,
 
 
 def _detectability(ctx: _Context, joint: _Joint, tests: Sequence[_Test],
-                   m_tests: int) -> list[dict]:
+                   m_tests: int, S: Sequence[_Scan] = ()) -> list[dict]:
     """Minimal detectable amplitude of every candidate at the final solution (Baarda).
 
     The noncentrality ``lam`` gives 80 % power at the Bonferroni-adjusted level of a step; the
-    amplitude of parameter j is ``sigma0 sqrt(lam (S^-1)_jj)`` (S: its Schur complement with the
-    model and the panel offsets eliminated), or what reaches ``min_effect_m``, whichever is
-    larger. ``rms_effect_m`` is the rms change of the points' condition at that amplitude before
+    amplitude of parameter j alone is ``sigma0 sqrt(lam / S_jj)`` (S: the Schur complement of
+    the candidate with the model and the panel offsets eliminated), or what reaches
+    ``min_effect_m``, whichever is larger. ``rms_effect_m`` is the rms change of the points' condition at that amplitude before
     the model absorbs part of it; ``relative_to_range_noise`` divides it by ``sigma_range_m``.
     """
     from scipy import optimize
@@ -1697,18 +1707,18 @@ def _detectability(ctx: _Context, joint: _Joint, tests: Sequence[_Test],
     s0 = joint.sigma0
     sq = joint.sum_q
     for t in tests:
-        if t.S is None or t.dof == 0 or t.confounded:
+        if t.S is None or t.dof == 0 or t.confounded or t.cand.effect == "impulsive_shift":
             continue
         q = t.dof
         a = cfg.alpha / max(m_tests, 1) / t.cand.penalty
         crit = stats.chi2.isf(a, q)
         lam = optimize.brentq(lambda L: stats.ncx2.sf(crit, q, L) - 0.8, 1e-6, 1e6)
-        Si = np.linalg.pinv(t.S)
         for j, name in enumerate(t.cand.names):
-            if Si[j, j] <= 0:
+            if t.S[j, j] <= 0:
                 continue
-            mdb_stat = s0 * math.sqrt(lam * Si[j, j])
-            mdb_eff = cfg.min_effect_m * math.sqrt(sq * Si[j, j])
+            # a bias of this parameter alone: noncentrality d^2 S_jj / sigma0^2
+            mdb_stat = s0 * math.sqrt(lam / t.S[j, j])
+            mdb_eff = cfg.min_effect_m * math.sqrt(sq / t.S[j, j])
             mdb = max(mdb_stat, mdb_eff)
             raw = mdb * math.sqrt(max(t.Draw[j, j], 0.0) / sq)
             out.append({"effect": t.cand.effect, "parameter": name, "scans": t.cand.scans,
@@ -1717,6 +1727,32 @@ def _detectability(ctx: _Context, joint: _Joint, tests: Sequence[_Test],
                         "rms_effect_m": raw,
                         "relative_to_range_noise": raw / float(ctx.sigma[0]),
                         "correlation_with_model": t.correlation})
+    # an impulsive shift: for a reference window (the middle 5 % of the first scan's time),
+    # from the translation derivatives of the points (the windows found in noise are arbitrary)
+    for sc in S[:1]:
+        u = sc.used & (sc.m > 0)
+        t_ = sc.data.time_s[u]
+        a = sc.probe[u][:, :3]
+        q_ = 1.0 / sc.m[u]
+        lo, hi = np.quantile(t_, [0.475, 0.525])
+        w = (t_ >= lo) & (t_ < hi)
+        Ntot = (a * q_[:, None]).T @ a
+        NW = (a[w] * q_[w, None]).T @ a[w]
+        SW = NW - NW @ np.linalg.pinv(Ntot) @ NW
+        pen = float(sc.search.get("n_windows", 1))
+        crit = stats.chi2.isf(cfg.alpha / max(m_tests, 1) / pen, 3)
+        lam = optimize.brentq(lambda L: stats.ncx2.sf(crit, 3, L) - 0.8, 1e-6, 1e6)
+        for j, name in enumerate(SHIFT):
+            mdb_stat = s0 * math.sqrt(lam / max(SW[j, j], 1e-300))
+            mdb_eff = cfg.min_effect_m * math.sqrt(sq / max(SW[j, j], 1e-300))
+            mdb = max(mdb_stat, mdb_eff)
+            raw = mdb * math.sqrt(NW[j, j] / float(np.sum(q_[w])))  # rms inside the window
+            out.append({"effect": "impulsive_shift", "parameter": name, "scans": [sc.id],
+                        "minimal_detectable": mdb,
+                        "limited_by": "statistic" if mdb_stat >= mdb_eff else "effect_size",
+                        "rms_effect_m": raw, "relative_to_range_noise": raw / float(ctx.sigma[0]),
+                        "window": "middle 5 % of the scan (rms effect inside the window)",
+                        "correlation_with_model": None})
     return out
 
 
@@ -1768,6 +1804,31 @@ def _signature_check(ctx, S, spec, joint, o: _Option, options: Sequence[_Option]
             return (f"the other cycle shows the same deviation in the same dish cells "
                     f"(slope {slope:.2f}, z {z:.1f}): a reflector effect, not motion")
     return ""
+
+
+def _alternatives(joint: _Joint, best: _Option, options: Sequence[_Option]) -> list[dict]:
+    """Other significant candidates of the same family that the data hardly tell apart from
+    the accepted one (|correlation of the estimates| > 0.9): the choice between them rests on
+    a small difference of their statistics."""
+    if best.kind != "catalog" or best.family != "instrument":
+        return []
+    cb = best.payload.cand
+    out = []
+    for o in options:
+        if o is best or o.kind != "catalog" or o.family != "instrument" or not o.log_p < 0:
+            continue
+        c = o.payload.cand
+        pair = _Candidate("pair", "instrument", np.concatenate([cb.idx, c.idx]),
+                          np.kron(np.eye(2), np.ones((len(cb.idx), 1))), [cb.effect, c.effect],
+                          cb.scans)
+        t = joint.test(pair)
+        if t.cov is None or t.dof < 2:
+            continue
+        r = t.cov[0, 1] / math.sqrt(max(t.cov[0, 0] * t.cov[1, 1], 1e-300))
+        if abs(r) > 0.9:
+            out.append({"effect": c.effect, "statistic": _num(o.T),
+                        "correlation": float(r), "joint_statistic": _num(t.T)})
+    return out
 
 
 def _same_motion(effect: str, a: _Scan, b: _Scan) -> bool:
@@ -2116,9 +2177,14 @@ def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Op
             if name == "time":
                 sc.cut = sc.cut | np.isin(ids, big)
             else:
+                # the joint solution: range error per bin and the panel planes it implies
                 ok = ids >= 0
+                er = pl["raw"][k * ps: (k + 1) * ps]
+                kp = np.where(sc.panel >= 0, sc.panel, 0)
+                plane = np.where(sc.panel >= 0, np.sum(_panel_columns(ctx, sc)
+                                                       * pl["planes"][kp], 1), 0.0)
                 sc.extra_known = sc.extra_known + np.where(
-                    ok, -sc.b0 * e[np.where(ok, ids, 0)] / sc.s_rho, 0.0)
+                    ok, -sc.b0 * er[np.where(ok, ids, 0)] / sc.s_rho, 0.0) - plane
         if len(parts) == 1:
             where.update({k: v for k, v in parts[0].items() if k not in ("scan", "faces",
                                                                          "range_error_m")})

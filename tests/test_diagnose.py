@@ -44,7 +44,7 @@ def _cache():
 def _campaign(tmp_path_factory, name, effects, seed=3, positions=None, post=None):
     out = tmp_path_factory.mktemp(name)
     simulate_campaign(out, preset="clean", effects={**PANELS, **effects}, seed=seed,
-                      step_rad=STEP, positions=positions)
+                      step_rad=STEPS.get(name, STEP), positions=positions)
     if post is not None:
         post(out, seed)
     return out
@@ -130,14 +130,16 @@ SLOW = {
     "x3": Case("x3", "x3", {"x3": 5e-3}, 1.5e-3, ""),
     "x5n": Case("x5n", "x5n", {"x5n": 8e-5}, 8e-4, ""),
     "x8x": Case("x8x", "x8x", {"x8x": 1.2e-4}, 1.2e-3, ""),
-    "drift": Case("drift", "drift", {"drift": {"rate_m_s": 1e-4,
-                                                "direction": (0.3, 0.5, 1.0)}}, 1.1e-3, ""),
+    "drift": Case("drift", "drift", {"drift": {"rate_m_s": 4e-4,
+                                                "direction": (0.3, 0.5, 1.0)}}, 2.2e-3, ""),
     "gravity_deformation": Case("gravity_deformation", "gravity_deformation",
                                 {"gravity_deformation": {"scale": 3.0}}, 4.5e-4, "",
                                 MULTI_POSITIONS),
+    # a local bump needs points: at 0.02 rad its core is a few points, rejected as outliers
     "unexplained_bump": Case("unexplained_bump", "unexplained",
-                             {"unexplained": {"amplitude_m": 5e-3, "width_m": 0.4}}, 5e-3, ""),
+                             {"unexplained": {"amplitude_m": 3e-3, "width_m": 0.3}}, 3e-3, ""),
 }
+STEPS = {"unexplained_bump": 0.01}
 PARAMS = [pytest.param(c, id=k) for k, c in FAST.items()] + [
     pytest.param(c, id=k, marks=pytest.mark.slow) for k, c in SLOW.items()]
 

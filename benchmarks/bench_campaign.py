@@ -156,7 +156,16 @@ def stage_fit_local(a) -> None:
         res["gravity"] = {"df_dg_m": gm.c.tolist(), "sigma_scaled": gm.focal.sigma_scaled.tolist(),
                           "names": list(gm.focal.names), "beta": gm.focal.beta.tolist(),
                           "p_value_F": gm.test["p_value_F"], "F": gm.test["F"],
-                          "C": gm.C.tolist(), "modes": list(gm.modes)}
+                          "C": gm.C.tolist(), "modes": list(gm.modes),
+                          "variance_factor": gm.focal.scale,
+                          "corrected_modes": list(gm.corrected_modes)}
+        # the old regression of f alone (the modes' take-up by f not corrected), for comparison
+        from hartrao_jax._gravity import gravity_model
+
+        raw = gravity_model(out / "joint", temperature=temps, correct_leakage=False)
+        res["gravity_raw"] = {"names": list(raw.focal.names), "beta": raw.focal.beta.tolist(),
+                              "sigma_scaled": raw.focal.sigma_scaled.tolist(),
+                              "variance_factor": raw.focal.scale}
         truth = camp.root / "truth.json"
         if truth.is_file():
             t = json.loads(truth.read_text())
@@ -187,7 +196,7 @@ def stage_fit_dask(a) -> None:
     _emit({"scans": len(res.summaries), "cluster_start_s": t_start, "fit_s": res.seconds,
            "end_to_end_s": time.perf_counter() - t0, "workers": res.n_workers,
            "per_scan_s_median": sorted(per)[len(per) // 2], "per_scan_s_sum": sum(per),
-           "peak_rss_client_gib": _peak_gib()})
+           "per_scan_s_max": max(per), "peak_rss_client_gib": _peak_gib()})
 
 
 def stage_simulate_full(a) -> None:
@@ -216,7 +225,8 @@ def stage_stream(a) -> None:
     wall = time.perf_counter() - t0
     _emit({"seconds": wall, "rows": r.n_rows, "points": r.n_points, "rejected": r.n_rejected,
            "outside_window": r.n_window, "iterations": r.iterations, "rounds": r.rounds,
-           "passes": r.passes, "converged": r.converged, "sigma0": r.sigma0,
+           "passes": r.passes, "round_iterations": r.round_iterations,
+           "stalled_rounds": r.stalled_rounds, "converged": r.converged, "sigma0": r.sigma0,
            "f": r.estimates["f"], "x4": r.estimates["x4"], "timings": r.timings,
            "rows_per_chunk": a.rows_per_chunk, "peak_rss_gib": _peak_gib(),
            "peak_rss_before_gib": base,
@@ -343,9 +353,14 @@ def report(d: dict) -> str:
         L.append("")
         if "dask" in d:
             da = d["dask"]
+            lo = d.get("local")
+            local = (f" (in-process: {lo['fit_s'] / lo['scans']:.1f} s per scan, read, "
+                     "preprocessing and adjustment)" if lo else "")
             L += [f"Dask: cluster start {da['cluster_start_s']:.1f} s; per-scan task time median "
-                  f"{da['per_scan_s_median']:.1f} s (sum {_fmt_s(da['per_scan_s_sum'])}); "
-                  f"largest difference to the in-process estimates "
+                  f"{da['per_scan_s_median']:.1f} s{local}, longest "
+                  f"{da.get('per_scan_s_max', float('nan')):.1f} s (a worker's first scans "
+                  f"compile), sum {_fmt_s(da['per_scan_s_sum'])}; largest difference to the "
+                  f"in-process estimates "
                   f"{da.get('max_abs_difference_over_sigma', float('nan')):.2g} sigma.", ""]
     if "local" in d and "joint_s" in d["local"]:
         lo = d["local"]
@@ -370,7 +385,15 @@ def report(d: dict) -> str:
         L += ["", f"Gravity model ({_fmt_s(lo['gravity_s'])}): "
               + ", ".join(f"{n} = {b * 1e3:.3f} ± {s * 1e3:.3f} mm" for n, b, s in
                           zip(g["names"], g["beta"], g["sigma_scaled"]))
-              + f"; transverse terms F = {g['F']:.1f}, p = {g['p_value_F']:.2g}."]
+              + f"; transverse terms F = {g['F']:.1f}, p = {g['p_value_F']:.2g}; chi2/dof "
+              f"{g.get('variance_factor', float('nan')):.2f}; take-up of modes "
+              f"{g.get('corrected_modes', [])} by f corrected."]
+        if "gravity_raw" in lo:
+            r = lo["gravity_raw"]
+            L.append("Without that correction (f alone regressed on g): "
+                     + ", ".join(f"{n} = {b * 1e3:.3f} ± {s * 1e3:.3f} mm" for n, b, s in
+                                 zip(r["names"], r["beta"], r["sigma_scaled"]))
+                     + f"; chi2/dof {r['variance_factor']:.2f}.")
         if "truth" in lo:
             L.append(f"Truth: df/dg = {[round(v * 1e3, 3) for v in lo['truth']['df_dg_m']]} mm, "
                      f"df/dT = {lo['truth']['df_dT_m_per_K'] * 1e3:.3f} mm/K.")

@@ -38,10 +38,13 @@ def _child(camp: str, cache: str) -> None:
 
     enable_compilation_cache()
     t = time.perf_counter()
+    c0 = time.process_time()
     d = diagnose(camp)
     wall = time.perf_counter() - t
+    cpu = time.process_time() - c0
     n = sum(c["n_points"] for c in d.comparison)
-    print(json.dumps({"wall_s": wall, "timing_s": d.timing_s, "n_points": n,
+    print(json.dumps({"wall_s": wall, "cpu_s": cpu, "load_1min": os.getloadavg()[0],
+                      "timing_s": d.timing_s, "n_points": n,
                       "findings": [f.effect for f in d.findings],
                       "sigma0": [d.sigma0_start, d.sigma0_final]}))
 
@@ -74,15 +77,19 @@ def main(argv=None) -> int:
                                      capture_output=True, text=True, check=True)
                 res = json.loads(out.stdout.strip().splitlines()[-1])
                 rows.append({"step_rad": step, "run": run, "n_points": res["n_points"],
-                             "wall_s": res["wall_s"],
+                             "wall_s": res["wall_s"], "cpu_s": res["cpu_s"],
+                             "load_1min": res["load_1min"],
                              "start_fit_s": res["timing_s"]["start_fit"],
                              "loop_s": res["timing_s"]["loop"],
                              "findings": ",".join(res["findings"]),
                              "simulate_s": t_sim})
                 print(rows[-1], flush=True)
-    md = "# diagnose: wall time of one two-cycle scan\n\n" + md_table(rows, [
+    md = ("# diagnose: wall time of one two-cycle scan\n\nOn a 2-core machine, wall time is "
+          "about CPU time / 2 when the machine is otherwise idle; a load above 2 means other "
+          "jobs shared the cores.\n\n") + md_table(rows, [
         ("step_rad", "step [rad]", "g"), ("run", "run", ""), ("n_points", "points", "d"),
-        ("wall_s", "wall [s]", ".1f"), ("start_fit_s", "start fit [s]", ".1f"),
+        ("wall_s", "wall [s]", ".1f"), ("cpu_s", "process CPU [s]", ".1f"),
+        ("load_1min", "load (1 min) at end", ".1f"), ("start_fit_s", "start fit [s]", ".1f"),
         ("loop_s", "loop [s]", ".1f"), ("findings", "findings", "")])
     write_results("diagnose", md, {"rows": rows, "machine": machine_info(), "effects": EFFECTS})
     print(md)

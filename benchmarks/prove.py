@@ -27,13 +27,20 @@ def main(argv=None) -> int:
     ap.add_argument("--step", type=float, default=0.01, help="angular step (rad)")
     ap.add_argument("--seed0", type=int, default=1, help="first seed")
     ap.add_argument("--keep-campaigns", action="store_true")
+    ap.add_argument("--merge", default=None,
+                    help="comma-separated result directories of earlier runs: one table")
     ap.add_argument("--detectability", action="store_true",
                     help="only the minimal detectable amplitudes on a clean campaign")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     logging.getLogger("hartrao_jax").setLevel(logging.INFO)
     import hartrao_jax  # noqa: F401
-    from hartrao_jax._prove import detectability, print_table, run_prove
+    from hartrao_jax._prove import detectability, merge_results, print_table, run_prove
+
+    if args.merge:
+        res = merge_results(args.out, args.merge.split(","))
+        print_table(res)
+        return 0
 
     if args.detectability:
         Path(args.out).mkdir(parents=True, exist_ok=True)

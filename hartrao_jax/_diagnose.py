@@ -63,7 +63,8 @@ from scipy import stats
 from ._campaign import Campaign, ScanData, ScanMeta, load_campaign
 from ._geometry import face_of, panel_geometry, panel_ids, paraboloid_normal_scale
 from ._ghm import gauss_helmert, normal_equations, robust_gauss_helmert
-from ._model import DRIFT, OSCILLATION, SHIFT, ZERNIKE_PREFIX, make_model, parse_model
+from ._model import (DRIFT, OSC_FREQUENCY, OSCILLATION, SHIFT, ZERNIKE_PREFIX, make_model,
+                     parse_model)
 from ._physics import EFFECTS, INSTRUMENT, inseparable_pairs
 
 log = logging.getLogger("hartrao_jax")
@@ -1950,6 +1951,46 @@ def _refine_periods(ctx: _Context, spec: _Spec, refit) -> None:
             _refit(ctx, sc, spec, from_used=True)
 
 
+def _free_frequency(ctx: _Context, spec: _Spec, refit) -> dict[str, dict]:
+    """Estimate the oscillation frequency with the amplitudes (one more GH adjustment per scan).
+
+    The amplitudes of a fixed period are conditional on it: a period off by 0.1 % turns the
+    phase by 0.07 rad over an 11 s scan, many sigma of the amplitudes. With the frequency
+    correction ``osc_df_hz`` free the period is corrected and the amplitude covariance grows
+    by ``C_free - C_fixed`` (the part the period's uncertainty adds); the scan is then refitted
+    at the corrected period. Returns per scan id the added covariance over its oscillation
+    names, the period and its sigma (s).
+    """
+    out = {}
+    for sc, names in refit:
+        mot = spec.motion[sc.id]
+        osc = [n for n in names if n in OSCILLATION]
+        if not osc:
+            continue
+        model = _scan_model(sc, spec, ctx.aperture, extra=(OSC_FREQUENCY,))
+        x0 = np.array([sc.value(n) if n in sc.names else 0.0 for n in model.free])
+        w = (sc.used & ~sc.cut).astype(float)
+        res = _adjust(ctx, model, sc.l, x0, sc.consts(), w)
+        free = list(model.free)
+        j = free.index(OSC_FREQUENCY)
+        C = np.asarray(res.cov)
+        if not res.converged or not np.isfinite(C[j, j]) or C[j, j] <= 0:
+            continue
+        f0 = 1.0 / mot["period_s"]
+        df = float(res.x[j])
+        a = [free.index(n) for n in osc]
+        b = [sc.names.index(n) for n in osc]
+        D = C[np.ix_(a, a)] - sc.cov[np.ix_(b, b)]
+        w_, V = np.linalg.eigh(0.5 * (D + D.T))
+        D = (V * np.maximum(w_, 0.0)) @ V.T
+        period = 1.0 / (f0 + df)
+        mot["period_s"] = sc.period_s = float(period)
+        _refit(ctx, sc, spec, from_used=True)
+        out[sc.id] = {"names": osc, "added_cov": D, "period_s": float(period),
+                      "period_sigma_s": float(math.sqrt(C[j, j]) * period**2)}
+    return out
+
+
 def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Option) -> Finding:
     """Model the accepted explanation, refit, and describe it as a finding."""
     eff = EFFECTS.get(o.effect)
@@ -2049,22 +2090,34 @@ def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Op
             log.debug("%s one-step estimate %s", c.effect, hints)
             _refit_all(ctx, S, spec, only=[s for s, _ in refit], hints=hints, from_used=False,
                        others=True)
+            freq: dict[str, dict] = {}
             if c.effect == "oscillation":
                 _refine_periods(ctx, spec, refit)
+                freq = _free_frequency(ctx, spec, refit)
                 where["period_s"] = spec.motion[sc.id]["period_s"]
+                if sc.id in freq:
+                    where["period_sigma_s"] = freq[sc.id]["period_sigma_s"]
                 if multi:
                     where["period_s_by_scan"] = {s.id: spec.motion[s.id]["period_s"]
                                                  for s, _ in refit}
             # values from the refit; covariance from the joint system (the panel offsets,
             # estimated from the same points, are eliminated there, not held fixed)
-            sel = []
+            # (an oscillation: plus what the uncertainty of its period adds)
+            sel, rows = [], []
             for (s_, names), (sid, mnames, sl) in zip(refit, members):
                 for n in names:
-                    key = f"{n}@{s_.id}" if multi else n
-                    j = np.arange(len(t.estimate))[sl][mnames.index(n)]
-                    sel.append(j)
-                    estimate[key] = {"value": s_.value(n), "sigma": float(t.sigma[j])}
-            extra["covariance"] = t.cov[np.ix_(sel, sel)].tolist()
+                    sel.append(np.arange(len(t.estimate))[sl][mnames.index(n)])
+                    rows.append((s_, n, f"{n}@{s_.id}" if multi else n))
+            cov = t.cov[np.ix_(sel, sel)].copy()
+            for p_, (sp, n_p, _) in enumerate(rows):
+                for q_, (sq, n_q, _) in enumerate(rows):
+                    fq = freq.get(sp.id)
+                    if sp is sq and fq and n_p in fq["names"] and n_q in fq["names"]:
+                        cov[p_, q_] += fq["added_cov"][fq["names"].index(n_p),
+                                                       fq["names"].index(n_q)]
+            for p_, (s_, n, key) in enumerate(rows):
+                estimate[key] = {"value": s_.value(n), "sigma": float(math.sqrt(cov[p_, p_]))}
+            extra["covariance"] = cov.tolist()
             vals = {k.split("@")[0]: v["value"] for k, v in estimate.items()
                     if k.endswith(f"@{sc.id}") or "@" not in k}
             span = ", ".join(s.id for s, _ in refit)

@@ -23,7 +23,7 @@ from ._geometry import face_of, paraboloid_deviation, pointing_elevation_deg, po
 from ._ghm import GHResult, gauss_helmert_batch, robust_gauss_helmert
 from ._init import (
     InitialValues,
-    initial_distance,
+    geometry_window,
     initial_values,
     patch_initial_values,
     quadric_initial_values,
@@ -183,8 +183,7 @@ def prepare_scan(
     data = read_scan(campaign, meta) if data is None else data
     g = pointing_gravity(meta, campaign.telescope, campaign.site)
     init = choose_initial_values(campaign, meta, data, g, seed=seed)
-    dist = initial_distance(data.range_m, data.phi_rad, data.theta_rad, init.x)
-    window = np.abs(dist) < window_m
+    window = geometry_window(data.range_m, data.phi_rad, data.theta_rad, init.x, window_m)
     if keep is not None:
         window &= keep
     return data, g, init, window
@@ -202,27 +201,49 @@ def fit_scan(
     window_m: float = 0.10,
     heading_hint_rad: float | None = None,
     max_iter: int = 30,
+    pad: bool = True,
 ) -> ScanFit:
     """Adjust one scan with the given model (names, ``"simplified"`` or ``"extended"``).
 
     ``keep``: optional boolean mask of points to consider (e.g. from preprocessing).
     ``robust_k``: reject points beyond ``k`` a posteriori sigmas (None: no rejection).
+    ``pad``: run the adjustment on the rows padded to :func:`._joint.bucket_size` (copies of
+    the first row at weight 0, which enter no sum): scans of similar size then share one
+    compiled program instead of compiling one each (compilation was most of the time per scan
+    of a campaign). The estimates equal the unpadded ones to round-off.
     """
+    from ._joint import bucket_size
+
     fixed = dict(fixed or {})
     data, g, init, window = prepare_scan(campaign, meta, data, window_m=window_m, keep=keep)
     mdl = make_model(model, fixed, aperture_radius_m=campaign.telescope.diameter_m / 2)
-    l, c = scan_arrays(data)
-    w = window.astype(float)
+    n = len(data)
+    n_pad = bucket_size(n) if pad else n
+    pdata = data.subset(np.concatenate([np.arange(n), np.zeros(n_pad - n, np.int64)])) \
+        if n_pad > n else data
+    l, c = scan_arrays(pdata)
+    c[n:] = 0.0
+    wpad = np.zeros(n_pad, bool)
+    wpad[:n] = window
+    w = wpad.astype(float)
     x0 = _x0(mdl.free, init, fixed)
     sig = sigma_vector(campaign)
     if robust_k is None:
         from ._ghm import gauss_helmert
 
-        res = gauss_helmert(mdl, l, x0, sig, c, w, max_iter=max_iter)
+        res = gauss_helmert(mdl, l, x0, sig, c, w, v0=np.zeros_like(l), max_iter=max_iter)
     else:
         res = robust_gauss_helmert(mdl, l, x0, sig, c, w, k=robust_k, max_iter=max_iter)
-    return finish_scan_fit(campaign, meta, mdl, data, res, g, init, window,
-                           heading_hint_rad=heading_hint_rad)
+    fit = finish_scan_fit(campaign, meta, mdl, pdata, res, g, init, wpad,
+                          heading_hint_rad=heading_hint_rad)
+    if n_pad == n:
+        return fit
+    # back to the scan's own rows (the padding rows are unused and outside the window)
+    fit.data = data
+    for k in ("used", "v", "normalized", "deviation_m", "X_tel"):
+        setattr(fit, k, np.asarray(getattr(fit, k))[:n])
+    fit.n_window -= n_pad - n
+    return fit
 
 
 def finish_scan_fit(

@@ -271,7 +271,11 @@ def robust_gauss_helmert(
     l = jnp.asarray(l, jnp.float64)
     n = l.shape[0]
     w = jnp.ones((n,), l.dtype) if weights is None else jnp.asarray(weights, l.dtype)
-    res = gauss_helmert(condition, l, x0, sigma_l, consts, w, **kwargs)
+    # start residuals zero rather than None: the same pytree as the later rounds, so every
+    # round runs one compiled program (identical results)
+    v0 = kwargs.pop("v0", None)
+    v0 = jnp.zeros_like(l) if v0 is None else v0
+    res = gauss_helmert(condition, l, x0, sigma_l, consts, w, v0=v0, **kwargs)
     for _ in range(max_rounds):
         bad = (res.normalized > k) & (w > 0)
         if not bool(jnp.any(bad)):

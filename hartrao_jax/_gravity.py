@@ -16,6 +16,14 @@ positions, with the fit's sigmas. The hypothesis "``f`` depends on ``g_z`` only"
 against "also on the transverse components ``g_x``, ``g_y``" with the nested-model F-test and
 the chi-square difference test.
 
+The per-scan adjustment has no surface modes: a scan's ``f`` takes up part of them and its
+residuals keep only part (astigmatism above all: on a tilted scan the calibration and the pose
+mimic it, by amounts that depend on where the scanner hangs, i.e. on ``g``). Regressing ``f``
+alone on ``g`` then puts the modes' gravity dependence into ``df/dg``. Each scan's linear
+response to the modes (:func:`mode_response`: ``d f_hat / d a_j`` and what the residual
+projections keep, from the adjustment's own normal equations) lets ``f`` and the modes be
+regressed together (:func:`_joint_regression`), which removes that bias.
+
 The model then predicts ``f`` and the surface rms over the whole working range (HA/DEC grid),
 and the Ruze gain loss ``G/G0 = exp(-(4 pi eps / lambda)^2)`` at 2.5 cm and 1.3 cm.
 """
@@ -23,6 +31,7 @@ and the Ruze gain loss ``G/G0 = exp(-(4 pi eps / lambda)^2)`` at 2.5 cm and 1.3 
 from __future__ import annotations
 
 import json
+import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -33,8 +42,11 @@ import numpy as np
 from ._geometry import noll_to_nm
 from ._physics import DEFAULT_ZERNIKE_MODES
 
+log = logging.getLogger("hartrao_jax")
+
 GRAVITY_SCHEMA = "hartrao-gravity/1"
 NUISANCE_MODES = (1, 2, 3)  # piston, tilts: absorbed by the pose, estimated and dropped
+FOCUS_MODES = (4,)  # defocus: a change of the focal length, owned by f
 WAVELENGTHS_M = (0.025, 0.013)
 
 
@@ -58,25 +70,173 @@ class ScanSample:
     temperature_c: float | None = None
     X: np.ndarray | None = None  # used points, north-aligned telescope frame (m)
     deviation_m: np.ndarray | None = None
+    # response of the scan's adjustment to the surface modes (see mode_response):
+    # leak[j] = d f_hat / d a_j, retention[j, k] = d (projection j of the residuals) / d a_k
+    leak: np.ndarray | None = None
+    retention: np.ndarray | None = None
 
 
-def samples_from_fit(cf, *, with_points: bool = True) -> list[ScanSample]:
-    """Samples from a :class:`~hartrao_jax._fit.CampaignFit` (or a joint fit's ``scans``)."""
+def samples_from_fit(cf, *, with_points: bool = True, modes: Sequence[int] = (),
+                     aperture_radius_m: float | None = None, shared: Sequence[str] | None = None,
+                     sigma_l: np.ndarray | None = None) -> list[ScanSample]:
+    """Samples from a :class:`~hartrao_jax._fit.CampaignFit` or a joint fit
+    (:class:`~hartrao_jax._joint.JointFit`).
+
+    With ``modes`` (and the scans' points) each sample also gets its :func:`mode_response`;
+    ``shared``: parameters estimated jointly with other scans, held fixed in it (default: the
+    joint fit's ``shared``; a plain CampaignFit of a joint fit does not know them).
+    """
     scans = cf.scans if hasattr(cf, "scans") else cf
+    shared = tuple(getattr(cf, "shared", ()) or ()) if shared is None else tuple(shared)
+    if modes and not shared and any(str(n).startswith("joint adjustment")
+                                    for s in scans for n in (getattr(s, "notes", None) or ())):
+        # the scans of a joint fit without the names of its shared parameters: treating those
+        # as per-scan unknowns gives a wrong response (worse than none) -- pass the JointFit
+        log.warning("gravity model: scans of a joint adjustment without its shared parameters "
+                    "(pass the JointFit, not its campaign_fit()): mode take-up not corrected")
+        modes = ()
+    camp = getattr(cf, "campaign", None)
+    if sigma_l is None and camp is not None:
+        from ._fit import sigma_vector
+
+        sigma_l = sigma_vector(camp)
+    if aperture_radius_m is None:
+        aperture_radius_m = camp.telescope.diameter_m / 2 if camp is not None else 12.95
     out = []
     for s in scans:
         v, sg = s.estimates["f"]
         m = s.meta
+        resp = (None, None)
+        if with_points and modes and sigma_l is not None and s.model is not None \
+                and getattr(s, "data", None) is not None and len(s.data) == len(s.used):
+            from ._fit import scan_arrays
+
+            obs, c = scan_arrays(s.data)
+            model, x = _per_scan_model(s.model, s.x, shared)
+            resp = mode_response(model, obs, s.v, c, s.used, x, sigma_l, s.X_tel[s.used],
+                                 aperture_radius_m, modes)
         out.append(ScanSample(
             m.id, m.position, np.asarray(s.gravity, float), v, sg, m.ha_deg, m.dec_deg,
             s.elevation_deg, m.temperature_c,
             s.X_tel[s.used] if with_points else None,
-            s.deviation_m[s.used] if with_points else None))
+            s.deviation_m[s.used] if with_points else None, *resp))
     return out
 
 
-def samples_from_dir(results_dir, *, with_points: bool = True) -> list[ScanSample]:
-    """Samples from a results directory: ``fit.json`` and ``residuals/<scan>.parquet``."""
+# --------------------------------------------------------------------------------------------
+# How a scan's focal length responds to a surface deformation
+# --------------------------------------------------------------------------------------------
+
+
+def _per_scan_model(model, x, shared: Sequence[str]):
+    """The model with the ``shared`` parameters (estimated jointly with other scans) moved from
+    the free to the fixed ones at their values; returns ``(model, x_free)``."""
+    from ._model import make_model
+
+    free = tuple(model.free)
+    hold = [n for n in shared if n in free]
+    if not hold:
+        return model, np.asarray(x, float)
+    x = np.asarray(x, float)
+    fixed = dict(zip(model.fixed_names, np.asarray(model.fixed_values, float)))
+    fixed.update({n: float(x[free.index(n)]) for n in hold})
+    keep = [n for n in free if n not in hold]
+    m = make_model(keep, fixed, shift_window_s=model.shift_window_s,
+                   osc_period_s=model.osc_period_s, kappa_rad=model.kappa_rad,
+                   aperture_radius_m=model.aperture_radius_m, check_separable=False)
+    return m, np.array([x[free.index(n)] for n in keep])
+
+
+def _linearize_dev(model, L, x, C, s2):
+    """Per point: ``a = dF/dx``, ``m = b Sigma b^T`` and ``s = dF/d(known deviation)``."""
+    import jax
+    import jax.numpy as jnp
+
+    def one(obs, c, s2_):
+        _, (a, b, dc) = jax.value_and_grad(lambda xx, ll, cc: model(ll, xx, cc),
+                                           argnums=(0, 1, 2))(x, obs, c)
+        return a, jnp.sum(b * b * s2_), dc[1]
+
+    return jax.vmap(one)(L, C, s2)
+
+
+_linearize_dev_jit = None
+
+
+def _linear_response(model, obs: np.ndarray, v: np.ndarray, consts: np.ndarray,
+                     used: np.ndarray, x: np.ndarray, sigma_l: np.ndarray):
+    """``(Q, G, i_f)`` of an adjusted scan, for its used points (rows).
+
+    A normal deviation ``dev`` of the reflector that the adjustment model does not contain
+    enters each point's condition as ``dev_i s_i`` (:func:`._physics.paraboloid_condition`).
+    At the solution the estimates then move by ``dx = sum_i Q_i dev_i``,
+    ``Q_i = N^-1 a_i s_i / m_i`` (``a = dF/dx``, ``m = b Sigma b^T``, linearised at
+    ``(l + v, x)``), and the deviation of point ``i`` from the fitted paraboloid by
+    ``dev_i - G_i . dx`` with ``G_i = a_i / s_i``. ``i_f``: index of ``f`` in ``x``.
+    The rows are padded to :func:`._joint.bucket_size`, so a campaign compiles once.
+    """
+    import equinox as eqx
+
+    from ._joint import bucket_size
+
+    global _linearize_dev_jit
+    if _linearize_dev_jit is None:
+        _linearize_dev_jit = eqx.filter_jit(_linearize_dev)
+    used = np.asarray(used, bool)
+    n = len(obs)
+    n_pad = bucket_size(n)
+    idx = np.concatenate([np.arange(n), np.zeros(n_pad - n, np.int64)])
+    L = (np.asarray(obs, float) + np.asarray(v, float))[idx]
+    C = np.array(np.asarray(consts, float)[idx])
+    C[:, 1] = 0.0
+    s2 = np.broadcast_to(np.asarray(sigma_l, float) ** 2, (n_pad, 3))
+    a, m, sc = (np.asarray(t)[:n][used] for t in _linearize_dev_jit(
+        model, L, np.asarray(x, float), C, s2))
+    q = np.where(m > 0, 1.0 / np.where(m > 0, m, 1.0), 0.0)
+    N = (a * q[:, None]).T @ a
+    Q = np.linalg.solve(N, (a * (q * sc)[:, None]).T).T  # N symmetric
+    G = a / sc[:, None]
+    return Q, G, list(model.free).index("f")
+
+
+def mode_response(model, obs, v, consts, used, x, sigma_l, X: np.ndarray,
+                  aperture_radius_m: float, modes: Sequence[int],
+                  nuisance: Sequence[int] = NUISANCE_MODES
+                  ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """How an adjusted scan responds to the Zernike surface modes it does not model.
+
+    ``X``: the used points (north-aligned telescope frame, the frame of the modes). Returns
+    ``(leak, retention)``: ``leak[j] = d f_hat / d a_j`` (m of focal length per m of mode
+    coefficient) and ``retention[j, k]`` = the change of the residuals' projection on mode ``j``
+    (:func:`zernike_projection`) per unit of mode ``k``. A mode the adjustment cannot take up
+    stays in the residuals (``retention`` = identity, ``leak`` = 0); on a tilted scan with
+    per-scan calibration the focal length took up 4 to 10 m per m of astigmatism, and the
+    residuals kept only part of it -- the gravity model must account for both
+    (:func:`gravity_model`).
+    """
+    try:
+        Q, G, i_f = _linear_response(model, obs, v, consts, used, x, sigma_l)
+    except np.linalg.LinAlgError:  # a singular scan: no response, no correction
+        return None, None
+    u = np.hypot(X[:, 0], X[:, 1]) / aperture_radius_m
+    psi = np.arctan2(X[:, 1], X[:, 0])
+    allm = tuple(nuisance) + tuple(j for j in modes if j not in nuisance)
+    A = np.column_stack([zernike_np(j, u, psi) for j in allm])
+    Zm = A[:, [allm.index(j) for j in modes]]
+    dX = Q.T @ Zm  # (u, modes): parameter change per unit mode
+    R = Zm - G @ dX  # what each mode leaves in the deviations
+    coef, *_ = np.linalg.lstsq(A, R, rcond=None)
+    return dX[i_f], coef[[allm.index(j) for j in modes]]
+
+
+def samples_from_dir(results_dir, *, with_points: bool = True, modes: Sequence[int] = (),
+                     aperture_radius_m: float | None = None) -> list[ScanSample]:
+    """Samples from a results directory: ``fit.json`` and ``residuals/<scan>.parquet``.
+
+    With ``modes`` each sample also gets its :func:`mode_response`, rebuilt from the residual
+    table (observations, residuals, time) and the campaign of ``fit.json`` (scanner sigmas);
+    without the campaign it is left out.
+    """
     import pyarrow.parquet as pq
 
     root = Path(results_dir)
@@ -87,31 +247,84 @@ def samples_from_dir(results_dir, *, with_points: bool = True) -> list[ScanSampl
     pos = {q["position"]: q for q in doc.get("positions", [])}
     temps: dict[str, float | None] = {}
     camp = doc.get("campaign")
+    sigma_l = None
     if camp and (Path(camp) / "campaign.toml").is_file():
         from ._campaign import load_campaign
+        from ._fit import sigma_vector
 
         try:
-            temps = {m.id: m.temperature_c for m in load_campaign(camp).scans}
+            c = load_campaign(camp)
+            temps = {m.id: m.temperature_c for m in c.scans}
+            sigma_l = sigma_vector(c)
+            if aperture_radius_m is None:
+                aperture_radius_m = c.telescope.diameter_m / 2
         except Exception:  # noqa: BLE001 - temperatures are optional
             temps = {}
+    if aperture_radius_m is None:
+        aperture_radius_m = 12.95
     out = []
-    shared_f = doc.get("shared", {}).get("f")
+    shared = doc.get("shared", {})
+    shared_f = shared.get("f")
+    cols = ["used", "X_m", "Y_m", "Z_m", "deviation_m"]
+    lcols = ["range_m", "phi_rad", "theta_rad", "v_range_m", "v_phi_rad", "v_theta_rad",
+             "time_s"]
     for s in doc["scans"]:
         est = s["estimates"].get("f") or shared_f
         q = pos.get(s["position"], {})
         X = dev = None
+        resp = (None, None)
         if with_points:
             rp = root / "residuals" / f"{s['id']}.parquet"
             if rp.is_file():
-                t = pq.read_table(rp, columns=["used", "X_m", "Y_m", "Z_m", "deviation_m"])
+                names = pq.ParquetFile(rp).schema_arrow.names
+                lin = bool(modes) and sigma_l is not None and "f" in s["estimates"] and all(
+                    c in names for c in lcols)
+                t = pq.read_table(rp, columns=cols + (lcols if lin else []))
                 used = t.column("used").to_numpy(zero_copy_only=False)
                 X = np.column_stack([t.column(c).to_numpy() for c in ("X_m", "Y_m", "Z_m")])[used]
                 dev = t.column("deviation_m").to_numpy()[used]
+                if lin:
+                    resp = _response_from_table(t, used, X, s, doc.get("model", []), shared,
+                                                sigma_l, aperture_radius_m, modes)
         out.append(ScanSample(
             s["id"], s["position"], np.asarray(s.get("gravity") or q.get("gravity"), float),
             float(est["value"]), float(est["sigma"]), q.get("ha_deg"), q.get("dec_deg"),
-            s.get("elevation_deg", q.get("elevation_deg")), temps.get(s["id"]), X, dev))
+            s.get("elevation_deg", q.get("elevation_deg")), temps.get(s["id"]), X, dev, *resp))
     return out
+
+
+def _response_from_table(t, used, X, rec: dict, names: Sequence[str], shared: dict, sigma_l,
+                         aperture_radius_m: float, modes: Sequence[int]):
+    """:func:`mode_response` of a scan from its residual table and ``fit.json`` record.
+
+    The model is rebuilt from the names of ``fit.json``: the scan's estimates free, the shared
+    parameters of a joint fit fixed at their group's values (parameters held fixed in the fit
+    are not recorded there and are taken as 0 -- their values hardly change the derivatives).
+    """
+    from ._model import N_CONSTS, make_model
+
+    est = rec["estimates"]
+    free = [n for n in names if n in est]
+    fixed = {}
+    for n in names:
+        if n in est:
+            continue
+        sh = shared.get(n)
+        if sh is None:
+            continue
+        g = (sh.get("by_group") or {}).get(rec.get("shared_group"), sh)
+        fixed[n] = float(g["value"])
+    try:
+        model = make_model(free, fixed, check_separable=False)
+    except Exception:  # noqa: BLE001 - a model we cannot rebuild: no correction for it
+        return None, None
+    col = lambda c: t.column(c).to_numpy()  # noqa: E731
+    obs = np.column_stack([col("range_m"), col("phi_rad"), col("theta_rad")])
+    v = np.column_stack([col("v_range_m"), col("v_phi_rad"), col("v_theta_rad")])
+    c = np.zeros((len(obs), N_CONSTS))
+    c[:, 0] = col("time_s")
+    x = np.array([est[n]["value"] for n in model.free])
+    return mode_response(model, obs, v, c, used, x, sigma_l, X, aperture_radius_m, modes)
 
 
 def zernike_np(j: int, u: np.ndarray, psi: np.ndarray) -> np.ndarray:
@@ -297,6 +510,10 @@ class PositionRow:
     zernike_sigma: np.ndarray | None
     residual_rms_m: float | None
     scans: list[str] = field(default_factory=list)
+    # d f / d a_j: how much of each surface mode the position's focal length absorbed (1/1),
+    # and d z_j / d a_k: how much of each mode its residual projections kept (mode_response)
+    leak: np.ndarray | None = None
+    retention: np.ndarray | None = None
 
 
 @dataclass
@@ -320,6 +537,7 @@ class GravityModel:
     latitude_deg: float
     reference_g: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
     temperature: bool = False
+    corrected_modes: tuple[int, ...] = ()  # modes whose take-up by f was corrected
 
     # --- predictions ---------------------------------------------------------------------
     @property
@@ -395,7 +613,8 @@ class GravityModel:
                      + "; a_j = a0_j + C_j . g (Zernike, Noll, unit rms, north-aligned frame)",
             "n_positions": len(self.positions),
             "focal_length": {**self.focal.as_dict(), "f0_m": self.f0,
-                             "df_dg_m": dict(zip(names, self.c.tolist()))},
+                             "df_dg_m": dict(zip(names, self.c.tolist())),
+                             "mode_take_up_corrected": list(self.corrected_modes)},
             "focal_length_gz_only": self.focal_gz.as_dict(),
             "test_transverse": {
                 **self.test, "null": "f depends on g_z only",
@@ -419,7 +638,9 @@ class GravityModel:
                  "zernike_m": None if p.zernike is None else
                  {f"zern_{j}": {"value": float(a), "sigma": float(s)}
                   for j, a, s in zip(self.modes, p.zernike, p.zernike_sigma)},
-                 "residual_rms_m": p.residual_rms_m}
+                 "residual_rms_m": p.residual_rms_m,
+                 "df_dmode": None if p.leak is None else
+                 {f"zern_{j}": float(k) for j, k in zip(self.modes, p.leak)}}
                 for p in self.positions],
         }
         if sky is not None:
@@ -474,9 +695,10 @@ def _positions(samples: Sequence[ScanSample], modes, aperture: float, layout=Non
         w = np.array([1.0 / s.sigma_f**2 for s in ss])
         f = float(np.sum(w * np.array([s.f for s in ss])) / np.sum(w))
         sf = float(1.0 / math.sqrt(np.sum(w)))
-        z = zs = rr = None
-        proj = [zernike_projection(s.X, s.deviation_m, aperture, modes, layout=layout) for s in ss
-                if s.X is not None and len(s.X) > 3 * (len(modes) + 3)]
+        z = zs = rr = leak = ret = None
+        ok = [s for s in ss if s.X is not None and len(s.X) > 3 * (len(modes) + 3)]
+        proj = [zernike_projection(s.X, s.deviation_m, aperture, modes, layout=layout)
+                for s in ok]
         if proj and modes:
             a = np.array([p[0] for p in proj])
             sa = np.array([p[1] for p in proj])
@@ -484,13 +706,68 @@ def _positions(samples: Sequence[ScanSample], modes, aperture: float, layout=Non
             z = np.sum(wz * a, 0) / np.sum(wz, 0)
             zs = 1.0 / np.sqrt(np.sum(wz, 0))
             rr = float(np.median([p[2] for p in proj]))
+            if len(ok) == len(ss) and all(s.leak is not None for s in ss):
+                # the position's f and mode coefficients are weighted means of its scans':
+                # so are their responses to the modes
+                leak = np.sum(w[:, None] * np.array([s.leak for s in ss]), 0) / np.sum(w)
+                ret = np.sum(wz[:, :, None] * np.array([s.retention for s in ss]), 0) \
+                    / np.sum(wz, 0)[:, None]
         temps = [s.temperature_c for s in ss if s.temperature_c is not None]
         s0 = ss[0]
         rows.append(PositionRow(pos, np.mean([s.gravity for s in ss], 0), f, sf, s0.ha_deg,
                                 s0.dec_deg, s0.elevation_deg,
                                 float(np.mean(temps)) if temps else None, z, zs, rr,
-                                [s.id for s in ss]))
+                                [s.id for s in ss], leak, ret))
     return rows
+
+
+def _joint_regression(G, y, sy, T, cols_f: Sequence[str], Z, SZ, K, M):
+    """Focal length and modes regressed on g together, with the positions' mode responses.
+
+    ``f_p = design_f(p) beta_f + sum_k K_pk (a0_k + C_k . g_p)`` and
+    ``z_pj = sum_k M_pjk (a0_k + C_k . g_p)`` (the residuals' mode projections), weighted by
+    ``1 / sigma^2``. Returns the focal :class:`LinearFit` (its block of the covariance, chi2
+    over the focal rows) and one per mode (chi2 over that mode's rows).
+    """
+    zc = ("a0", "gx", "gy", "gz")
+    Af = _design(G, cols_f, T)
+    Ag = _design(G, zc)
+    n, pf = Af.shape
+    nm = Z.shape[1]
+    A = np.zeros((n * (1 + nm), pf + 4 * nm))
+    A[:n, :pf] = Af
+    for k in range(nm):
+        cols = slice(pf + 4 * k, pf + 4 * k + 4)
+        A[:n, cols] = K[:, k: k + 1] * Ag
+        for j in range(nm):
+            A[n * (1 + j): n * (2 + j), cols] = M[:, j, k: k + 1] * Ag
+    yy = np.concatenate([y, Z.T.reshape(-1)])
+    ss = np.concatenate([sy, SZ.T.reshape(-1)])
+    w = 1.0 / ss**2
+    cov = np.linalg.inv(A.T @ (A * w[:, None]))
+    beta = cov @ (A.T @ (w * yy))
+    r2 = w * (yy - A @ beta) ** 2
+    focal = LinearFit(tuple(cols_f), beta[:pf], cov[:pf, :pf], float(np.sum(r2[:n])), n - pf)
+    zfits = []
+    for j in range(nm):
+        b = slice(pf + 4 * j, pf + 4 * j + 4)
+        zfits.append(LinearFit(zc, beta[b], cov[b, b],
+                               float(np.sum(r2[n * (1 + j): n * (2 + j)])), n - 4))
+    return focal, zfits
+
+
+def corrected_modes(modes: Sequence[int], M: np.ndarray, *, min_retention: float = 0.2
+                    ) -> tuple[int, ...]:
+    """The modes whose take-up by the adjustment is corrected: kept in the residuals at
+    least ``min_retention`` (median over positions of ``M_jj``), defocus excepted.
+
+    Defocus (Noll 4) *is* a change of focal length: the fitted ``f`` absorbs it by definition.
+    Modes the pose absorbs almost completely (coma) are left uncorrected: their residual
+    projections carry too little of them to be estimated, and they hardly move ``f``.
+    """
+    d = np.median(np.array([np.diag(m) for m in M]), axis=0)
+    return tuple(j for k, j in enumerate(modes) if j not in FOCUS_MODES
+                 and d[k] >= min_retention)
 
 
 def gravity_model(
@@ -501,32 +778,49 @@ def gravity_model(
     aperture_radius_m: float | None = None,
     latitude_deg: float | None = None,
     reference_g: Sequence[float] = (0.0, 0.0, -1.0),
+    correct_leakage: bool = True,
 ) -> GravityModel:
     """Estimate the gravity model from per-scan fits.
 
-    ``source``: a :class:`~hartrao_jax._fit.CampaignFit` (or a joint fit), a results directory
+    ``source``: a :class:`~hartrao_jax._fit.CampaignFit`, a joint fit
+    (:class:`~hartrao_jax._joint.JointFit`; pass the JointFit itself, not its
+    ``campaign_fit()``, so that its shared calibration is known), a results directory
     (``fit.json`` + ``residuals/``), or a list of :class:`ScanSample`. ``temperature``: add
     ``df/dT (T - 15 C)`` to the focal-length model (needs the scans' temperatures).
     ``reference_g``: gravity at which the surface was set (the change of the modes is measured
     from there; default the zenith).
+
+    ``correct_leakage``: the per-scan adjustment has no surface modes, so a scan's ``f`` takes
+    up part of them (astigmatism above all, through its geometry-dependent correlation with the
+    calibration and the pose) and its residuals keep only part: regressing ``f`` on ``g`` alone
+    then biases ``df/dg`` by the modes' own gravity dependence (on the simulated campaign the
+    transverse terms by -0.1 and -0.2 mm, 2 and 6 sigma). With each scan's
+    :func:`mode_response` (needs the points: in memory, or the residual tables and the
+    campaign), ``f`` and the modes are regressed on ``g`` together
+    (:func:`_joint_regression`) for the modes :func:`corrected_modes` selects.
     """
     camp = getattr(source, "campaign", None)
+    modes = tuple(int(j) for j in modes)
     if isinstance(source, (str, Path)):
-        samples = samples_from_dir(source, with_points=bool(modes))
-        doc = json.loads((Path(source) / "fit.json").read_text())
+        doc = json.loads((Path(source) / "fit.json").read_text()) \
+            if (Path(source) / "fit.json").is_file() else {}
         if doc.get("campaign") and (Path(doc["campaign"]) / "campaign.toml").is_file():
             from ._campaign import load_campaign
 
             camp = load_campaign(doc["campaign"])
+    if aperture_radius_m is None:
+        aperture_radius_m = camp.telescope.diameter_m / 2 if camp is not None else 12.95
+    want = modes if correct_leakage else ()
+    if isinstance(source, (str, Path)):
+        samples = samples_from_dir(source, with_points=bool(modes), modes=want,
+                                   aperture_radius_m=aperture_radius_m)
     elif isinstance(source, (list, tuple)) and source and isinstance(source[0], ScanSample):
         samples = list(source)
     else:
-        samples = samples_from_fit(source, with_points=bool(modes))
-    if aperture_radius_m is None:
-        aperture_radius_m = camp.telescope.diameter_m / 2 if camp is not None else 12.95
+        samples = samples_from_fit(source, with_points=bool(modes), modes=want,
+                                   aperture_radius_m=aperture_radius_m)
     if latitude_deg is None:
         latitude_deg = camp.site.latitude_deg if camp is not None else -25.8897
-    modes = tuple(int(j) for j in modes)
     tel = camp.telescope if camp is not None else None
     if tel is None:
         from ._campaign import default_campaign
@@ -549,22 +843,40 @@ def gravity_model(
     if len(rows) < len(cols_full) + 1:
         raise ValueError(f"gravity model: {len(rows)} positions, need at least "
                          f"{len(cols_full) + 1} for the test of the transverse components")
-    full = weighted_lsq(_design(G, cols_full, T), y, sy, cols_full)
-    red = weighted_lsq(_design(G, cols_red, T), y, sy, cols_red)
-    test = nested_test(red, full)
     zfits = []
-    if modes and all(r.zernike is not None for r in rows):
+    with_modes = bool(modes) and all(r.zernike is not None for r in rows)
+    corrected: tuple[int, ...] = ()
+    if with_modes and correct_leakage and all(r.leak is not None for r in rows):
+        M = np.array([r.retention for r in rows])
+        corrected = corrected_modes(modes, M)
+    if corrected:
+        Z = np.array([r.zernike for r in rows])
+        SZ = np.array([r.zernike_sigma for r in rows])
+        K = np.array([r.leak for r in rows])
+        fix = [k for k, j in enumerate(modes) if j not in corrected]
+        K[:, fix] = 0.0  # f owns them (defocus) or they hardly move it (coma)
+        M[:, fix, :] = 0.0
+        M[:, :, fix] = 0.0
+        M[:, fix, fix] = 1.0  # as before: the residual projection is the mode
+        full, zfits = _joint_regression(G, y, sy, T, cols_full, Z, SZ, K, M)
+        red, _ = _joint_regression(G, y, sy, T, cols_red, Z, SZ, K, M)
+    else:
+        full = weighted_lsq(_design(G, cols_full, T), y, sy, cols_full)
+        red = weighted_lsq(_design(G, cols_red, T), y, sy, cols_red)
+    test = nested_test(red, full)
+    if with_modes and not corrected:
         Z = np.array([r.zernike for r in rows])
         SZ = np.array([r.zernike_sigma for r in rows])
         A = _design(G, ("a0", "gx", "gy", "gz"))
         zfits = [weighted_lsq(A, Z[:, k], SZ[:, k], ("a0", "gx", "gy", "gz"))
                  for k in range(len(modes))]
-    else:
+    elif not with_modes:
         modes = ()
     rms = [r.residual_rms_m for r in rows if r.residual_rms_m is not None]
     return GravityModel(rows, full, red, test, modes, zfits,
                         float(np.median(rms)) if rms else None, float(aperture_radius_m),
-                        float(latitude_deg), np.asarray(reference_g, float), temperature)
+                        float(latitude_deg), np.asarray(reference_g, float), temperature,
+                        corrected)
 
 
 # --------------------------------------------------------------------------------------------
@@ -666,8 +978,8 @@ def print_gravity_summary(gm: GravityModel, console=None) -> None:
                   f"p = {te['p_value_chi2']:.3g}")
 
 
-__all__ = ["GRAVITY_SCHEMA", "GravityModel", "LinearFit", "ScanSample", "gravity_grid",
-           "gravity_model",
+__all__ = ["FOCUS_MODES", "GRAVITY_SCHEMA", "GravityModel", "LinearFit", "ScanSample",
+           "corrected_modes", "gravity_grid", "gravity_model", "mode_response",
            "nested_test", "plot_gravity", "print_gravity_summary", "ruze_gain",
            "samples_from_dir", "samples_from_fit", "weighted_lsq", "write_gravity",
            "surface_rms", "zernike_np", "zernike_projection"]

@@ -35,11 +35,12 @@ from ._physics import (
 
 SHIFT = ("shift_x", "shift_y", "shift_z")  # m, telescope frame, during the shift window
 OSCILLATION = ("osc_sx", "osc_cx", "osc_sy", "osc_cy")  # rad: sin/cos amplitudes about x, y
+OSC_FREQUENCY = "osc_df_hz"  # Hz: correction to the modelled oscillation frequency 1/period
 DRIFT = ("drift_tx", "drift_ty", "drift_tz", "drift_rx", "drift_ry", "drift_rz")  # m/s, rad/s
 ZERNIKE_PREFIX = "zern_"  # zern_<noll j>: normal deviation coefficient (m)
 
 EXTRA_UNITS = {
-    **{k: "m" for k in SHIFT}, **{k: "rad" for k in OSCILLATION},
+    **{k: "m" for k in SHIFT}, **{k: "rad" for k in OSCILLATION}, OSC_FREQUENCY: "Hz",
     "drift_tx": "m/s", "drift_ty": "m/s", "drift_tz": "m/s",
     "drift_rx": "rad/s", "drift_ry": "rad/s", "drift_rz": "rad/s",
 }
@@ -54,6 +55,7 @@ class ModelError(ValueError):
 def known_parameter(name: str) -> bool:
     return (
         name in OBJECT_PARAMETERS or name in INSTRUMENT or name in SHIFT or name in OSCILLATION
+        or name == OSC_FREQUENCY
         or name in DRIFT or (name.startswith(ZERNIKE_PREFIX) and name[len(ZERNIKE_PREFIX):].isdigit())
     )
 
@@ -90,7 +92,8 @@ class ParaboloidModel(eqx.Module):
         fixed_names / fixed_values: parameters held at given values (instrument parameters,
             or motion/deformation terms) -- everything not named is zero.
         shift_window_s: (start, duration) of the impulsive-shift box in scan time (s).
-        osc_period_s: period of the modelled oscillation (s).
+        osc_period_s: period of the modelled oscillation (s); ``osc_df_hz``, when estimated,
+            corrects its frequency (phase ``2 pi t (1/period + df)``, t in scan time).
         kappa_rad: rotation fitted frame -> telescope frame about the axis (for Zernike azimuth).
         aperture_radius_m: radius normalising the Zernike terms.
     """
@@ -123,7 +126,7 @@ class ParaboloidModel(eqx.Module):
             disp = jnp.stack([p.get(n, 0.0) for n in SHIFT])
             d = d + impulsive_shift(t_s, self.shift_window_s[0], self.shift_window_s[1], disp)
         if any(n in p for n in OSCILLATION):
-            om = 2 * jnp.pi * t_s / self.osc_period_s
+            om = 2 * jnp.pi * t_s * (1.0 / self.osc_period_s + p.get(OSC_FREQUENCY, 0.0))
             s, co = jnp.sin(om), jnp.cos(om)
             wx = p.get("osc_sx", 0.0) * s + p.get("osc_cx", 0.0) * co
             wy = p.get("osc_sy", 0.0) * s + p.get("osc_cy", 0.0) * co

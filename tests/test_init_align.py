@@ -88,3 +88,21 @@ def test_kappa_at_zenith_from_quadrupod_shadows():
     d = (al2.kappa_rad - kappa) % (np.pi / 2)
     assert min(d, np.pi / 2 - d) < np.radians(0.2)
     assert abs(al2.ambiguity_rad - np.pi / 2) < 1e-9
+
+
+def test_geometry_window_leaves_out_the_scanners_pole():
+    """Points within 1e-3 rad of the pole (x6/sin(theta), x7/tan(theta) singular) are not
+    adjusted, on both faces; all others inside the window are."""
+    from hartrao_jax._init import POLE_EXCLUSION_RAD, geometry_window, initial_distance
+
+    x = {"tx": 0.0, "ty": 0.0, "tz": 0.0, "rx": 0.0, "ry": 0.0, "f": 10.9816}
+    theta = np.array([2e-4, 9e-4, 1.1e-3, 0.5, np.pi - 5e-4, np.pi + 5e-4, 2 * np.pi - 2e-4,
+                      2 * np.pi - 0.5])
+    phi = np.full_like(theta, 0.3)
+    # ranges that put every point on the paraboloid (or far from it for the pole points)
+    r = np.full_like(theta, 3.0)
+    near = np.abs(initial_distance(r, phi, theta, x)) < 1e9  # window wide open
+    w = geometry_window(r, phi, theta, x, 1e9)
+    assert near.all()
+    assert w.tolist() == [False, False, True, True, False, False, False, True]
+    assert np.all(np.abs(np.sin(theta[~w])) <= POLE_EXCLUSION_RAD)

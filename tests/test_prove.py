@@ -1,0 +1,52 @@
+"""The proof's scoring and bookkeeping (the diagnosis itself: test_diagnose.py)."""
+
+import json
+
+from hartrao_jax._prove import CASES, Score, _write, merge_results, score
+
+
+def _case(name):
+    return next(c for c in CASES if c.name == name)
+
+
+def _doc(findings=(), confounded=()):
+    return {"findings": list(findings), "confounded": list(confounded)}
+
+
+def test_instrument_finding_is_scored_against_the_truth():
+    truth = {"effects": {"x2": 1e-4}, "scans": [{"id": "a"}, {"id": "b"}]}
+    f = {"effect": "x2", "scans": ["a", "b"], "estimate": {"x2": {"value": 1.1e-4,
+                                                                  "sigma": 1e-5}},
+         "sigma0_before": 1.01, "sigma0_after": 1.0, "rms_before_m": 8e-4, "rms_after_m": 7e-4}
+    s = score(_case("x2"), _doc([f]), truth, 1, 1.0)
+    assert (s.found, s.located, s.estimate_ok, s.improved, s.false) == (True, True, True, True, [])
+    f["estimate"]["x2"]["value"] = 1.4e-4  # 4 sigma off
+    assert score(_case("x2"), _doc([f]), truth, 1, 1.0).estimate_ok is False
+
+
+def test_confounded_parameters_must_not_be_findings():
+    truth = {"effects": {"x10": 1e-3}, "scans": [{"id": "a"}]}
+    conf = {"effect": "x10", "with": ["tz", "f"], "correlation": 0.99999}
+    assert score(_case("x10"), _doc(confounded=[conf]), truth, 1, 1.0).found
+    bad = _doc([{"effect": "x10", "scans": ["a"], "estimate": {}}], [conf])
+    s = score(_case("x10"), bad, truth, 1, 1.0)
+    assert not s.found and s.false == ["x10"]
+
+
+def test_clean_case_counts_every_finding_but_panels_as_false():
+    s = score(_case("clean"), _doc([{"effect": "panel_offset"}, {"effect": "x5n"}]), {}, 1, 1.0)
+    assert not s.found and s.false == ["x5n"]
+
+
+def test_merge_gives_one_table_of_the_parts(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    for d, case, n in ((a, "x2", 3), (b, "oscillation", 2)):
+        d.mkdir()
+        sc = [Score(case, k + 1, True, True, k > 0, True, [], 2.0) for k in range(n)]
+        _write(d, [_case(case)], sc, {case: []}, n, 0.01, 5.0)
+    res = merge_results(tmp_path / "m", [a, b])
+    rows = {r["case"]: r for r in res["table"]}
+    assert rows["x2"]["found"] == "3/3" and rows["x2"]["estimate"] == "2/3"
+    assert rows["oscillation"]["seeds"] == 2
+    doc = json.loads((tmp_path / "m" / "prove.json").read_text())
+    assert len(doc["runs"]) == 5 and doc["elapsed_s"] == 10.0

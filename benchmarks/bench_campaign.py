@@ -12,7 +12,7 @@ own):
 3. ``fit-dask``: the same fit on a ``LocalCluster(n_workers=2, threads_per_worker=1,
    processes=True)``; its fit.json is compared with the in-process one.
 4. ``simulate-full`` / ``stream``: one scan at the paper's resolution (0.63 mrad, ~1.3e7
-   rows) streamed from disk in chunks (memory-mapped residuals); wall time and peak RSS.
+   rows) streamed from disk in chunks (per-point state in files); wall time and peak RSS.
 5. A projection of the full-resolution campaign (176 scans) on N Dask workers from the measured
    per-scan cost.
 
@@ -230,6 +230,7 @@ def stage_stream(a) -> None:
            "f": r.estimates["f"], "x4": r.estimates["x4"], "timings": r.timings,
            "rows_per_chunk": a.rows_per_chunk, "peak_rss_gib": _peak_gib(),
            "peak_rss_before_gib": base,
+           "file_gib": (camp.root / camp.scans[0].file).stat().st_size / 2**30,
            "s_per_pass": r.timings["adjustment_s"] / max(r.passes, 1),
            "store_gib": sum(p.stat().st_size for p in (Path(a.out) / "store").glob("*.npy"))
            / 2**30})
@@ -322,8 +323,10 @@ def report(d: dict) -> str:
          f"Machine: {m.get('cpu', '?')}, {m.get('cores')} cores, {m.get('mem_GiB', '?')} GiB; "
          f"jax {m.get('jax', '?')}. Reduced resolution: step {d['step_rad']} rad; "
          f"preprocessing {'on' if d['preprocess'] else 'off'}. Load average at start / end "
-         f"{d['load_average_start'][1]:.1f} / {d['load_average_end'][1]:.1f} (5 min): the "
-         "machine was shared with other jobs, so the times are upper bounds.", ""]
+         f"{d['load_average_start'][1]:.1f} / {d['load_average_end'][1]:.1f} (5 min)"
+         + (": the machine was shared with other jobs, so the times are upper bounds."
+            if max(d["load_average_start"][1], d["load_average_end"][1]) > 2.5 else
+            ": no other job ran."), ""]
     if "simulate" in d:
         s = d["simulate"]
         L += [f"Simulation: {s['scans']} scans ({s['positions']} positions) in "
@@ -414,7 +417,7 @@ def report(d: dict) -> str:
               f"| time per pass | {st['s_per_pass']:.1f} s |",
               f"| rows per chunk | {st['rows_per_chunk']:,} |",
               f"| peak RSS of the process | {st['peak_rss_gib']:.2f} GiB |",
-              f"| memory-mapped state on disk | {st['store_gib']:.2f} GiB |",
+              f"| per-point state left on disk (v, weights, residuals) | {st['store_gib']:.2f} GiB |",
               f"| sigma0 | {st['sigma0']:.4f} |",
               f"| f | {st['f'][0]:.6f} ± {st['f'][1]:.6f} m |", ""]
         # projection
@@ -429,10 +432,11 @@ def report(d: dict) -> str:
               + ("" if scale == 1 else f" (measured {_fmt_s(t1)} for {st['rows']:,} rows, "
                  "scaled linearly)")
               + f"; one scan per worker at a time, each worker one core and about {mem:.1f} GiB "
-              "(the chunk buffers do not grow with the scan; the memory-mapped state, 36 bytes "
-              "per row, is paged). The scans are independent, so the wall time divides by the "
+              "(the chunk buffers do not grow with the scan; the per-point state lives in "
+              "files on disk, read and written chunk by chunk). The scans are independent, so the wall time divides by the "
               "number of workers until the disks saturate (one pass reads the scan file once: "
-              f"{st['passes']} passes x {sf.get('file_gib', float('nan')) * scale:.2f} GiB per "
+              f"{st['passes']} passes x "
+              f"{sf.get('file_gib', st.get('file_gib', float('nan'))) * scale:.2f} GiB per "
               "scan). The joint adjustment adds one pass per Schur iteration over the "
               "worker-resident scans (about one GH iteration per scan).", "",
               "| workers (1 core each) | wall | positions / hour |", "|---:|---:|---:|"]

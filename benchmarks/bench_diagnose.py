@@ -84,9 +84,9 @@ def main(argv=None) -> int:
                              "findings": ",".join(res["findings"]),
                              "simulate_s": t_sim})
                 print(rows[-1], flush=True)
-    md = ("# diagnose: wall time of one two-cycle scan\n\nOn a 2-core machine, wall time is "
-          "about CPU time / 2 when the machine is otherwise idle; a load above 2 means other "
-          "jobs shared the cores.\n\n") + md_table(rows, [
+    md = ("# diagnose: wall time of one two-cycle scan\n\nOn a 2-core machine, wall time "
+          "lies between CPU time / 2 and CPU time when the machine is otherwise idle; a load "
+          "above 2 means other jobs shared the cores.\n\n") + md_table(rows, [
         ("step_rad", "step [rad]", "g"), ("run", "run", ""), ("n_points", "points", "d"),
         ("wall_s", "wall [s]", ".1f"), ("cpu_s", "process CPU [s]", ".1f"),
         ("load_1min", "load (1 min) at end", ".1f"), ("start_fit_s", "start fit [s]", ".1f"),

@@ -187,33 +187,62 @@ def fit_dask_command(campaign, out_dir, scheduler, n_workers, model, scans, fixe
 
 @main.command("fit-stream")
 @click.argument("campaign", type=click.Path(exists=True))
-@click.option("--scan", "scan_id", required=True, help="Scan id.")
+@click.option("--scan", "scan_ids", multiple=True,
+              help="Scan id (repeatable, or comma-separated; default: every scan).")
 @click.option("--model", default="extended", show_default=True)
 @click.option("--rows-per-chunk", default=1_000_000, show_default=True, type=int)
 @click.option("--store", default=None, type=click.Path(file_okay=False),
-              help="Directory of the memory-mapped residuals (default: a temporary one).")
+              help="Directory of the per-point results (v, weights, standardized residuals; "
+                   "one sub-directory per scan for several scans; default: temporary).")
 @click.option("--json", "json_file", default=None, type=click.Path(dir_okay=False))
 @click.option("--robust-k", default=4.0, show_default=True, type=float)
+@click.option("--dask/--no-dask", "use_dask", default=False, show_default=True,
+              help="Several scans: one task per scan on Dask workers.")
+@click.option("--scheduler", default=None, metavar="ADDRESS",
+              help="With --dask: an existing scheduler (default: a LocalCluster).")
+@click.option("--workers", default=2, show_default=True, type=int,
+              help="With --dask: worker processes of the LocalCluster (one thread each).")
 @command
-def fit_stream(campaign, scan_id, model, rows_per_chunk, store, json_file, robust_k):
-    """Adjust one (full-resolution) scan streaming it from disk with bounded memory."""
+def fit_stream(campaign, scan_ids, model, rows_per_chunk, store, json_file, robust_k, use_dask,
+               scheduler, workers):
+    """Adjust full-resolution scans streaming them from disk with bounded memory.
+
+    One scan (``--scan ID``) writes a ``hartrao-stream/1`` record; several (or all, the default)
+    a ``hartrao-stream-campaign/1`` document with one record per scan, in-process one after the
+    other or, with ``--dask``, one task per scan on Dask workers.
+    """
     from ._campaign import load_campaign
-    from ._model import parameter_unit
-    from ._stream import peak_rss_gib, stream_fit_scan
+    from ._stream import stream_document, stream_fit_campaign, stream_fit_scan
 
     camp = load_campaign(campaign)
-    r = stream_fit_scan(camp, scan_id, model, rows_per_chunk=rows_per_chunk, store=store,
-                        robust_k=robust_k or None)
-    doc = {"schema": "hartrao-stream/1", "scan": r.id, "model": list(r.names),
-           "estimates": {n: {"value": v, "sigma": s, "unit": parameter_unit(n)}
-                         for n, (v, s) in r.estimates.items()},
-           "sigma0": r.sigma0, "n_rows": r.n_rows, "n_points": r.n_points,
-           "n_rejected": r.n_rejected, "n_outside_window": r.n_window,
-           "iterations": r.iterations, "rounds": r.rounds, "passes": r.passes,
-           "converged": r.converged, "seconds": r.seconds, "peak_rss_gib": peak_rss_gib(),
-           "store": str(r.store), "timings": r.timings}
+    ids = [s.strip() for v in scan_ids for s in v.split(",") if s.strip()]
+    if len(ids) == 1 and not use_dask:
+        r = stream_fit_scan(camp, ids[0], model, rows_per_chunk=rows_per_chunk, store=store,
+                            robust_k=robust_k or None)
+        doc = stream_document(r)
+        if json_file:
+            Path(json_file).write_text(json.dumps(doc, indent=1))
+        click.echo(json.dumps({k: doc[k] for k in ("scan", "sigma0", "n_points", "iterations",
+                                                   "passes", "seconds", "peak_rss_gib")}))
+        click.echo(f"f = {r.estimates['f'][0]:.6f} ± {r.estimates['f'][1]:.6f} m")
+        return
+    client = cluster = None
+    if use_dask:
+        from ._distributed import close_client, start_client
+
+        client, cluster = start_client(scheduler, n_workers=workers)
+    try:
+        doc = stream_fit_campaign(camp, ids or None, model, store=store,
+                                  rows_per_chunk=rows_per_chunk, robust_k=robust_k or None,
+                                  client=client, progress=True)
+    finally:
+        if client is not None:
+            close_client(client, cluster)
     if json_file:
         Path(json_file).write_text(json.dumps(doc, indent=1))
-    click.echo(json.dumps({k: doc[k] for k in ("scan", "sigma0", "n_points", "iterations",
-                                               "passes", "seconds", "peak_rss_gib")}))
-    click.echo(f"f = {r.estimates['f'][0]:.6f} ± {r.estimates['f'][1]:.6f} m")
+    for rec in doc["scans"]:
+        f = rec["estimates"]["f"]
+        click.echo(f"{rec['scan']}: f = {f['value']:.6f} ± {f['sigma']:.6f} m, sigma0 "
+                   f"{rec['sigma0']:.3f}, {rec['n_points']:,} points, {rec['passes']} passes, "
+                   f"{rec['seconds']:.1f} s, peak {rec['peak_rss_gib']:.2f} GiB")
+    click.echo(f"streamed {len(doc['scans'])} scans in {doc['seconds']:.1f} s")

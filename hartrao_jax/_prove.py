@@ -459,14 +459,17 @@ def _figure(out: Path, rows: list[dict]) -> None:
     names = [r["case"] for r in rows]
     x = np.arange(len(rows))
     fig, ax = plt.subplots(figsize=(max(8, 0.7 * len(rows)), 4))
-    for k, (key, off) in enumerate((("found", -0.3), ("located", -0.1), ("improved", 0.1),
-                                    ("false_alarms", 0.3))):
-        ax.bar(x + off, [frac(r[key]) for r in rows], width=0.2, label=key.replace("_", " "))
+    keys = ("found", "located", "estimate", "improved", "false_alarms")
+    for k, key in enumerate(keys):
+        ax.bar(x + (k - 2) * 0.16, [frac(r[key]) for r in rows], width=0.16,
+               label=key.replace("_", " ") + (" (within 3 sigma)" if key == "estimate" else ""))
     ax.set_xticks(x)
     ax.set_xticklabels(names, rotation=45, ha="right", fontsize=8)
     ax.set_ylabel("fraction of seeds")
-    ax.set_ylim(0, 1.05)
-    ax.legend(fontsize=8, ncol=4)
+    ax.set_ylim(0, 1.3)
+    ax.set_yticks([0, 0.25, 0.5, 0.75, 1.0])
+    ax.legend(fontsize=8, ncol=5, loc="upper center")
+    ax.set_title("blind diagnosis of concealed effects: fraction of seeds", fontsize=9)
     fig.tight_layout()
     fig.savefig(out / "prove.png", dpi=90)
     plt.close(fig)

@@ -541,4 +541,83 @@ def peak_rss_gib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
 
 
-__all__ = ["StreamFit", "peak_rss_gib", "stream_fit_scan"]
+def stream_document(r: StreamFit) -> dict:
+    """The JSON record of one streamed scan (``"schema": "hartrao-stream/1"``; SI units)."""
+    from ._model import parameter_unit
+
+    return {"schema": "hartrao-stream/1", "scan": r.id, "model": list(r.names),
+            "estimates": {n: {"value": v, "sigma": s, "unit": parameter_unit(n)}
+                          for n, (v, s) in r.estimates.items()},
+            "sigma0": r.sigma0, "n_rows": r.n_rows, "n_points": r.n_points,
+            "n_rejected": r.n_rejected, "n_outside_window": r.n_window,
+            "iterations": r.iterations, "rounds": r.rounds, "passes": r.passes,
+            "converged": r.converged, "seconds": r.seconds, "peak_rss_gib": peak_rss_gib(),
+            "store": str(r.store), "timings": r.timings}
+
+
+def _stream_task(root: str, scan_id: str, model, store: str | None, rows_per_chunk: int,
+                 robust_k: float | None) -> dict:
+    """One scan streamed where this runs (in-process or on a Dask worker): its small record;
+    the per-point results stay in ``store`` (on the worker's disk)."""
+    from ._campaign import load_campaign
+
+    try:  # on a Dask worker: float64 and the compilation cache
+        from ._distributed import worker_setup
+
+        worker_setup()
+    except ImportError:  # pragma: no cover
+        pass
+    camp = load_campaign(root)
+    r = stream_fit_scan(camp, scan_id, model, rows_per_chunk=rows_per_chunk, store=store,
+                        robust_k=robust_k)
+    return stream_document(r)
+
+
+def stream_fit_campaign(
+    campaign: Campaign,
+    scans: Iterable[str] | None = None,
+    model: str | Iterable[str] = "extended",
+    *,
+    store=None,
+    rows_per_chunk: int = 1_000_000,
+    robust_k: float | None = 4.0,
+    client=None,
+    progress: bool = False,
+) -> dict:
+    """Stream every scan of a campaign (a full-resolution campaign larger than memory).
+
+    Each scan is adjusted by :func:`stream_fit_scan` with bounded memory, one after the other
+    in this process, or as independent tasks on a Dask ``client`` (one scan per worker core at
+    a time; only the small records travel back). ``store``: a directory receiving one
+    sub-directory of per-point results per scan (default: temporary ones). Returns
+    ``{"schema": "hartrao-stream-campaign/1", "scans": [record, ...], "seconds": ...}`` in the
+    campaign's scan order.
+    """
+    t0 = time.perf_counter()
+    ids = [m.id for m in campaign.scans] if scans is None else list(scans)
+    for sid in ids:
+        campaign.scan(sid)  # unknown ids: the campaign's own error, before any work
+    root = str(campaign.root)
+    stores = [None if store is None else str(Path(store) / sid) for sid in ids]
+    args = (model,)
+    if client is None:
+        from ._fit import _progress
+
+        recs = []
+        with _progress(not progress) as prog:
+            task = prog.add_task("streaming scans", total=len(ids))
+            for sid, st in zip(ids, stores):
+                prog.update(task, description=f"streaming {sid}")
+                recs.append(_stream_task(root, sid, *args, st, rows_per_chunk, robust_k))
+                prog.advance(task)
+    else:
+        futs = [client.submit(_stream_task, root, sid, *args, st, rows_per_chunk, robust_k,
+                              key=f"stream-{sid}", pure=False) for sid, st in zip(ids, stores)]
+        recs = client.gather(futs)
+    return {"schema": "hartrao-stream-campaign/1", "campaign": root, "scans": recs,
+            "seconds": time.perf_counter() - t0, "rows_per_chunk": rows_per_chunk,
+            "workers": None if client is None else len(client.scheduler_info()["workers"])}
+
+
+__all__ = ["StreamFit", "peak_rss_gib", "stream_document", "stream_fit_campaign",
+           "stream_fit_scan"]

@@ -247,3 +247,54 @@ def test_cli_fit_stream(scatter_campaign, tmp_path):
     assert doc["schema"] == "hartrao-stream/1" and doc["converged"]
     assert doc["n_points"] > 0 and doc["peak_rss_gib"] > 0
     assert (tmp_path / "s" / "v.npy").is_file()
+
+
+def test_stream_campaign_in_process_and_on_dask(scatter_campaign, tmp_path):
+    """Every scan streamed (the full-resolution campaign path): in-process one after the other
+    and one task per scan on a 2-worker LocalCluster give the single-scan results."""
+    pytest.importorskip("distributed")
+    from hartrao_jax._distributed import close_client, start_client
+    from hartrao_jax._stream import stream_document, stream_fit_campaign, stream_fit_scan
+
+    camp = scatter_campaign
+    ids = [m.id for m in camp.scans]
+    assert len(ids) == 2
+    one = stream_document(stream_fit_scan(camp, ids[1], "extended", rows_per_chunk=5000,
+                                          store=tmp_path / "one"))
+    local = stream_fit_campaign(camp, None, "extended", rows_per_chunk=5000,
+                                store=tmp_path / "local")
+    assert local["schema"] == "hartrao-stream-campaign/1" and local["workers"] is None
+    assert [r["scan"] for r in local["scans"]] == ids
+    assert (tmp_path / "local" / ids[0] / "v.npy").is_file()
+    client, cluster = start_client(n_workers=2)
+    try:
+        remote = stream_fit_campaign(camp, ids, "extended", rows_per_chunk=5000, client=client,
+                                     store=tmp_path / "dask")
+    finally:
+        close_client(client, cluster)
+    assert remote["workers"] == 2
+    for a, b in zip(local["scans"], remote["scans"]):
+        assert a["scan"] == b["scan"] and a["n_points"] == b["n_points"]
+        for n, e in a["estimates"].items():
+            assert b["estimates"][n]["value"] == pytest.approx(e["value"], rel=1e-10,
+                                                               abs=1e-8 * e["sigma"])
+    for n, e in one["estimates"].items():
+        assert local["scans"][1]["estimates"][n]["value"] == pytest.approx(
+            e["value"], rel=1e-10, abs=1e-8 * e["sigma"])
+
+
+def test_cli_fit_stream_every_scan(scatter_campaign, tmp_path):
+    from click.testing import CliRunner
+
+    import hartrao_jax._cli_campaign  # noqa: F401  (registers the commands)
+    from hartrao_jax.cli import main
+
+    r = CliRunner().invoke(main, ["fit-stream", str(scatter_campaign.root), "--rows-per-chunk",
+                                  "5000", "--json", str(tmp_path / "st.json")])
+    assert r.exit_code == 0, r.output
+    doc = json.loads((tmp_path / "st.json").read_text())
+    assert doc["schema"] == "hartrao-stream-campaign/1" and len(doc["scans"]) == 2
+    assert all(s["converged"] for s in doc["scans"])
+    assert "streamed 2 scans" in r.output
+    r = CliRunner().invoke(main, ["fit-stream", str(scatter_campaign.root), "--scan", "nope"])
+    assert r.exit_code == 2 and "nope" in r.output

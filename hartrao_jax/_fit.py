@@ -95,9 +95,13 @@ class ScanFit:
 
 @dataclass
 class CampaignFit:
+    """The fitted scans of a campaign. ``shared``: parameters estimated jointly by all scans of
+    a group (a joint adjustment's calibration; empty for scan-by-scan fits)."""
+
     campaign: Campaign
     model_names: tuple[str, ...]
     scans: list[ScanFit]
+    shared: tuple[str, ...] = ()
 
     def positions(self) -> list[dict]:
         """Per position: inverse-variance mean focal length of its scans (m)."""

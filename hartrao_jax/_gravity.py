@@ -84,7 +84,7 @@ def samples_from_fit(cf, *, with_points: bool = True, modes: Sequence[int] = (),
 
     With ``modes`` (and the scans' points) each sample also gets its :func:`mode_response`;
     ``shared``: parameters estimated jointly with other scans, held fixed in it (default: the
-    joint fit's ``shared``; a plain CampaignFit of a joint fit does not know them).
+    fit's ``shared``, which a joint fit and its ``campaign_fit()`` carry).
     """
     scans = cf.scans if hasattr(cf, "scans") else cf
     shared = tuple(getattr(cf, "shared", ()) or ()) if shared is None else tuple(shared)
@@ -783,8 +783,8 @@ def gravity_model(
     """Estimate the gravity model from per-scan fits.
 
     ``source``: a :class:`~hartrao_jax._fit.CampaignFit`, a joint fit
-    (:class:`~hartrao_jax._joint.JointFit`; pass the JointFit itself, not its
-    ``campaign_fit()``, so that its shared calibration is known), a results directory
+    (:class:`~hartrao_jax._joint.JointFit` or its ``campaign_fit()``: both carry the shared
+    calibration), a results directory
     (``fit.json`` + ``residuals/``), or a list of :class:`ScanSample`. ``temperature``: add
     ``df/dT (T - 15 C)`` to the focal-length model (needs the scans' temperatures).
     ``reference_g``: gravity at which the surface was set (the change of the modes is measured

@@ -415,7 +415,7 @@ class JointFit:
         return out
 
     def campaign_fit(self) -> CampaignFit:
-        return CampaignFit(self.campaign, self.model_names, self.scans)
+        return CampaignFit(self.campaign, self.model_names, self.scans, tuple(self.shared))
 
     def precision_gain(self) -> dict:
         """``sigma_joint / sigma_per_scan`` of each shared parameter (median over the group's

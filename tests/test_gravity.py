@@ -241,6 +241,10 @@ def test_gravity_coefficients_recovered(gravity_fit):
         assert gm.focal.scale < 3.0, gm.focal.scale
     raw = gravity_model(jf, correct_leakage=False)
     assert raw.corrected_modes == () and raw.focal.scale > 4.0  # the bias the test guards
+    # the joint fit's campaign_fit() carries the shared calibration: the same model
+    via_cf = gravity_model(jf.campaign_fit())
+    assert via_cf.corrected_modes == gravity_model(jf).corrected_modes
+    np.testing.assert_allclose(via_cf.c, gravity_model(jf).c, rtol=1e-10)
     gm = gravity_model(jf)
     assert gm.test["p_value_F"] < 0.05  # the transverse terms are there
     C = gm.C

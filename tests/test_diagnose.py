@@ -215,3 +215,43 @@ def test_the_loop_is_deterministic(clean_run):
     a = {k: v for k, v in a.items() if k != "timing_s"}
     b.pop("timing_s")
     assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
+
+
+def _fake_scans(n_pos, df_dT, seed=0, sigma_f=5e-5):
+    """Per-scan focal lengths of a campaign: f = f0 + c.g + df_dT (T - 15) + noise."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n_pos):
+        el = rng.uniform(0.3, 1.5)
+        az = rng.uniform(0, 2 * np.pi)
+        g = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), -np.sin(el)])
+        T = 18.0 - 0.4 * i + rng.normal(0, 0.3)
+        for cyc in (1, 2):
+            f = 10.9816 + np.array([5e-4, 1e-3, 2e-3]) @ g + df_dT * (T - 15.0) \
+                + rng.normal(0, sigma_f)
+            out.append(SimpleNamespace(
+                id=f"p{i}c{cyc}", meta=SimpleNamespace(temperature_c=T, position=f"p{i}"),
+                names=("tx", "f"), x=np.array([0.0, f]), cov=np.diag([1e-8, sigma_f**2]),
+                converged=True, g=g, omega=100.0, redundancy=100, used=np.ones(4, bool),
+                mismatch_m=np.full(4, 1e-4)))
+    return out
+
+
+def test_thermal_from_the_focal_lengths_across_positions():
+    """f against temperature with the gravity terms estimated: found with its estimate on 23
+    positions, nothing without it, and confounded with gravity on a few positions."""
+    from hartrao_jax._diagnose import DiagnoseConfig, _Context, _thermal
+
+    ctx = _Context.__new__(_Context)
+    ctx.config = DiagnoseConfig()
+    kind, f = _thermal(ctx, _fake_scans(23, 1.3e-4), 40)
+    assert kind == "finding" and f.effect == "thermal"
+    est = f.estimate["df_dT_m_per_K"]
+    assert abs(est["value"] - 1.3e-4) < 3 * est["sigma"]
+    assert f.where["covariate"] == "temperature" and f.extra["gravity_terms"]
+    for seed in range(5):
+        assert _thermal(ctx, _fake_scans(23, 0.0, seed=seed), 40) is None
+    kind, c = _thermal(ctx, _fake_scans(4, 1.3e-4), 40)
+    assert kind == "confounded" and c["with"] == ["gravity"]

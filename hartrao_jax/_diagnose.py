@@ -1770,7 +1770,7 @@ def _thermal(ctx: _Context, S: Sequence[_Scan], m_tests: int):
     s0 = _global_sigma0(S)
     rms = _rms(S)
     rms_f = (float(np.sqrt(np.mean(r0**2))), float(np.sqrt(np.mean(r1**2))))
-    expl = (f"{EFFECTS['thermal'].explanation if 'thermal' in EFFECTS else 'thermal'}; "
+    expl = (f"{EFFECTS['thermal'].explanation}; "
             f"df/dT = {1e3 * b:.3f} ± {1e3 * sb:.3f} mm/K over {np.ptp(T):.1f} K "
             f"({len(rows)} scans, {n_pos} positions{', gravity terms estimated' if with_g else ''})"
             f"; the points' fit is unchanged (f is estimated per scan): the focal lengths "
@@ -1794,8 +1794,9 @@ def _detectability(ctx: _Context, joint: _Joint, tests: Sequence[_Test],
     The noncentrality ``lam`` gives 80 % power at the Bonferroni-adjusted level of a step; the
     amplitude of parameter j alone is ``sigma0 sqrt(lam / S_jj)`` (S: the Schur complement of
     the candidate with the model and the panel offsets eliminated), or what reaches
-    ``min_effect_m``, whichever is larger. ``rms_effect_m`` is the rms change of the points' condition at that amplitude before
-    the model absorbs part of it; ``relative_to_range_noise`` divides it by ``sigma_range_m``.
+    ``min_effect_m``, whichever is larger. ``rms_effect_m`` is the rms change of the points'
+    condition at that amplitude before the model absorbs part of it;
+    ``relative_to_range_noise`` divides it by ``sigma_range_m``.
     """
     from scipy import optimize
 

@@ -33,7 +33,7 @@ import lineax as lx
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._kernel import gh_one_pass, linearize_rev
+from ._kernel import gh_one_pass, linearize_rev, point_weights
 
 Condition = Callable[[Float[Array, "3"], Float[Array, " u"], Float[Array, " k"]], Float[Array, ""]]
 
@@ -133,10 +133,7 @@ def _pass_normals(condition, L, V, C, W, S2, x):
         N, n = carry
         l, v, c, w8, s2 = chunk
         F, a, b = lin(l + v, x, c)
-        wm = F - jnp.sum(b * v, axis=-1)
-        m = jnp.sum(b * b * s2, axis=-1)
-        ok = (w8 > 0) & (m > 0)
-        q = jnp.where(ok, w8 / jnp.where(ok, m, 1.0), 0.0)
+        wm, m, ok, q = point_weights(F, b, v, w8, s2)
         a = jnp.where(ok[:, None], a, 0.0)
         aq = a * q[:, None]
         return (N + aq.T @ a, n + aq.T @ jnp.where(ok, wm, 0.0)), None
@@ -330,10 +327,7 @@ def _normal_equations(condition, l, x, s2, consts, weights, v, groups, n_groups,
         N, nv, wmw, S, sg, tg = carry
         ll, c, w8, ss2, vv, gg = chunk
         F, a, b = lin(ll + vv, x, c)
-        wm = F - jnp.sum(b * vv, axis=-1)
-        m = jnp.sum(b * b * ss2, axis=-1)
-        ok = (w8 > 0) & (m > 0)
-        q = jnp.where(ok, w8 / jnp.where(ok, m, 1.0), 0.0)
+        wm, m, ok, q = point_weights(F, b, vv, w8, ss2)
         a = jnp.where(ok[:, None], a, 0.0)
         wm = jnp.where(ok, wm, 0.0)
         # derivative of the condition w.r.t. a group offset (1 for a normal offset scaled by

@@ -31,6 +31,20 @@ from jax.extend import core as jcore
 # --------------------------------------------------------------------------------------------
 
 
+
+def point_weights(F, b, v, w, s2):
+    """Per point of a Gauss-Helmert linearisation at ``(l + v, x)``: the misclosure at the
+    observations ``wm = F - b.v``, its variance ``m = b Sigma b^T`` (``s2``: variances of the
+    observations) and the weight ``q = w / m`` (0 where ``w`` or ``m`` is 0).
+
+    Returns ``(wm, m, ok, q)`` with ``ok`` the points that enter the sums.
+    """
+    wm = F - jnp.sum(b * v, axis=-1)
+    m = jnp.sum(b * b * s2, axis=-1)
+    ok = (w > 0) & (m > 0)
+    q = jnp.where(ok, w / jnp.where(ok, m, 1.0), 0.0)
+    return wm, m, ok, q
+
 def _sincos_impl(x, on):
     # A conditional is a fusion boundary: XLA cannot duplicate sin/cos into each consumer fusion.
     # ``on`` must be a runtime, unbatched boolean (True), else XLA folds the cond away (constant)
@@ -233,10 +247,7 @@ def make_pass(condition, l, consts, weights, sigma_l, on, *, lin, chunk, trig=Tr
             # normals) and XLA would otherwise re-run the whole derivative per consumer (2x)
             if mat:
                 F, a, b = _materialize(on, (F, a, b))
-            wm = F - jnp.sum(b * v, axis=-1)
-            m = jnp.sum(b * b * s2c, axis=-1)
-            ok = (w8 > 0) & (m > 0)
-            q = jnp.where(ok, w8 / jnp.where(ok, m, 1.0), 0.0)
+            wm, m, ok, q = point_weights(F, b, v, w8, s2c)
             a0 = jnp.where(ok[:, None], a, 0.0)
             aq = a0 * q[:, None]
             N = N + aq.T @ a0

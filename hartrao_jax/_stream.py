@@ -599,7 +599,6 @@ def stream_fit_campaign(
         campaign.scan(sid)  # unknown ids: the campaign's own error, before any work
     root = str(campaign.root)
     stores = [None if store is None else str(Path(store) / sid) for sid in ids]
-    args = (model,)
     if client is None:
         from ._fit import _progress
 
@@ -608,10 +607,10 @@ def stream_fit_campaign(
             task = prog.add_task("streaming scans", total=len(ids))
             for sid, st in zip(ids, stores):
                 prog.update(task, description=f"streaming {sid}")
-                recs.append(_stream_task(root, sid, *args, st, rows_per_chunk, robust_k))
+                recs.append(_stream_task(root, sid, model, st, rows_per_chunk, robust_k))
                 prog.advance(task)
     else:
-        futs = [client.submit(_stream_task, root, sid, *args, st, rows_per_chunk, robust_k,
+        futs = [client.submit(_stream_task, root, sid, model, st, rows_per_chunk, robust_k,
                               key=f"stream-{sid}", pure=False) for sid, st in zip(ids, stores)]
         recs = client.gather(futs)
     return {"schema": "hartrao-stream-campaign/1", "campaign": root, "scans": recs,

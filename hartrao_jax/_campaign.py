@@ -29,6 +29,18 @@ PHI_RANGE = {0: (0.0, 2 * math.pi), 1: (0.0, math.pi), 2: (math.pi, 2 * math.pi)
 _RANGE_TEXT = {0: "[0, 2 pi)", 1: "[0, pi)", 2: "[pi, 2 pi)"}
 COLUMNS = ("range_m", "phi_rad", "theta_rad", "intensity", "time_s")
 DEFAULT_INTENSITY = 0.5
+#: Instrument limit on the range (m) when the campaign's ``[scanner]`` table gives no
+#: ``max_range_m``: phase-based and time-of-flight terrestrial scanners measure at most a few
+#: hundred metres to about 1 km; a larger range is a corrupt value, never an observation.
+MAX_RANGE_M = 1000.0
+#: Reasons a row of a scan table is dropped while reading (keys of ``ScanData.dropped``).
+DROP_REASONS = {
+    "nonfinite": "a NaN, infinite or null value (range, angles, intensity or time)",
+    "range_nonpositive": "range <= 0",
+    "range_above_max": "range above the instrument maximum (max_range_m)",
+}
+#: Observations needed per free parameter of a model (see :func:`minimum_points`).
+POINTS_PER_PARAMETER = 50
 
 
 class CampaignError(Exception):
@@ -78,6 +90,12 @@ class Scanner:
     sigma_angle_rad: float
     angular_step_rad: float
     extra: dict = field(default_factory=dict)
+    #: instrument range limit (m); None: :data:`MAX_RANGE_M`. Rows beyond it are dropped.
+    max_range_m: float | None = None
+
+    @property
+    def range_limit_m(self) -> float:
+        return MAX_RANGE_M if self.max_range_m is None else float(self.max_range_m)
 
 
 @dataclass(frozen=True)
@@ -128,7 +146,13 @@ class Campaign:
 
 @dataclass
 class ScanData:
-    """One scan's raw observations (NumPy). Rows are those of the file minus non-finite rows."""
+    """One scan's raw observations (NumPy). Rows are those of the file minus dropped rows.
+
+    ``dropped`` counts the rows left out while reading, per reason of :data:`DROP_REASONS`
+    (``nonfinite``, ``range_nonpositive``, ``range_above_max``; zero counts omitted);
+    ``n_dropped_nonfinite`` is its ``nonfinite`` entry (kept as a field for compatibility: it
+    wins over ``dropped["nonfinite"]``) and :attr:`n_dropped` the total.
+    """
 
     range_m: np.ndarray  # float64 (n,) raw range, m
     phi_rad: np.ndarray  # float64 (n,) raw horizontal angle, rad
@@ -137,8 +161,14 @@ class ScanData:
     time_s: np.ndarray  # float64 (n,) s since the start of the scan
     row: np.ndarray  # int64 (n,) original row index in the file
     n_dropped_nonfinite: int = 0
+    dropped: dict = field(default_factory=dict)
 
     def __post_init__(self):
+        d = {k: int(v) for k, v in (self.dropped or {}).items() if k != "nonfinite" and v}
+        self.n_dropped_nonfinite = int(self.n_dropped_nonfinite)
+        if self.n_dropped_nonfinite:
+            d = {"nonfinite": self.n_dropped_nonfinite, **d}
+        self.dropped = d
         for name, dtype in (("range_m", np.float64), ("phi_rad", np.float64),
                             ("theta_rad", np.float64), ("intensity", np.float32),
                             ("time_s", np.float64), ("row", np.int64)):
@@ -150,10 +180,44 @@ class ScanData:
     def __len__(self):
         return len(self.range_m)
 
+    @property
+    def n_dropped(self) -> int:
+        """Rows of the file dropped while reading, all reasons together."""
+        return int(sum(self.dropped.values()))
+
     def subset(self, mask_or_index) -> ScanData:
         """The rows selected by a boolean mask or an index array (keeps `row`)."""
         return ScanData(*(getattr(self, c)[mask_or_index] for c in (*COLUMNS, "row")),
-                        n_dropped_nonfinite=self.n_dropped_nonfinite)
+                        n_dropped_nonfinite=self.n_dropped_nonfinite, dropped=dict(self.dropped))
+
+
+def _sum_dropped(chunks: Sequence[ScanData]) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for c in chunks:
+        for k, v in c.dropped.items():
+            out[k] = out.get(k, 0) + int(v)
+    return out
+
+
+def minimum_points(n_free: int) -> int:
+    """Usable observations a scan needs for a model with ``n_free`` free parameters:
+    :data:`POINTS_PER_PARAMETER` (50) per free parameter (at least one parameter counted).
+
+    The one rule of the project: ``fit`` and ``diagnose`` refuse a scan named alone that has
+    fewer (:func:`require_points`); inside a campaign such a scan is left out of every
+    average with a note.
+    """
+    return POINTS_PER_PARAMETER * max(1, int(n_free))
+
+
+def require_points(n_points: int, n_free: int, *, file, scan_id: str, what: str = "the model"
+                   ) -> None:
+    """Raise :class:`CampaignError` naming the scan when ``n_points < minimum_points(n_free)``."""
+    need = minimum_points(n_free)
+    if int(n_points) < need:
+        raise CampaignError(file, "points", f"scan {scan_id!r} has {int(n_points)} usable "
+                            f"points, expected at least {need} for {what} ({n_free} free "
+                            f"parameters, {POINTS_PER_PARAMETER} points each)")
 
 
 def _concat(chunks: Sequence[ScanData]) -> ScanData:
@@ -162,7 +226,8 @@ def _concat(chunks: Sequence[ScanData]) -> ScanData:
     if not chunks:
         return ScanData(*(np.empty(0) for _ in range(6)))
     return ScanData(*(np.concatenate([getattr(c, k) for c in chunks]) for k in (*COLUMNS, "row")),
-                    n_dropped_nonfinite=sum(c.n_dropped_nonfinite for c in chunks))
+                    n_dropped_nonfinite=sum(c.n_dropped_nonfinite for c in chunks),
+                    dropped=_sum_dropped(chunks))
 
 
 # ----------------------------------------------------------------------------- TOML reading
@@ -244,7 +309,7 @@ class _Table:
 _SITE_KEYS = ("name", "latitude_deg", "longitude_deg")
 _TELESCOPE_KEYS = ("name", "mount", "diameter_m", "focal_length_m", "cone_radius_m",
                    "quadrupod_azimuths_deg", "ring_edges_m", "panels_per_ring", "offset_m")
-_SCANNER_KEYS = ("sigma_range_m", "sigma_angle_rad", "angular_step_rad")
+_SCANNER_KEYS = ("sigma_range_m", "sigma_angle_rad", "angular_step_rad", "max_range_m")
 _SCAN_KEYS = ("id", "position", "tour", "ha_deg", "dec_deg", "elevation_deg", "azimuth_deg",
               "cycle", "file", "start", "temperature_c")
 _TOP_KEYS = ("format", "site", "telescope", "scanner", "scan")
@@ -290,6 +355,8 @@ def _scanner(t: _Table) -> Scanner:
     return Scanner(sigma_range_m=t.positive("sigma_range_m", "m"),
                    sigma_angle_rad=t.positive("sigma_angle_rad", "rad"),
                    angular_step_rad=t.positive("angular_step_rad", "rad"),
+                   max_range_m=(t.positive("max_range_m", "m") if "max_range_m" in t.data
+                                else None),
                    extra=t.extra(_SCANNER_KEYS))
 
 
@@ -435,15 +502,21 @@ def dumps_toml(doc: Mapping) -> str:
 
 
 def write_campaign(root, campaign_like: Campaign, scans: Mapping[str, ScanData], *,
-                   fmt: str = "parquet") -> Campaign:
+                   fmt: str = "parquet", before_toml=None) -> Campaign:
     """Write `campaign.toml` and `scans/<id>.<fmt>` under `root`; return the loaded campaign.
 
     `campaign_like.root` and its scans' `file` are ignored (files become `scans/<id>.<ext>`).
+    Crash-safe: a previous `campaign.toml` is removed first, every scan file is written to a
+    temporary name and renamed, `before_toml()` (optional: other files of the campaign, such
+    as a simulator's truth) runs next, and `campaign.toml` is written last, so an interrupted
+    write never leaves a campaign.toml beside scans it does not describe.
     """
     if fmt not in ("parquet", "e57"):
         raise ValueError(f"fmt must be 'parquet' or 'e57', not {fmt!r}")
     root = pathlib.Path(root)
     (root / "scans").mkdir(parents=True, exist_ok=True)
+    if (root / "campaign.toml").is_file():
+        (root / "campaign.toml").unlink()
     metas = []
     for meta in campaign_like.scans:
         if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9._-]*", meta.id):
@@ -458,6 +531,8 @@ def write_campaign(root, campaign_like: Campaign, scans: Mapping[str, ScanData],
             write_scan_e57(root / file, scans[meta.id], meta.cycle)
         metas.append(dataclasses.replace(meta, file=file))
     text = campaign_to_toml(dataclasses.replace(campaign_like, root=root, scans=tuple(metas)))
+    if before_toml is not None:
+        before_toml()
     tmp = root / "campaign.toml.tmp"
     tmp.write_text(text, encoding="utf-8")
     os.replace(tmp, root / "campaign.toml")
@@ -495,18 +570,31 @@ def _check_angles(path, cycle: int, phi: np.ndarray, theta: np.ndarray, row: np.
                                 f"outside, first at row {int(row[i])}: {float(v[i])!r}")
 
 
-def _finish(path, cols: dict[str, np.ndarray], cycle: int, row0: int) -> ScanData:
-    """Drop non-finite rows (counted), check the angles, and build a ScanData."""
+def _finish(path, cols: dict[str, np.ndarray], cycle: int, row0: int,
+            max_range_m: float = MAX_RANGE_M, stats: dict | None = None) -> ScanData:
+    """Drop (and count per reason) rows with a non-finite value or a range outside
+    (0, max_range_m], check the angles, and build a ScanData. ``stats`` (optional) collects
+    the non-finite count of each column, for messages."""
     n = len(cols["range_m"])
     finite = np.ones(n, dtype=bool)
     for c in COLUMNS:
-        finite &= np.isfinite(cols[c])
+        ok = np.isfinite(cols[c])
+        if stats is not None:
+            stats[c] = stats.get(c, 0) + int(n - ok.sum())
+        finite &= ok
+    r = cols["range_m"]
+    with np.errstate(invalid="ignore"):
+        nonpos = finite & (r <= 0)
+        above = finite & (r > max_range_m)
+    keep = finite & ~nonpos & ~above
     row = np.arange(row0, row0 + n, dtype=np.int64)
     n_bad = int(n - finite.sum())
-    if n_bad:
-        cols, row = {c: v[finite] for c, v in cols.items()}, row[finite]
+    dropped = {"range_nonpositive": int(nonpos.sum()), "range_above_max": int(above.sum())}
+    if not keep.all():
+        cols, row = {c: v[keep] for c, v in cols.items()}, row[keep]
     _check_angles(path, cycle, cols["phi_rad"], cols["theta_rad"], row)
-    return ScanData(**{c: cols[c] for c in COLUMNS}, row=row, n_dropped_nonfinite=n_bad)
+    return ScanData(**{c: cols[c] for c in COLUMNS}, row=row, n_dropped_nonfinite=n_bad,
+                    dropped=dropped)
 
 
 def _arrow_errors():
@@ -577,15 +665,47 @@ def _file_columns(path: pathlib.Path, cycle: int, rows_per_chunk: int | None) ->
     raise CampaignError(path, "file", f"expected a .parquet or .e57 file, found {suffix!r}")
 
 
-def _iter_chunks(path: pathlib.Path, cycle: int, rows_per_chunk: int | None) -> Iterator[ScanData]:
-    row0, dropped = 0, 0
+def _iter_chunks(path: pathlib.Path, cycle: int, rows_per_chunk: int | None,
+                 max_range_m: float = MAX_RANGE_M) -> Iterator[ScanData]:
+    if rows_per_chunk is not None and int(rows_per_chunk) < 1:
+        raise ValueError(f"rows_per_chunk must be a positive integer, not {rows_per_chunk!r}")
+    if not (max_range_m > 0):
+        raise ValueError(f"max_range_m must be positive, not {max_range_m!r}")
+    row0, kept, stats = 0, 0, {}
+    dropped: dict[str, int] = {}
     for cols in _file_columns(path, cycle, rows_per_chunk):
-        chunk = _finish(path, cols, cycle, row0)
+        chunk = _finish(path, cols, cycle, row0, max_range_m, stats)
         row0 += len(cols["range_m"])
-        dropped += chunk.n_dropped_nonfinite
+        kept += len(chunk)
+        for k, v in chunk.dropped.items():
+            dropped[k] = dropped.get(k, 0) + v
         yield chunk
-    if dropped:
-        log.warning("%s: dropped %d rows with NaN/inf values", path, dropped)
+    if dropped.get("nonfinite"):
+        log.warning("%s: dropped %d rows with NaN/inf values", path, dropped["nonfinite"])
+    if dropped.get("range_nonpositive"):
+        log.warning("%s: dropped %d rows with range <= 0", path, dropped["range_nonpositive"])
+    if dropped.get("range_above_max"):
+        log.warning("%s: dropped %d rows with a range above the instrument maximum %g m", path,
+                    dropped["range_above_max"], max_range_m)
+    if kept == 0:
+        _no_usable_rows(path, row0, dropped, stats, max_range_m)
+
+
+def _no_usable_rows(path, n_rows: int, dropped: dict, stats: dict, max_range_m: float):
+    """Raise the CampaignError of a scan without one usable row, naming the main cause."""
+    if n_rows == 0:
+        raise CampaignError(path, "rows", "the scan table has no rows, expected at least one "
+                            "observation")
+    parts = [f"{v} with {DROP_REASONS[k]}" for k, v in dropped.items() if v]
+    col = max(COLUMNS, key=lambda c: stats.get(c, 0))
+    if stats.get(col, 0) == n_rows:
+        field_, what = col, f"all {n_rows} values are NaN, infinite or null"
+    else:
+        ranges = dropped.get("range_nonpositive", 0) + dropped.get("range_above_max", 0)
+        field_ = "range_m" if ranges >= dropped.get("nonfinite", 0) else col
+        what = f"none of the {n_rows} rows is usable ({'; '.join(parts)})"
+    raise CampaignError(path, field_, f"{what}, expected at least one row with finite values "
+                        f"and a range in (0, {max_range_m:g}] m")
 
 
 def _scan_path(campaign: Campaign, scan: str | ScanMeta) -> tuple[pathlib.Path, ScanMeta]:
@@ -594,29 +714,32 @@ def _scan_path(campaign: Campaign, scan: str | ScanMeta) -> tuple[pathlib.Path, 
 
 
 def read_scan(campaign: Campaign, scan: str | ScanMeta) -> ScanData:
-    """Read one scan (Parquet or E57 by suffix), validated, without its non-finite rows."""
+    """Read one scan (Parquet or E57 by suffix), validated, without its dropped rows
+    (non-finite values, range <= 0 or above the scanner's ``max_range_m``; counted in
+    ``ScanData.dropped``). A scan without one usable row raises ``CampaignError``."""
     path, meta = _scan_path(campaign, scan)
-    return _concat(list(_iter_chunks(path, meta.cycle, None)))
+    return _concat(list(_iter_chunks(path, meta.cycle, None, campaign.scanner.range_limit_m)))
 
 
 def iter_scan_chunks(campaign: Campaign, scan: str | ScanMeta,
                      rows_per_chunk: int = 2_000_000) -> Iterator[ScanData]:
     """Stream one scan as validated ScanData chunks of at most `rows_per_chunk` file rows."""
     path, meta = _scan_path(campaign, scan)
-    yield from _iter_chunks(path, meta.cycle, int(rows_per_chunk))
+    yield from _iter_chunks(path, meta.cycle, int(rows_per_chunk),
+                            campaign.scanner.range_limit_m)
 
 
-def read_scan_parquet(path, cycle: int) -> ScanData:
+def read_scan_parquet(path, cycle: int, *, max_range_m: float = MAX_RANGE_M) -> ScanData:
     """Read and validate one Parquet scan file for the given cycle."""
-    return _concat(list(_iter_chunks(pathlib.Path(path), cycle, None)))
+    return _concat(list(_iter_chunks(pathlib.Path(path), cycle, None, max_range_m)))
 
 
-def read_scan_e57(path, cycle: int) -> ScanData:
+def read_scan_e57(path, cycle: int, *, max_range_m: float = MAX_RANGE_M) -> ScanData:
     """Read one E57 scan, converting face-1 azimuth/elevation to raw two-face angles."""
     path = pathlib.Path(path)
     if path.suffix.lower() != ".e57":
         raise CampaignError(path, "file", f"expected an .e57 file, found {path.suffix!r}")
-    return _concat(list(_iter_chunks(path, cycle, None)))
+    return _concat(list(_iter_chunks(path, cycle, None, max_range_m)))
 
 
 def write_scan_parquet(path, scan: ScanData) -> None:

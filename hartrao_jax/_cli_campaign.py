@@ -9,6 +9,7 @@ from pathlib import Path
 
 import click
 
+from ._safeio import strict_json, write_json_atomic
 from .cli import UserError, _console, _keep_fn, _parse_fixes, command, main
 
 
@@ -33,8 +34,8 @@ def schedule(tours, json_file):
     for p in problems:
         click.echo(f"warning: {p}", err=True)
     if json_file:
-        Path(json_file).write_text(json.dumps(
-            {"schema": "hartrao-schedule/1", "positions": [p.as_dict() for p in plan]}, indent=1))
+        write_json_atomic(json_file, {"schema": "hartrao-schedule/1",
+                                      "positions": [p.as_dict() for p in plan]}, indent=1)
         click.echo(f"wrote {json_file}")
 
 
@@ -221,9 +222,10 @@ def fit_stream(campaign, scan_ids, model, rows_per_chunk, store, json_file, robu
                             robust_k=robust_k or None)
         doc = stream_document(r)
         if json_file:
-            Path(json_file).write_text(json.dumps(doc, indent=1))
-        click.echo(json.dumps({k: doc[k] for k in ("scan", "sigma0", "n_points", "iterations",
-                                                   "passes", "seconds", "peak_rss_gib")}))
+            write_json_atomic(json_file, doc, indent=1)
+        click.echo(json.dumps(strict_json({k: doc[k] for k in (
+            "scan", "sigma0", "n_points", "iterations", "passes", "seconds", "peak_rss_gib")}),
+            allow_nan=False))
         click.echo(f"f = {r.estimates['f'][0]:.6f} ± {r.estimates['f'][1]:.6f} m")
         return
     client = cluster = None
@@ -239,7 +241,7 @@ def fit_stream(campaign, scan_ids, model, rows_per_chunk, store, json_file, robu
         if client is not None:
             close_client(client, cluster)
     if json_file:
-        Path(json_file).write_text(json.dumps(doc, indent=1))
+        write_json_atomic(json_file, doc, indent=1)
     for rec in doc["scans"]:
         f = rec["estimates"]["f"]
         click.echo(f"{rec['scan']}: f = {f['value']:.6f} ± {f['sigma']:.6f} m, sigma0 "

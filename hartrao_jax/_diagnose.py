@@ -325,8 +325,9 @@ def _start_scans(ctx: _Context, start: tuple[str, ...], keep,
                  scans: Sequence[str] | None) -> list[_Scan]:
     """Fit every scan with the start model (as ``fit`` does) and freeze its geometry."""
     from ._align import mount_heading
-    from ._campaign import read_scan
+    from ._campaign import read_scan, require_points
     from ._fit import finish_scan_fit, prepare_scan, scan_arrays
+    from ._model import parse_model
     from ._geometry import pointing_gravity
 
     camp = ctx.campaign
@@ -336,6 +337,8 @@ def _start_scans(ctx: _Context, start: tuple[str, ...], keep,
     fits, headings = {}, []
     for meta in sorted(metas, key=lambda m: -tilt[m.id]):
         data = read_scan(camp, meta)
+        require_points(len(data), len(parse_model(start)), file=camp.root / meta.file,
+                       scan_id=meta.id, what="the start model")  # refused by name
         k = np.asarray(keep(meta, data), bool) if keep is not None else None
         data, g, init, window = prepare_scan(camp, meta, data, keep=k)
         mdl = make_model(start, aperture_radius_m=ctx.aperture, check_separable=False)
@@ -2380,11 +2383,10 @@ def _fmt(name: str, v: float, s: float) -> str:
 
 
 def write_json(diag: Diagnosis, path: str | Path) -> Path:
-    """Write the ``hartrao-diagnosis/1`` document."""
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    p.write_text(json.dumps(diag.to_json(), indent=2, default=_json_default), encoding="utf-8")
-    return p
+    """Write the ``hartrao-diagnosis/1`` document (strict JSON, temporary name + rename)."""
+    from ._safeio import write_json_atomic
+
+    return write_json_atomic(path, diag.to_json(), indent=2, default=_json_default)
 
 
 def _json_default(o):

@@ -387,7 +387,6 @@ def fit_dask(
     ``joint=True``: then the joint adjustment (shared calibration per ``group``) with the
     Schur-complement iteration over the worker-resident scans.
     """
-    import json
     import time
 
     from ._align import MIN_TILT_RAD
@@ -406,6 +405,14 @@ def fit_dask(
         tilted = [m for m in order if _tilt(m, campaign) >= MIN_TILT_RAD]
         flat = [m for m in order if _tilt(m, campaign) < MIN_TILT_RAD]
         outd = str(Path(out_dir).resolve()) if out_dir and not joint else None
+        od = None
+        if out_dir:
+            from ._safeio import OutputDir
+
+            # workers write the residual tables in place (each atomically): no fit.json
+            # until the new one lists them
+            od = OutputDir(out_dir, "fit.json")
+            od.invalidate()
         fits: dict[str, object] = {}
         summaries: dict[str, ScanSummary] = {}
 
@@ -431,10 +438,11 @@ def fit_dask(
         if joint:
             jf, doc = _joint_on_workers(client, root, campaign, metas, fits, ordered, names,
                                         shared, group, sigma_vector(campaign), hint, out_dir)
-        if out_dir:
-            p = Path(out_dir)
-            p.mkdir(parents=True, exist_ok=True)
-            (p / "fit.json").write_text(json.dumps(doc, indent=2))
+        if od is not None:
+            for m in metas:
+                if (Path(out_dir) / "residuals" / f"{m.id}.parquet").is_file():
+                    od.adopt(f"residuals/{m.id}.parquet")
+            od.commit(doc)
         n_w = len(client.scheduler_info().get("workers", {}))
         return DaskFit(doc, ordered, time.perf_counter() - t0, n_w, jf,
                        [fits[m.id] for m in metas] if keep_futures else None)

@@ -457,9 +457,14 @@ def fit_json(cf: CampaignFit) -> dict:
 
 
 def write_residuals(path: Path, s: ScanFit) -> None:
-    """Per-point residuals of one scan as Parquet (every row of the scan, ``used`` flags)."""
+    """Per-point residuals of one scan as Parquet (every row of the scan, ``used`` flags).
+
+    Written to a temporary name and renamed (never a half-written table at ``path``).
+    """
     import pyarrow as pa
     import pyarrow.parquet as pq
+
+    from ._safeio import write_file_atomic
 
     d = s.data
     table = pa.table({
@@ -480,17 +485,26 @@ def write_residuals(path: Path, s: ScanFit) -> None:
         "Y_m": s.X_tel[:, 1],
         "Z_m": s.X_tel[:, 2],
     })
-    pq.write_table(table, path)
+    write_file_atomic(path, lambda t: pq.write_table(table, t), durable=False)
 
 
 def write_fit(out_dir: str | Path, cf: CampaignFit, *, residuals: bool = True) -> Path:
-    """Write ``fit.json`` and ``residuals/<scan>.parquet``; returns the JSON path."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    if residuals:
-        (out / "residuals").mkdir(exist_ok=True)
-        for s in cf.scans:
-            write_residuals(out / "residuals" / f"{s.meta.id}.parquet", s)
-    p = out / "fit.json"
-    p.write_text(json.dumps(fit_json(cf), indent=2))
-    return p
+    """Write ``fit.json`` and ``residuals/<scan>.parquet``; returns the JSON path.
+
+    Crash-safe (:class:`._safeio.OutputDir`): the residual tables go to temporary names,
+    ``fit.json`` is written last and lists them (``"files"``: bytes, SHA-256); the JSON is
+    strict (non-finite numbers null, listed under ``"nonfinite"``). Each scan record gets
+    ``n_dropped``: the rows dropped while reading, per reason.
+    """
+    from ._safeio import OutputDir
+
+    doc = fit_json(cf)
+    for rec, s in zip(doc.get("scans", []), cf.scans):
+        if getattr(s, "data", None) is not None and "n_dropped" not in rec:
+            rec["n_dropped"] = dict(s.data.dropped)
+    with OutputDir(out_dir, "fit.json") as od:
+        if residuals:
+            for s in cf.scans:
+                od.write_with(f"residuals/{s.meta.id}.parquet",
+                              lambda t, s=s: write_residuals(t, s))
+        return od.commit(doc)

@@ -239,11 +239,10 @@ def samples_from_dir(results_dir, *, with_points: bool = True, modes: Sequence[i
     """
     import pyarrow.parquet as pq
 
+    from ._safeio import verify_result_dir
+
     root = Path(results_dir)
-    p = root / "fit.json"
-    if not p.is_file():
-        raise FileNotFoundError(f"{p}: expected the fit.json of `hartrao-jax fit`")
-    doc = json.loads(p.read_text())
+    doc = verify_result_dir(root, "fit.json")  # a complete fit, or a one-line refusal
     pos = {q["position"]: q for q in doc.get("positions", [])}
     temps: dict[str, float | None] = {}
     camp = doc.get("campaign")
@@ -885,13 +884,25 @@ def gravity_model(
 
 
 def plot_gravity(gm: GravityModel, sky: dict, out_dir) -> list[str]:
-    """``gravity_f.png`` (f against g_z, both models) and ``gravity_sky.png`` (maps)."""
+    """``gravity_f.png`` (f against g_z, both models) and ``gravity_sky.png`` (maps).
+
+    ``out_dir``: a directory (each PNG written atomically) or a :class:`._safeio.OutputDir`
+    transaction (the PNGs become files of its result).
+    """
+    from ._safeio import OutputDir, write_file_atomic
+
+    def save(fig, name):
+        if isinstance(out_dir, OutputDir):
+            out_dir.savefig(name, fig, dpi=110)
+        else:
+            write_file_atomic(Path(out_dir) / name, lambda t: fig.savefig(t, format="png",
+                                                                          dpi=110))
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    out = Path(out_dir)
+    out = Path(out_dir.root if isinstance(out_dir, OutputDir) else out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files = []
     fig, ax = plt.subplots(1, 2, figsize=(11, 4.2))
@@ -916,7 +927,7 @@ def plot_gravity(gm: GravityModel, sky: dict, out_dir) -> list[str]:
     ax[1].set_title("residuals of the full model")
     fig.tight_layout()
     p = out / "gravity_f.png"
-    fig.savefig(p, dpi=110)
+    save(fig, p.name)
     plt.close(fig)
     files.append(p.name)
 
@@ -937,7 +948,7 @@ def plot_gravity(gm: GravityModel, sky: dict, out_dir) -> list[str]:
         a.set_ylabel("DEC [deg]")
     fig.tight_layout()
     p = out / "gravity_sky.png"
-    fig.savefig(p, dpi=110)
+    save(fig, p.name)
     plt.close(fig)
     files.append(p.name)
     return files
@@ -946,15 +957,23 @@ def plot_gravity(gm: GravityModel, sky: dict, out_dir) -> list[str]:
 def write_gravity(results_dir, out_dir=None, *, modes: Sequence[int] = DEFAULT_ZERNIKE_MODES,
                   temperature: bool = False, step_deg: float = 2.0, figures: bool = True,
                   source=None) -> tuple[Path, GravityModel]:
-    """``gravity.json`` (schema ``hartrao-gravity/1``) and figures for a results directory."""
+    """``gravity.json`` (schema ``hartrao-gravity/1``) and figures for a results directory.
+
+    The results directory must hold a complete fit (:func:`._safeio.verify_result_dir`).
+    Crash-safe: the figures go to temporary names, ``gravity.json`` (strict JSON, listing
+    them) is written last.
+    """
+    from ._safeio import OutputDir, verify_result_dir
+
+    if source is None:
+        verify_result_dir(results_dir, "fit.json")
     out = Path(out_dir or results_dir)
-    out.mkdir(parents=True, exist_ok=True)
     gm = gravity_model(source if source is not None else results_dir, modes=modes,
                        temperature=temperature)
     sky = gm.sky_map(step_deg=step_deg)
-    figs = plot_gravity(gm, sky, out) if figures else []
-    p = out / "gravity.json"
-    p.write_text(json.dumps(gm.to_json(sky=sky, figures=figs), indent=1))
+    with OutputDir(out, "gravity.json") as od:
+        figs = plot_gravity(gm, sky, od) if figures else []
+        p = od.commit(gm.to_json(sky=sky, figures=figs), indent=1)
     return p, gm
 
 

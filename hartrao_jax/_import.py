@@ -849,8 +849,11 @@ def import_file(path, fmt: str | None = None, out_dir=None, telescope="gbt",
 
 # ----------------------------------------------------------------------------- CLI
 
+from ._cli_checks import OneLineCommand  # noqa: E402
 
-@click.command("import")
+
+
+@click.command("import", cls=OneLineCommand)
 @click.argument("file", type=click.Path(dir_okay=False, path_type=pathlib.Path))
 @click.option("--format", "fmt", type=click.Choice(FORMATS), default=None,
               help="Input format (default: from the suffix; .ptx, .e57, else xyz).")
@@ -874,13 +877,23 @@ def import_file(path, fmt: str | None = None, out_dir=None, telescope="gbt",
 def import_command(file, fmt, out, telescope, elevation_deg, azimuth_deg, ha_deg, dec_deg,
                    position, line_period_s, dt_s, allow_truncated, overwrite):
     """Import a Leica PTX, XYZ text or E57 export as a one-face campaign (cycle 0)."""
+    import sys
+
+    from ._cli_checks import validate_command
+
+    ctx = click.get_current_context()
     try:
+        validate_command(ctx, {k: v for k, v in ctx.params.items() if k != "file"})
         c = import_file(file, fmt, out, telescope=telescope, elevation_deg=elevation_deg,
                         azimuth_deg=azimuth_deg, position=position, ha_deg=ha_deg,
                         dec_deg=dec_deg, line_period_s=line_period_s, dt_s=dt_s,
                         allow_truncated=allow_truncated, overwrite=overwrite)
-    except (CampaignError, ValueError) as e:
-        raise click.ClickException(str(e)) from None
+    except (CampaignError, ValueError, OSError) as e:
+        root = ctx.find_root()
+        if (root.obj or {}).get("debug"):
+            raise
+        click.echo(f"error: {(str(e).splitlines() or [type(e).__name__])[0]}", err=True)
+        sys.exit(2)
     for s in c.scans:
         click.echo(f"{s.id}: {s.extra.get('n_points', '?')} points -> {c.root / s.file}")
     click.echo(f"wrote {c.root / 'campaign.toml'} ({c.telescope.name}, {len(c.scans)} scan"

@@ -632,18 +632,20 @@ def joint_json(jf: JointFit, *, base: dict | None = None) -> dict:
 
 
 def write_joint_fit(out_dir, jf: JointFit, *, residuals: bool = True) -> Path:
-    """Write ``fit.json`` (with ``shared``) and ``residuals/<scan>.parquet`` of a joint fit."""
-    import json
+    """Write ``fit.json`` (with ``shared``) and ``residuals/<scan>.parquet`` of a joint fit.
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    if residuals:
-        (out / "residuals").mkdir(exist_ok=True)
-        for s in jf.scans:
-            write_residuals(out / "residuals" / f"{s.meta.id}.parquet", s)
-    p = out / "fit.json"
-    p.write_text(json.dumps(joint_json(jf), indent=2))
-    return p
+    Crash-safe like :func:`._fit.write_fit`: tables first under temporary names, ``fit.json``
+    last, strict, with the ``"files"`` manifest.
+    """
+    from ._safeio import OutputDir
+
+    doc = joint_json(jf)
+    with OutputDir(out_dir, "fit.json") as od:
+        if residuals:
+            for s in jf.scans:
+                od.write_with(f"residuals/{s.meta.id}.parquet",
+                              lambda t, s=s: write_residuals(t, s))
+        return od.commit(doc)
 
 
 def print_joint_summary(jf: JointFit, console=None) -> None:

@@ -86,7 +86,6 @@ patch once, packed into padded arrays by size bucket (powers of two) and handed 
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 import time
@@ -1051,6 +1050,8 @@ def preprocess_scan(
     counts_reason = np.bincount(reason, minlength=len(REASONS))
     removed = {REASONS[k]: int(counts_reason[k]) for k in REASONS if k != KEPT}
     removed["non_finite"] += int(data.n_dropped_nonfinite)
+    # rows the reader dropped for a range <= 0 or above the instrument maximum
+    removed["invalid_range"] = int(data.n_dropped - data.n_dropped_nonfinite)
     fitted = ~weak
     params = {
         "d_min_m": d_min, "d_max_m": d_max, "d_min_auto_m": auto_lo, "d_max_auto_m": auto_hi,
@@ -1069,7 +1070,7 @@ def preprocess_scan(
     }
     timing["total"] = time.perf_counter() - t_start
     stats = {
-        "n_rows": n + int(data.n_dropped_nonfinite),
+        "n_rows": n + int(data.n_dropped),
         "n_input": n,
         "n_kept": int(keep.sum()),
         "removed": removed,
@@ -1146,27 +1147,45 @@ def preprocess_json(results: Mapping[str, PreprocessResult],
 def write_preprocess_json(path, results: Mapping[str, PreprocessResult],
                           config: PreprocessConfig | None = None,
                           campaign: Campaign | None = None) -> Path:
-    """Write ``preprocess.json`` (schema ``hartrao-preprocess/1``) to ``path`` (file or dir)."""
+    """Write ``preprocess.json`` (schema ``hartrao-preprocess/1``) to ``path`` (file or dir):
+    strict JSON, atomically, with an empty ``"files"`` manifest (see
+    :func:`write_preprocess_result` for the JSON with its masks)."""
+    return write_preprocess_result(path, results, config, campaign, masks=False)
+
+
+def write_preprocess_result(path, results: Mapping[str, PreprocessResult],
+                            config: PreprocessConfig | None = None,
+                            campaign: Campaign | None = None, *, masks: bool = True) -> Path:
+    """``masks/<scan>.parquet`` and ``preprocess.json`` crash-safely (:class:`._safeio.OutputDir`:
+    masks under temporary names first, the JSON last, listing them). ``path``: the directory
+    or the JSON file's path. Returns the JSON's path."""
+    import pyarrow as pa
+
+    from ._safeio import OutputDir
+
     p = Path(path)
     if p.is_dir() or p.suffix == "":
-        p.mkdir(parents=True, exist_ok=True)
         p = p / "preprocess.json"
-    else:
-        p.parent.mkdir(parents=True, exist_ok=True)
-    p.write_text(json.dumps(preprocess_json(results, config, campaign), indent=2))
-    return p
+    with OutputDir(p.parent, p.name) as od:
+        for sid, res in (results.items() if masks else ()):
+            od.write_parquet(f"masks/{sid}.parquet", pa.table(
+                {"row": res.row, "reason": res.reason, "patch": res.patch}))
+        return od.commit(preprocess_json(results, config, campaign), indent=2)
 
 
 def write_masks(out_dir, results: Mapping[str, PreprocessResult]) -> Path:
-    """``out_dir/masks/<scan>.parquet``: ``row`` (file row), ``reason`` (uint8), ``patch``."""
+    """``out_dir/masks/<scan>.parquet``: ``row`` (file row), ``reason`` (uint8), ``patch``
+    (each written to a temporary name and renamed)."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
+    from ._safeio import write_file_atomic
+
     d = Path(out_dir) / "masks"
-    d.mkdir(parents=True, exist_ok=True)
     for sid, res in results.items():
-        pq.write_table(pa.table({"row": res.row, "reason": res.reason, "patch": res.patch}),
-                       d / f"{sid}.parquet")
+        table = pa.table({"row": res.row, "reason": res.reason, "patch": res.patch})
+        write_file_atomic(d / f"{sid}.parquet", lambda t, tb=table: pq.write_table(tb, t),
+                          durable=False)
     return d
 
 
@@ -1210,9 +1229,8 @@ def preprocess_campaign(
             results[m.id] = preprocess_scan(campaign, m, data, cfg)
             prog.advance(task)
     if out_dir is not None:
-        write_preprocess_json(Path(out_dir) / "preprocess.json", results, cfg, campaign)
-        if masks:
-            write_masks(out_dir, results)
+        write_preprocess_result(Path(out_dir) / "preprocess.json", results, cfg, campaign,
+                                masks=masks)
     if progress or out_dir is not None:
         title = f"{campaign.telescope.name}: preprocessing"
         (console or Console()).print(preprocess_table(results, title))
@@ -1246,5 +1264,5 @@ __all__ = [
     "PREPROCESS_SCHEMA", "REASONS", "PlaneCondition", "PreprocessConfig", "PreprocessResult",
     "default_range_window", "fit_planes", "keep_mask_fn", "preprocess_campaign",
     "preprocess_json", "preprocess_scan", "preprocess_table", "reflector_distance_range",
-    "write_masks", "write_preprocess_json",
+    "write_masks", "write_preprocess_json", "write_preprocess_result",
 ]

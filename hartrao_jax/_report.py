@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from ._campaign import CampaignError
 from ._surface import (
     PanelLayout, PositionSurface, SurfaceResult, point_spacing, read_surface,
     surface_from_fit_dir,
@@ -69,10 +70,10 @@ def png_bytes(fig) -> bytes:
 
 
 def save_png(fig, path) -> Path:
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    p.write_bytes(png_bytes(fig))
-    return p
+    """The figure as PNG at ``path`` (temporary name + rename)."""
+    from ._safeio import write_bytes_atomic
+
+    return write_bytes_atomic(path, png_bytes(fig), durable=False)
 
 
 def _nice(v: float) -> float:
@@ -541,12 +542,11 @@ def collect(results_dir, campaign=None) -> ReportInputs:
     if not root.is_dir():
         raise FileNotFoundError(f"{root}: results directory not found")
     inp = ReportInputs(root)
+    from ._safeio import verify_result_dir
+
     for p in _find(root, "fit.json"):
-        try:
-            doc = json.loads(p.read_text())
-        except (OSError, ValueError) as e:
-            log.warning("%s: not readable (%s), skipped", p, e)
-            continue
+        # an incomplete or mixed fit directory is refused (one-line CampaignError)
+        doc = verify_result_dir(p.parent, "fit.json")
         if str(doc.get("schema", "")).startswith("hartrao-fit/"):
             inp.fits.append((_label(root, p.parent), p.parent, doc))
     inp.fits.sort(key=lambda t: (_MODEL_ORDER.get(Path(t[0]).name, 5), t[0]))
@@ -569,8 +569,11 @@ def collect(results_dir, campaign=None) -> ReportInputs:
             pass
     for p in _find(root, "surface.json"):
         try:
+            verify_result_dir(p.parent, "surface.json")  # refused when incomplete or mixed
             inp.surfaces.append((_label(root, p.parent), read_surface(p.parent)))
         except Exception as e:  # noqa: BLE001
+            if isinstance(e, CampaignError):
+                raise
             log.warning("%s: not readable (%s), skipped", p, e)
     if not inp.surfaces:
         for label, d, _ in inp.fits:
@@ -924,10 +927,9 @@ def write_report(results_dir, campaign=None, out: str | Path | None = None, *,
             f"</title><style>{_CSS}</style></head><body><h1>{_esc(title)}</h1>"
             f"<p class='small'>{' &middot; '.join(meta)}</p><nav><ul>{toc}</ul></nav>"
             + "\n".join(doc.parts) + "</body></html>")
-    path = Path(out) if out is not None else root / "report.html"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(page, encoding="utf-8")
-    return path
+    from ._safeio import write_text_atomic
+
+    return write_text_atomic(Path(out) if out is not None else root / "report.html", page)
 
 
 __all__ = [

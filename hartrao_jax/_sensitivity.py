@@ -29,7 +29,6 @@ not separable from the pose -- the condition number says so).
 
 from __future__ import annotations
 
-import json
 import math
 import warnings
 from collections.abc import Sequence
@@ -543,7 +542,9 @@ def plot_sensitivity(cs: CampaignSensitivity, out_dir) -> list[str]:
     ax[1].legend(fontsize=8)
     fig.tight_layout()
     p = out / "sensitivity_f.png"
-    fig.savefig(p, dpi=110)
+    from ._safeio import write_file_atomic
+
+    write_file_atomic(p, lambda t: fig.savefig(t, format="png", dpi=110), durable=False)
     plt.close(fig)
     return [p.name]
 
@@ -565,12 +566,14 @@ def sensitivity_table(cs: CampaignSensitivity) -> str:
 
 def write_sensitivity(path, cs: CampaignSensitivity, *, figures_dir=None,
                       validation: dict | None = None) -> Path:
+    """``sensitivity.json`` (strict JSON, written last through a temporary name) after its
+    figures (each written atomically)."""
+    from ._safeio import write_json_atomic
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     figs = plot_sensitivity(cs, figures_dir or path.parent) if figures_dir is not False else []
     doc = _clean(sensitivity_json(cs, figures=figs, validation=validation))
-    path.write_text(json.dumps(doc, indent=1, allow_nan=False))
-    return path
+    return write_json_atomic(path, doc, indent=1)
 
 
 __all__ = ["ARCSEC", "CampaignSensitivity", "DEFAULT_PARAMS", "SENSITIVITY_SCHEMA",

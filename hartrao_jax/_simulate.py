@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as dt
-import json
 import math
 import pathlib
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -915,14 +914,18 @@ def simulate_campaign(out_dir, preset: str = "demo", effects: Mapping[str, Any] 
         truths[sid] = {**truth, "truth_file": f"truth/{sid}.parquet"}
         return data
 
-    written = write_campaign(out, camp, _LazyScans(make, [m.id for m in metas]))
-    doc = {"schema": TRUTH_SCHEMA, "preset": ps.name, "seed": seed, "step_rad": step,
-           "scatter": scatter, "classes": CLASSES, "effects": _jsonable(eff),
-           "config": _jsonable(dataclasses.asdict(cfg)),
-           "reflector": _jsonable(dataclasses.asdict(refl)),
-           "scans": [truths[m.id] for m in metas], "positions": pos_truth}
-    (out / "truth.json").write_text(json.dumps(_jsonable(doc), indent=1), encoding="utf-8")
-    return written
+    def write_truth():  # before campaign.toml, which write_campaign writes last
+        from ._safeio import write_json_atomic
+
+        doc = {"schema": TRUTH_SCHEMA, "preset": ps.name, "seed": seed, "step_rad": step,
+               "scatter": scatter, "classes": CLASSES, "effects": _jsonable(eff),
+               "config": _jsonable(dataclasses.asdict(cfg)),
+               "reflector": _jsonable(dataclasses.asdict(refl)),
+               "scans": [truths[m.id] for m in metas], "positions": pos_truth}
+        write_json_atomic(out / "truth.json", _jsonable(doc), indent=1)
+
+    return write_campaign(out, camp, _LazyScans(make, [m.id for m in metas]),
+                          before_toml=write_truth)
 
 
 def _jsonable(v):

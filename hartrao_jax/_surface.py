@@ -38,7 +38,6 @@ Outputs (:func:`write_surface`): ``surface.json`` (schema ``hartrao-surface/1``,
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -680,9 +679,11 @@ def surface_from_fit_dir(fit_dir, config: SurfaceConfig | None = None, *, campai
     The layout comes from ``campaign`` (or the campaign ``fit.json`` names, or the default).
     ``keep`` masks are indexed by the residual tables' rows.
     """
+    from ._safeio import verify_result_dir
+
     cfg = config or SurfaceConfig()
     fit_dir = Path(fit_dir)
-    doc = json.loads((fit_dir / "fit.json").read_text())
+    doc = verify_result_dir(fit_dir, "fit.json")  # a complete fit, or a one-line refusal
     if isinstance(layout, str):
         layout = layout_for(doc, campaign)
     exclude = set(exclude)
@@ -748,6 +749,9 @@ def surface_campaign(campaign, config: SurfaceConfig | None = None, out_dir=None
     if disturbed not in (None, "exclude", "cut"):
         raise ValueError(f"disturbed must be None, 'exclude' or 'cut', not {disturbed!r}")
     if fit_dir is not None:
+        from ._safeio import verify_result_dir
+
+        verify_result_dir(fit_dir, "fit.json")
         reports = detect_disturbed_residuals(fit_dir)
         bad = {r.scan: r for r in reports}
         keep = None
@@ -833,39 +837,43 @@ def _safe(name: str) -> str:
 
 
 def write_surface_json(path, result: SurfaceResult) -> Path:
-    """Write ``surface.json`` to ``path`` (a file, or a directory to put it in)."""
+    """Write ``surface.json`` alone to ``path`` (a file, or a directory to put it in): strict
+    JSON, written atomically, with an empty ``"files"`` manifest (no point tables)."""
+    from ._safeio import OutputDir
+
     p = Path(path)
     if p.suffix != ".json":
-        p.mkdir(parents=True, exist_ok=True)
         p = p / "surface.json"
-    else:
-        p.parent.mkdir(parents=True, exist_ok=True)
-    p.write_text(json.dumps(surface_json(result), indent=1))
-    return p
+    with OutputDir(p.parent, p.name) as od:
+        return od.commit(surface_json(result), indent=1)
 
 
 def write_surface(out_dir, result: SurfaceResult, *, cycles: bool = True) -> Path:
-    """``surface.json`` + ``points/<position>.parquet`` (+ ``cycles/<scan>.parquet``)."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
+    """``surface.json`` + ``points/<position>.parquet`` (+ ``cycles/<scan>.parquet``).
 
-    out = Path(out_dir)
-    (out / "points").mkdir(parents=True, exist_ok=True)
-    for p in result.positions:
-        a = p.averaged
-        pq.write_table(pa.table({
-            "X_m": a.X[:, 0], "Y_m": a.X[:, 1], "Z_m": a.X[:, 2], "deviation_m": a.deviation_m,
-            "panel": a.panel, "n1": a.n1, "n2": a.n2, "diff_m": a.diff_m,
-        }), out / "points" / f"{_safe(p.position)}.parquet")
-        if cycles:
-            (out / "cycles").mkdir(exist_ok=True)
-            for c in p.cycles:
-                pq.write_table(pa.table({
-                    "X_m": c.X[:, 0], "Y_m": c.X[:, 1], "Z_m": c.X[:, 2],
-                    "deviation_m": c.deviation_m, "panel": c.panel, "face": c.face,
-                    "phi_rad": c.phi_rad,
-                }), out / "cycles" / f"{_safe(c.scan)}.parquet")
-    return write_surface_json(out / "surface.json", result)
+    Crash-safe (:class:`._safeio.OutputDir`): the tables go to temporary names first,
+    ``surface.json`` is written last and lists them with their sizes and SHA-256.
+    """
+    import pyarrow as pa
+
+    from ._safeio import OutputDir
+
+    with OutputDir(out_dir, "surface.json") as od:
+        for p in result.positions:
+            a = p.averaged
+            od.write_parquet(f"points/{_safe(p.position)}.parquet", pa.table({
+                "X_m": a.X[:, 0], "Y_m": a.X[:, 1], "Z_m": a.X[:, 2],
+                "deviation_m": a.deviation_m, "panel": a.panel, "n1": a.n1, "n2": a.n2,
+                "diff_m": a.diff_m,
+            }))
+            if cycles:
+                for c in p.cycles:
+                    od.write_parquet(f"cycles/{_safe(c.scan)}.parquet", pa.table({
+                        "X_m": c.X[:, 0], "Y_m": c.X[:, 1], "Z_m": c.X[:, 2],
+                        "deviation_m": c.deviation_m, "panel": c.panel, "face": c.face,
+                        "phi_rad": c.phi_rad,
+                    }))
+        return od.commit(surface_json(result), indent=1)
 
 
 
@@ -874,8 +882,10 @@ def read_surface(out_dir) -> SurfaceResult:
     """Load what :func:`write_surface` wrote (``surface.json`` + the Parquet point tables)."""
     import pyarrow.parquet as pq
 
+    from ._safeio import verify_result_dir
+
     out = Path(out_dir)
-    doc = json.loads((out / "surface.json").read_text())
+    doc = verify_result_dir(out, "surface.json")  # complete, or a one-line refusal
     if doc.get("schema") != SURFACE_SCHEMA:
         raise ValueError(f"{out / 'surface.json'}: schema: expected {SURFACE_SCHEMA!r}, found "
                          f"{doc.get('schema')!r}")

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import click
 
+from ._cli_checks import OneLineGroup
 from ._config import enable_compilation_cache, enable_x64
 
 log = logging.getLogger("hartrao_jax")
@@ -44,6 +45,9 @@ def command(fn):
         enable_x64()
         enable_compilation_cache()
         try:
+            from ._cli_checks import validate_command
+
+            validate_command(ctx, kwargs)  # options, paths, inputs: before any work
             return fn(*args, **kwargs)
         except _user_errors() as e:
             if debug:
@@ -55,7 +59,7 @@ def command(fn):
     return wrapper
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=OneLineGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
 @click.option("-v", "--verbose", is_flag=True, help="More log output.")
 @click.version_option(package_name="hartrao-jax")
@@ -277,16 +281,10 @@ def fit(campaign, out_dir, model, scans, fixes, robust_k, batch, preprocess, exc
 
 
 def _parse_fixes(fixes) -> dict[str, float]:
-    out = {}
-    for f in fixes:
-        if "=" not in f:
-            raise UserError(f"--fix: {f!r}: expected NAME=VALUE")
-        k, v = f.split("=", 1)
-        try:
-            out[k.strip()] = float(v)
-        except ValueError:
-            raise UserError(f"--fix: {k}: expected a number, found {v!r}") from None
-    return out
+    """``--fix NAME=VALUE`` items: catalog names, finite values (one-line error otherwise)."""
+    from ._cli_checks import parse_fixes
+
+    return parse_fixes(fixes)
 
 
 @main.command()

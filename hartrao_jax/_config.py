@@ -1,4 +1,4 @@
-"""Process-wide JAX configuration: float64 and the persistent compilation cache."""
+"""Process-wide settings: float64, the XLA compilation cache, where the real recordings are."""
 
 from __future__ import annotations
 
@@ -25,3 +25,38 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return p
+
+
+REAL_DATA_ENV = "HARTRAO_REAL_DATA"
+REAL_DATA_DEFAULT = "../shared/real"
+REAL_DATA_SOURCE = (
+    "the public repository GreenBankObservatory/lassi-analysis, folder data/ "
+    "(https://github.com/GreenBankObservatory/lassi-analysis)")
+
+
+def repository_root() -> Path:
+    """The directory holding ``pyproject.toml`` above the package (a checkout or editable
+    install); the current directory when the package is installed elsewhere."""
+    root = Path(__file__).resolve().parents[1]
+    return root if (root / "pyproject.toml").is_file() else Path.cwd()
+
+
+def real_data_dir() -> Path:
+    """Directory of the real recordings (not part of the repository: their source publishes
+    no licence): ``$HARTRAO_REAL_DATA``, default ``../shared/real``; a relative path is taken
+    from the repository root (:func:`repository_root`). The Green Bank scans are expected in
+    its ``gbt-lassi/`` folder (files from :data:`REAL_DATA_SOURCE`, names in the README).
+    The directory may not exist; callers decide what to do then.
+    """
+    p = Path(os.environ.get(REAL_DATA_ENV) or REAL_DATA_DEFAULT).expanduser()
+    return p if p.is_absolute() else (repository_root() / p).resolve()
+
+
+def real_data_missing(sub: str = "gbt-lassi") -> str | None:
+    """None when ``real_data_dir() / sub`` exists, else the reason to give (where to get it)."""
+    d = real_data_dir() / sub
+    if d.is_dir():
+        return None
+    return (f"real recordings not found at {d} (${REAL_DATA_ENV}, default {REAL_DATA_DEFAULT} "
+            f"from the repository root): get them from {REAL_DATA_SOURCE} and put them under "
+            f"${REAL_DATA_ENV}/{sub}/ (file names: see README, 'Real recordings')")

@@ -575,6 +575,7 @@ def collect(results_dir, campaign=None) -> ReportInputs:
             if isinstance(e, CampaignError):
                 raise
             log.warning("%s: not readable (%s), skipped", p, e)
+    inp.surfaces.sort(key=lambda t: (_MODEL_ORDER.get(Path(t[0]).name, 5), t[0]))  # as fits
     if not inp.surfaces:
         for label, d, _ in inp.fits:
             if (d / "residuals").is_dir():

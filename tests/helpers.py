@@ -3,12 +3,31 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
+from hartrao_jax._config import real_data_dir, real_data_missing
 from hartrao_jax._geometry import cartesian_to_raw, scanner_to_telescope
 
 F_TRUE = 10.9816
 POSE = {"tx": 0.01, "ty": -0.02, "tz": 9.3, "rx": 0.3, "ry": np.pi - 0.5}
 SIGMA = np.array([0.0008, 2e-5, 2e-5])
+
+# Real GBT recordings, outside the repository: $HARTRAO_REAL_DATA/gbt-lassi (default
+# ../shared/real from the repository root). Absent: skipped, saying where to get them.
+REAL_GBT = real_data_dir() / "gbt-lassi"
+needs_real_gbt = pytest.mark.skipif(real_data_missing() is not None,
+                                    reason=real_data_missing() or "")
+
+
+def real_gbt_file(name: str):
+    """A file of the real GBT recordings: skip when the folder is absent; when the folder is
+    there, the file must be too (never a silent skip)."""
+    reason = real_data_missing()
+    if reason is not None:
+        pytest.skip(reason)
+    p = REAL_GBT / name
+    assert p.is_file(), f"{p}: missing from the real recordings in {REAL_GBT}"
+    return p
 
 
 def paraboloid_points(n: int, f: float = F_TRUE, seed: int = 0, rho=(1.6, 12.95)) -> np.ndarray:

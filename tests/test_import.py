@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import real_gbt_file
 
 from hartrao_jax._campaign import CampaignError, load_campaign, read_scan
 from hartrao_jax._import import (
@@ -24,8 +24,6 @@ from hartrao_jax._import import (
     telescope_preset,
     to_scan_data,
 )
-
-REAL = Path(__file__).resolve().parents[2] / "shared" / "real" / "gbt-lassi"
 
 HEADER = """{cols}
 {rows}
@@ -410,10 +408,8 @@ def test_cli(tmp_path):
 
 
 def real(name):
-    p = REAL / name
-    if not p.is_file():
-        pytest.skip(f"{p} not available")
-    return p
+    """$HARTRAO_REAL_DATA/gbt-lassi/<name>: skipped (saying where to get it) when absent."""
+    return real_gbt_file(name)
 
 
 def test_real_scan10_import(tmp_path):

@@ -1,10 +1,10 @@
-"""Real recordings: the Green Bank Telescope scans of ../shared/real, and any reflector pose."""
-
-from pathlib import Path
+"""Real recordings: the Green Bank Telescope scans of $HARTRAO_REAL_DATA (default ../shared/real),
+and any reflector pose."""
 
 import numpy as np
 import pytest
-from helpers import paraboloid_points
+from helpers import needs_real_gbt as needs_real
+from helpers import paraboloid_points, real_gbt_file
 
 from hartrao_jax import gauss_helmert, make_model
 from hartrao_jax._fit import fit_scan
@@ -12,9 +12,6 @@ from hartrao_jax._geometry import cartesian_to_raw, rot_x, rot_y, rot_z
 from hartrao_jax._import import import_file
 from hartrao_jax._init import patch_initial_values, quadric_initial_values
 from hartrao_jax._local import find_local_deformations
-
-REAL = Path(__file__).resolve().parents[2] / "shared" / "real" / "gbt-lassi"
-needs_real = pytest.mark.skipif(not REAL.exists(), reason="../shared/real not present")
 
 
 def _offset_section(n, f=60.0, seed=0):
@@ -63,7 +60,7 @@ def test_small_region_of_known_focal_length_gets_initial_values_from_its_curvatu
 @pytest.fixture(scope="module")
 def scan10(tmp_path_factory):
     out = tmp_path_factory.mktemp("gbt") / "scan10"
-    return import_file(REAL / "scan10_random_sample.csv", "xyz", out, telescope="gbt")
+    return import_file(real_gbt_file("scan10_random_sample.csv"), "xyz", out, telescope="gbt")
 
 
 @needs_real
@@ -83,7 +80,8 @@ def test_real_gbt_scan_focal_length_and_stability(scan10):
 
 @needs_real
 def test_real_gbt_bump_region_is_located(tmp_path):
-    camp = import_file(REAL / "bump1_high_sample.csv", "xyz", tmp_path / "bump", telescope="gbt")
+    camp = import_file(real_gbt_file("bump1_high_sample.csv"), "xyz", tmp_path / "bump",
+                       telescope="gbt")
     meta = camp.scans[0]
     found = []
     for fixed in ({"f": 60.0}, None):

@@ -644,8 +644,9 @@ def _parquet_columns(path: pathlib.Path, rows_per_chunk: int | None) -> Iterator
             else:
                 batches = pf.iter_batches(batch_size=rows_per_chunk, columns=have)
             for b in batches:
-                cols = {c: np.asarray(b.column(c).to_numpy(), dtype=np.float64 if c != "intensity"
-                                      else np.float32) for c in have}
+                with np.errstate(over="ignore"):  # a float64 intensity beyond float32: inf, dropped
+                    cols = {c: np.asarray(b.column(c).to_numpy(), dtype=np.float64
+                                          if c != "intensity" else np.float32) for c in have}
                 if "intensity" not in cols:
                     cols["intensity"] = np.full(b.num_rows, DEFAULT_INTENSITY, np.float32)
                 yield cols
@@ -680,6 +681,8 @@ def _iter_chunks(path: pathlib.Path, cycle: int, rows_per_chunk: int | None,
         for k, v in chunk.dropped.items():
             dropped[k] = dropped.get(k, 0) + v
         yield chunk
+    if kept == 0:  # the error says it all (no warnings before it)
+        _no_usable_rows(path, row0, dropped, stats, max_range_m)
     if dropped.get("nonfinite"):
         log.warning("%s: dropped %d rows with NaN/inf values", path, dropped["nonfinite"])
     if dropped.get("range_nonpositive"):
@@ -687,8 +690,6 @@ def _iter_chunks(path: pathlib.Path, cycle: int, rows_per_chunk: int | None,
     if dropped.get("range_above_max"):
         log.warning("%s: dropped %d rows with a range above the instrument maximum %g m", path,
                     dropped["range_above_max"], max_range_m)
-    if kept == 0:
-        _no_usable_rows(path, row0, dropped, stats, max_range_m)
 
 
 def _no_usable_rows(path, n_rows: int, dropped: dict, stats: dict, max_range_m: float):

@@ -220,6 +220,9 @@ def _check_campaign(ctx, kwargs: Mapping[str, Any]) -> None:
     for m in metas:
         if m.file.lower().endswith(".parquet"):
             n = _parquet_rows(camp.root / m.file)
+            if n == 0:
+                raise CampaignError(camp.root / m.file, "rows", f"scan {m.id!r}: the scan table "
+                                    "has no rows, expected at least one observation")
             if n is not None and n < need:
                 small.append((m, n))
     # a scan the user named, or any scan of a joint diagnosis, or a campaign without one

@@ -63,9 +63,10 @@ from scipy import stats
 from ._campaign import Campaign, ScanData, ScanMeta, load_campaign
 from ._geometry import face_of, panel_geometry, panel_ids, paraboloid_normal_scale
 from ._ghm import gauss_helmert, normal_equations, robust_gauss_helmert
-from ._model import (DRIFT, OSC_FREQUENCY, OSCILLATION, SHIFT, ZERNIKE_PREFIX, make_model,
-                     parse_model)
+from ._model import (BUMP, DRIFT, OSC_FREQUENCY, OSCILLATION, SHIFT, ZERNIKE_PREFIX, bump_names,
+                     make_model, parse_model)
 from ._physics import EFFECTS, INSTRUMENT, inseparable_pairs
+from ._recording import capabilities, skipped_searches, two_face_parameters
 
 log = logging.getLogger("hartrao_jax")
 
@@ -79,6 +80,7 @@ MOTION: dict[str, tuple[str, ...]] = {
 ZERNIKE_TESTED: tuple[int, ...] = (5, 6, 7, 8, 9, 10, 11)  # Noll; defocus (4) is the focal length
 PROBE = ("shift_x", "shift_y", "shift_z", "osc_cx", "osc_cy")  # translation (3), rotation x, y
 COVARIATES = ("theta", "range", "incidence_angle", "intensity", "rho", "psi", "time")
+GRID_CELL_M = 2.0  # cell of the stated regular grid of telescopes without a panel layout
 
 
 @dataclass(frozen=True)
@@ -203,6 +205,11 @@ class _Spec:
     accepted: list[str] = field(default_factory=list)
     skip: set[str] = field(default_factory=set)  # found confounded: not tested again
     modelled: set[str] = field(default_factory=set)  # covariates modelled by a map
+    times: bool = True  # recorded scan times (else no motion search)
+    no_covariates: set[str] = field(default_factory=set)  # covariates the recording lacks
+    # modelled local deformations: {"names": bump_* names, "values": {name: value},
+    # "scans": ids of the scans where they are free (the others hold them fixed)}
+    bumps: list[dict] = field(default_factory=list)
 
     def names(self) -> list[str]:
         out = list(self.start) + list(self.shared)
@@ -215,11 +222,15 @@ class _Spec:
         for a in self.accepted:
             if a.startswith("unexplained") and "unexplained" not in out:
                 out.append("unexplained")
+        for b in self.bumps:
+            out += list(b["names"])
         return out
 
 
 def _fixed(sc: _Scan, spec: _Spec) -> dict[str, float]:
     fixed = dict(spec.shared)
+    for b in spec.bumps:
+        fixed.update(b["values"])
     if spec.zern_C is not None:
         for k, j in enumerate(ZERNIKE_TESTED):
             fixed[f"{ZERNIKE_PREFIX}{j}"] = float(spec.zern_C[k] @ sc.g)
@@ -230,6 +241,9 @@ def _scan_model(sc: _Scan, spec: _Spec, aperture: float, extra: Sequence[str] = 
                 window_s=None, period_s=None):
     mot = spec.motion.get(sc.id, {})
     names = list(spec.start) + [n for n in mot.get("names", ()) if n not in spec.start]
+    for b in spec.bumps:
+        if sc.id in b["scans"]:
+            names += list(b["names"])
     names += [n for n in extra if n not in names]
     window = mot.get("window_s") or window_s or (0.0, 0.0)
     period = mot.get("period_s") or period_s or 1.0
@@ -269,14 +283,25 @@ class _Context:
         self.aperture = tel.diameter_m / 2
         s = campaign.scanner
         self.sigma = np.array([s.sigma_range_m, s.sigma_angle_rad, s.sigma_angle_rad])
-        if tel.ring_edges_m and tel.panels_per_ring:
+        self.has_layout = bool(tel.ring_edges_m and tel.panels_per_ring)
+        if self.has_layout:
             self.edges, self.counts = list(tel.ring_edges_m), list(tel.panels_per_ring)
-        else:  # no panel layout: rings of ~1.6 m, cells of ~1 m, as nuisance groups
-            r0 = tel.cone_radius_m or 0.0
-            nr = max(1, round((self.aperture - r0) / 1.6))
-            self.edges = list(np.linspace(r0, self.aperture, nr + 1))
-            self.counts = [max(6, round(2 * np.pi * 0.5 * (a + b) / 1.0))
+            self.layout_note = f"panels of the {tel.name} layout"
+        else:
+            # no panel layout (e.g. the GBT): a stated regular grid of cells of about
+            # GRID_CELL_M in the aperture plane (rings of that width, arcs of that length),
+            # over the radii the reflector spans (an offset reflector: offset +- D/2)
+            off = float(getattr(tel, "offset_m", 0.0) or 0.0)
+            r0 = max(float(tel.cone_radius_m or 0.0), off - self.aperture)
+            r1 = off + self.aperture
+            nr = max(1, round((r1 - r0) / GRID_CELL_M))
+            self.edges = list(np.linspace(r0, r1, nr + 1))
+            self.counts = [max(6, round(2 * np.pi * 0.5 * (a + b) / GRID_CELL_M))
                            for a, b in zip(self.edges[:-1], self.edges[1:])]
+            self.layout_note = (f"{tel.name} has no panel layout: grid cells of about "
+                                f"{GRID_CELL_M:g} m x {GRID_CELL_M:g} m in the aperture plane "
+                                f"(rings of {GRID_CELL_M:g} m, arcs of {GRID_CELL_M:g} m), "
+                                "ids are grid cells, not panels")
         self.geo = panel_geometry(self.edges, self.counts)
         self.n_panels = int(sum(self.counts))
 
@@ -734,6 +759,27 @@ def _covariate_tests(ctx: _Context, scans: Sequence[_Scan], sigma0: float, names
     return out
 
 
+def _covariate_cv(S: Sequence[_Scan], spec: _Spec, only=None) -> dict:
+    """Cross-validated comparison of the covariates (:func:`._covariates.compare`) on the
+    range-equivalent mismatch of the points in use, all scans together."""
+    from ._covariates import compare
+
+    names = [n for n in ("range", "incidence_angle", "intensity", "time", "theta", "phi", "rho",
+                         "psi") if n not in spec.no_covariates and (only is None or n in only
+                                                                     or n == "phi")]
+    vals = {n: [] for n in names}
+    res = []
+    for sc in S:
+        u = sc.used & (sc.m > 0)
+        cv = _covariate_values(sc)
+        for n in names:
+            vals[n].append(np.asarray(cv[n], float)[u])
+        res.append(sc.mismatch_range_m[u])
+    if not res:
+        return {}
+    return compare({n: np.concatenate(v) for n, v in vals.items()}, np.concatenate(res))
+
+
 def _panel_cells(ctx: _Context, sc: _Scan) -> np.ndarray:
     """Sub-cell of each point within its panel (``panel * nr * na + cell``; -1: none)."""
     nr, na = ctx.config.panel_cells
@@ -1098,7 +1144,7 @@ def _local_candidates(ctx: _Context, scans: Sequence[_Scan], spec: _Spec) -> dic
         names = list(inst)
         if grav:
             names += [f"{ZERNIKE_PREFIX}{j}" for j in ZERNIKE_TESTED]
-        if sc.meta.cycle != 0 or True:
+        if spec.times:  # motion lives in time: no recorded times, no motion candidates
             if "window_s" not in mot and sc.window_s and _want(wanted, "impulsive_shift"):
                 names += list(SHIFT)
             if "period_s" not in mot and sc.period_s and _want(wanted, "oscillation"):
@@ -1214,6 +1260,12 @@ class Diagnosis:
     scans_final: dict[str, dict] = field(default_factory=dict)
     history: list[dict] = field(default_factory=list)
     detectability: list[dict] = field(default_factory=list)
+    skipped: list[dict] = field(default_factory=list)  # searches the recording cannot support
+    not_identifiable: list[dict] = field(default_factory=list)
+    local_search: list[dict] = field(default_factory=list)  # local-deformation searches
+    layout: str = ""  # panels of the telescope's layout, or the stated grid
+    covariates: dict = field(default_factory=dict)  # cross-validated covariate comparison
+    extents: dict = field(default_factory=dict)  # scan id -> map extent (m), for figures
 
     def to_json(self) -> dict:
         return {
@@ -1233,6 +1285,12 @@ class Diagnosis:
             "detectability": self.detectability,
             "timing_s": self.timing_s,
             "notes": self.notes,
+            "skipped": self.skipped,
+            "not_identifiable": self.not_identifiable,
+            "local_deformation_search": [
+                {k: v for k, v in d.items() if not k.startswith("_")} for d in self.local_search],
+            "layout": self.layout,
+            "covariate_comparison": self.covariates,
         }
 
     def effects(self) -> list[str]:
@@ -1384,12 +1442,39 @@ def _where_of_signature(ctx: _Context, sc: _Scan, sig: np.ndarray, motion: bool)
     return out
 
 
-def _dish_map(sc: _Scan, values: np.ndarray, n: int = 96, R: float = 13.0):  # R: > rim
-    """Binned mean of ``values`` on an ``n x n`` grid of telescope X, Y (for figures)."""
-    u = sc.used
+def _extent(sc: _Scan) -> list[float]:
+    """Square ``[x0, x1, y0, y1]`` (m, telescope frame) around the scan's points in the window."""
+    w = sc.window & np.all(np.isfinite(sc.X_tel[:, :2]), 1)
+    if not w.any():
+        return [-1.0, 1.0, -1.0, 1.0]
+    lo, hi = sc.X_tel[w, :2].min(0), sc.X_tel[w, :2].max(0)
+    c, h = 0.5 * (lo + hi), 0.5 * float(np.max(hi - lo)) * 1.02 + 1e-3
+    return [float(c[0] - h), float(c[0] + h), float(c[1] - h), float(c[1] + h)]
+
+
+def _cells_not_panels(ctx: _Context, f: Finding) -> None:
+    """Grid cells instead of panel ids for a telescope without a panel layout: centres (m)."""
+    g = ctx.geo
+    if "panels" in f.where:
+        ids = f.where.pop("panels")
+        f.where["cells"] = [{"cell": int(k), "x_m": float(g["rho_c"][k] * np.cos(g["psi_c"][k])),
+                             "y_m": float(g["rho_c"][k] * np.sin(g["psi_c"][k]))} for k in ids]
+        f.where["grid"] = ctx.layout_note
+    if f.effect == "panel_offset":
+        f.explanation = f.explanation.replace(" panels, offsets", " grid cells (no panel layout), "
+                                              "offsets")
+    for k in [k for k in f.estimate if k.startswith("panel_") and k.endswith("_offset_m")]:
+        f.estimate[k.replace("panel_", "cell_", 1)] = f.estimate.pop(k)
+
+
+def _dish_map(sc: _Scan, values: np.ndarray, n: int = 96):
+    """Binned mean of ``values`` on an ``n x n`` grid of telescope X, Y over the scan's extent
+    (for figures)."""
+    u = sc.used & np.all(np.isfinite(sc.X_tel[:, :2]), 1)
+    x0, x1, y0, y1 = _extent(sc)
     X, Y = sc.X_tel[u, 0], sc.X_tel[u, 1]
-    i = np.clip(((X + R) / (2 * R) * n).astype(int), 0, n - 1)
-    j = np.clip(((Y + R) / (2 * R) * n).astype(int), 0, n - 1)
+    i = np.clip(((X - x0) / (x1 - x0) * n).astype(int), 0, n - 1)
+    j = np.clip(((Y - y0) / (y1 - y0) * n).astype(int), 0, n - 1)
     k = i * n + j
     s = np.bincount(k, values[u], minlength=n * n)
     c = np.bincount(k, minlength=n * n)
@@ -1493,22 +1578,62 @@ def diagnose(
     ctx = _Context(camp, cfg)
     start_names = parse_model(start)
     timing: dict[str, float] = {}
+    wanted = set(cfg.effects) if cfg.effects else None
+    notes: list[str] = []
+    not_identifiable: list[dict] = []
+    metas = [camp.scan(s) for s in scans] if scans else list(camp.scans)
+    if any(m.cycle not in (1, 2) for m in metas):
+        # one face: the two-face-sensitive calibration parameters are not identifiable
+        tf = two_face_parameters()
+        drop = [n for n in start_names if n in tf]
+        if drop:
+            start_names = tuple(n for n in start_names if n not in drop)
+            notes.append(f"one-face recording: {', '.join(drop)} dropped from the start model "
+                         "(two-face-sensitive calibration parameters are not identifiable from "
+                         "one face)")
+        not_identifiable = [
+            {"parameter": k, "identifiable": False, "value": None, "sigma": None,
+             "note": "two-face-sensitive calibration parameter: a one-face recording cannot "
+                     "separate it from the pose and the reflector (it needs the second face)"}
+            for k in tf if wanted is None or k in wanted]
     t0 = time.time()
     S = _start_scans(ctx, start_names, keep, scans)
     spec = _Spec(start=start_names)
+    cap = capabilities([sc.meta for sc in S], [sc.data for sc in S])
+    spec.times = cap.times
+    spec.no_covariates = ({"time"} if not cap.times else set()) | (
+        {"intensity"} if not cap.intensity else set())
+    if not cap.two_faces:
+        spec.skip |= set(two_face_parameters())
+    skipped = skipped_searches(cap, wanted)
+    if not ctx.has_layout:
+        skipped.append({"search": "within-panel structure", "why": ctx.layout_note})
+    if not ctx.has_layout:
+        notes.append(ctx.layout_note)
     for sc in S:
         _evaluate(ctx, sc, spec)
     timing["start_fit"] = time.time() - t0
     sigma0_start, rms_start = _global_sigma0(S), _rms(S)
     comparison = [_compare(sc) for sc in S]
-    wanted = set(cfg.effects) if cfg.effects else None
     confounded: dict[str, dict] = {c["effect"]: c for c in _static_confounded(start_names, wanted)}
     findings: list[Finding] = []
     history: list[dict] = [{"step": 0, "label": "start", "maps": _snapshot(S)}]
-    notes: list[str] = []
     last_rows: list[dict] = []
-    if any(sc.meta.cycle == 0 for sc in S):
-        notes.append("one-face scans: two-face instrument parameters are not separable there")
+    local_search: list[dict] = []
+    if _want(wanted, "local_deformation"):
+        from ._diagnose_local import local_step
+
+        t_l = time.time()
+        for f in local_step(ctx, S, spec, local_search, notes):
+            findings.append(f)
+            spec.accepted.append(f.effect)
+            history.append({"step": len(history), "label": f.effect, "maps": _snapshot(S),
+                            "scans": f.scans})
+        timing["local_search"] = time.time() - t_l
+    # which covariate carries the structure left after the start model (and any local
+    # deformation), compared on held-out points: recorded whatever the loop then accepts
+    cov_cmp = ({k: v for k, v in _covariate_cv(S, spec).items() if k != "all"}
+               if _want(wanted, "unexplained") else {})
     t_loop = time.time()
     step_done = False
     joint, tests, options = None, [], []
@@ -1516,8 +1641,9 @@ def diagnose(
     for step in range(1, cfg.max_steps + 1):
         ts = time.time()
         step_done = True
-        for sc in S:
-            _locate_time(sc, cfg)
+        if spec.times:
+            for sc in S:
+                _locate_time(sc, cfg)
         local = _local_candidates(ctx, S, spec)
         joint = _Joint(ctx, S, spec, local)
         cands = _candidates(joint, S, local)
@@ -1586,7 +1712,8 @@ def diagnose(
             findings.append(th[1])
         elif th is not None:
             confounded.setdefault("thermal", th[1])
-    detect = _detectability(ctx, joint, tests, len(options), S) if step_done else []
+    detect = (_detectability(ctx, joint, tests, len(options), S if spec.times else ())
+              if step_done else [])
     scans_final = {}
     for sc in S:
         cv = np.sqrt(np.maximum(np.diag(sc.cov), 0.0)) if sc.cov.size else np.zeros(0)
@@ -1607,8 +1734,14 @@ def diagnose(
         sigma0_start=sigma0_start, sigma0_final=_global_sigma0(S), rms_start_m=rms_start,
         rms_final_m=_rms(S), findings=findings, confounded=list(confounded.values()),
         comparison=comparison, candidates=last_rows, timing_s=timing, notes=notes,
-        scans_final=scans_final, history=history, detectability=detect,
+        scans_final=scans_final, history=history, detectability=detect, skipped=skipped,
+        not_identifiable=not_identifiable, local_search=local_search, layout=ctx.layout_note,
+        extents={sc.id: _extent(sc) for sc in S},
+        covariates=cov_cmp,
     )
+    if not ctx.has_layout:
+        for f in findings:
+            _cells_not_panels(ctx, f)
     if report_dir is not None:
         write_report(diag, report_dir)
     return diag
@@ -1676,26 +1809,37 @@ def _options(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint,
         eff = math.sqrt(max(T - dof, 0.0) * s0**2 / joint.sum_q)
         add(_Option("panel", "panel_offset", "reflector", _log_sf(T, dof) + lm, T, dof, eff,
                     None))
-    if do_unexp:
+    if do_unexp and ctx.has_layout:  # within-panel structure needs real panels
         Tg, dofg, est, cells = _dish_test(ctx, S, s0)
         G = ctx.n_panels
         flagged = [g for g in range(G) if dofg[g] > 0
                    and _log_sf(Tg[g], dofg[g]) + math.log(G) + lm < la]
-        if flagged:
-            T = float(np.sum(Tg[flagged]))
-            dof = int(np.sum(dofg[flagged]))
-            qf = sum(float(np.sum((1.0 / sc.m)[sc.used & np.isin(sc.panel, flagged)])) for sc in S)
-            eff = math.sqrt(max(T - dof, 0.0) * s0**2 / max(qf, 1e-300))
-            add(_Option("dish", "unexplained", "generic", _log_sf(T, dof) + lm, T, dof, eff,
-                        {"flagged": flagged, "est": est, "cells": cells, "Tg": Tg}))
-        ct = _covariate_tests(ctx, S, s0, skip=spec.modelled)
+    else:
+        flagged = []
+    if flagged:
+        T = float(np.sum(Tg[flagged]))
+        dof = int(np.sum(dofg[flagged]))
+        qf = sum(float(np.sum((1.0 / sc.m)[sc.used & np.isin(sc.panel, flagged)])) for sc in S)
+        eff = math.sqrt(max(T - dof, 0.0) * s0**2 / max(qf, 1e-300))
+        add(_Option("dish", "unexplained", "generic", _log_sf(T, dof) + lm, T, dof, eff,
+                    {"flagged": flagged, "est": est, "cells": cells, "Tg": Tg}))
+    if do_unexp:
+        ct = _covariate_tests(ctx, S, s0, skip=spec.modelled | spec.no_covariates)
+        cv = None
         if ct:
             name = min(ct, key=lambda k: _log_sf(ct[k]["T"], ct[k]["dof"]))
+            if _log_sf(ct[name]["T"], ct[name]["dof"]) + lm + math.log(len(COVARIATES)) < la:
+                # correlated covariates share the structure: the one that carries it is the
+                # one that predicts held-out points best (bins or a period)
+                cv = _covariate_cv(S, spec, only=set(ct))
+                b = cv.get("best")
+                if b and b["cv_explained"] > 0 and b["covariate"] in ct:
+                    name = b["covariate"]
             r = ct[name]
             eff = math.sqrt(max(r["T"] - r["dof"], 0.0) * s0**2 / joint.sum_q)
             add(_Option("covariate", "unexplained", "generic",
                         _log_sf(r["T"], r["dof"]) + lm + math.log(len(COVARIATES)), r["T"],
-                        r["dof"], eff, {"covariate": name, **r,
+                        r["dof"], eff, {"covariate": name, **r, "cv": cv,
                                         "all": {k: (v["T"], v["dof"]) for k, v in ct.items()}}))
     return opts
 
@@ -2358,8 +2502,21 @@ def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Op
                                           "sigma": float(np.median(se[se > 0]))}}
         extra["covariate_statistics"] = {k: {"statistic": _num(v[0]), "dof": v[1]}
                                          for k, v in pl["all"].items()}
+        cv = pl.get("cv") or {}
+        physics = ""
+        if cv.get("ranking"):
+            extra["covariate_comparison"] = {"method": cv["method"],
+                                             "ranking": cv["ranking"][:5]}
+            b = cv["ranking"][0]
+            if b["covariate"] == name and b["model"] == "periodic" and "note" not in cv:
+                where["period"] = b["period"]
+                where["period_unit"] = "m" if name in ("range", "rho") else (
+                    "s" if name == "time" else "rad" if name != "intensity" else "1")
+                extra["periodic_amplitude_m"] = b.get("amplitude_m")
+            if b["covariate"] == name and cv.get("physics"):
+                physics = f" ({cv['physics']})"
         expl = (f"residual structure in {', '.join(scans) or 'the scans'} following "
-                f"{name.replace('_', ' ')} that no catalog effect explains; {action}")
+                f"{name.replace('_', ' ')} that no catalog effect explains{physics}; {action}")
         fam = "generic"
     return Finding(effect=o.effect, family=fam, scans=scans, where=where, estimate=estimate,
                    statistic=o.T, dof=o.dof, p_value=0.0, sigma0_before=0.0, sigma0_after=0.0,
@@ -2411,8 +2568,6 @@ def write_report(diag: Diagnosis, out_dir: str | Path) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     hist = diag.history
     images: list[tuple[str, str]] = []
-    R = 13.0
-
     def maps_figure(before: dict, after: dict, ids: Sequence[str], title: str, name: str):
         vals = np.concatenate([np.abs(before[i][np.isfinite(before[i])]) for i in ids] or [[1e-4]])
         vmax = 1e3 * float(np.percentile(vals, 98)) if vals.size else 0.5
@@ -2420,7 +2575,8 @@ def write_report(diag: Diagnosis, out_dir: str | Path) -> Path:
         for r, i in enumerate(ids):
             for c, (lab, mp) in enumerate((("before", before), ("after", after))):
                 ax = axes[r, c]
-                im = ax.imshow(1e3 * mp[i].T, origin="lower", extent=[-R, R, -R, R],
+                im = ax.imshow(1e3 * mp[i].T, origin="lower",
+                               extent=diag.extents.get(i, [-13.0, 13.0, -13.0, 13.0]),
                                cmap="RdBu_r", vmin=-vmax, vmax=vmax)
                 ax.set_title(f"{i}: {lab}", fontsize=9)
                 ax.set_xlabel("X [m]")
@@ -2486,7 +2642,12 @@ def write_report(diag: Diagnosis, out_dir: str | Path) -> Path:
         f"<td>{_html(f.explanation)}</td></tr>" for i, f in enumerate(diag.findings))
     conf = "".join(f"<tr><td>{c['effect']}</td><td>{', '.join(c['with'])}</td>"
                    f"<td>{c['correlation']:.6f}</td></tr>" for c in diag.confounded)
+    from ._report import diagnosis_local_figures  # figures live in the report module
+
+    images += diagnosis_local_figures(diag, out)
     imgs = "".join(f"<h3>{_html(t)}</h3><img src='{n}' style='max-width:100%'>" for t, n in images)
+    skip = "".join(f"<li>{_html(k['search'])}: {_html(k['why'])}</li>" for k in diag.skipped)
+    loc = "".join(f"<li>{_html(d.get('statement', ''))}</li>" for d in diag.local_search)
     html = f"""<!doctype html><html><head><meta charset="utf-8"><title>diagnosis</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:auto}} td,th{{border:1px solid #ccc;
 padding:3px 6px;font-size:13px;vertical-align:top}} table{{border-collapse:collapse}}</style></head>
@@ -2501,6 +2662,8 @@ final model {', '.join(diag.final_model)}.</p>
 {rows}</table>
 <h2>Confounded with the model (not tested)</h2>
 <table><tr><th>effect</th><th>with</th><th>correlation</th></tr>{conf}</table>
+<h2>Local deformation search</h2><ul>{loc}</ul>
+<h2>Searches skipped (the recording lacks what they need)</h2><ul>{skip}</ul>
 <h2>Figures</h2>{imgs}
 <p>Notes: {_html('; '.join(diag.notes))}</p></body></html>"""
     p = out / "index.html"

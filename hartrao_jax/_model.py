@@ -29,6 +29,7 @@ from ._physics import (
     drift,
     impulsive_shift,
     inseparable_pairs,
+    local_deformation,
     paraboloid_condition,
     zernike_deviation,
 )
@@ -38,6 +39,23 @@ OSCILLATION = ("osc_sx", "osc_cx", "osc_sy", "osc_cy")  # rad: sin/cos amplitude
 OSC_FREQUENCY = "osc_df_hz"  # Hz: correction to the modelled oscillation frequency 1/period
 DRIFT = ("drift_tx", "drift_ty", "drift_tz", "drift_rx", "drift_ry", "drift_rz")  # m/s, rad/s
 ZERNIKE_PREFIX = "zern_"  # zern_<noll j>: normal deviation coefficient (m)
+# local_deformation (physics.md): centre x, y (telescope frame, aperture plane), amplitude,
+# width (m); a second bump is ``bump2_x_m`` ... (prefix ``bump<k>_``)
+BUMP = ("bump_x_m", "bump_y_m", "bump_amp_m", "bump_width_m")
+
+
+def bump_names(k: int = 1) -> tuple[str, ...]:
+    """Parameter names of the ``k``-th modelled local deformation (1: ``bump_x_m`` ...)."""
+    return BUMP if k == 1 else tuple(n.replace("bump_", f"bump{k}_", 1) for n in BUMP)
+
+
+def _bump_key(name: str):
+    """``(k, field)`` of a bump parameter name, else None."""
+    head, _, field = name.partition("_")
+    k = head[4:]
+    if not head.startswith("bump") or f"bump_{field}" not in BUMP or not (k == "" or k.isdigit()):
+        return None
+    return (int(k) if k else 1), field
 
 EXTRA_UNITS = {
     **{k: "m" for k in SHIFT}, **{k: "rad" for k in OSCILLATION}, OSC_FREQUENCY: "Hz",
@@ -57,6 +75,7 @@ def known_parameter(name: str) -> bool:
         name in OBJECT_PARAMETERS or name in INSTRUMENT or name in SHIFT or name in OSCILLATION
         or name == OSC_FREQUENCY
         or name in DRIFT or (name.startswith(ZERNIKE_PREFIX) and name[len(ZERNIKE_PREFIX):].isdigit())
+        or _bump_key(name) is not None
     )
 
 
@@ -149,6 +168,16 @@ class ParaboloidModel(eqx.Module):
             u = jnp.hypot(Xt[0], Xt[1]) / self.aperture_radius_m
             psi = jnp.arctan2(Xt[1], Xt[0])
             dev = dev + zernike_deviation(u, psi, jnp.stack([v for _, v in zs]), tuple(j for j, _ in zs))
+        bumps: dict[int, dict[str, Array]] = {}
+        for n, v in p.items():
+            key = _bump_key(n)
+            if key is not None:
+                bumps.setdefault(key[0], {})[key[1]] = v
+        if bumps:  # local_deformation: centre in the north-aligned aperture plane
+            Xt = rot_z(self.kappa_rad) @ X
+            for b in bumps.values():
+                dev = dev + local_deformation(Xt[0], Xt[1], b.get("x_m", 0.0), b.get("y_m", 0.0),
+                                              b.get("amp_m", 0.0), b.get("width_m", 1.0))
         return dev
 
     def __call__(self, l: Float[Array, "3"], x: Float[Array, " u"], c: Float[Array, " k"]) -> Array:
@@ -211,4 +240,4 @@ def parameter_unit(name: str) -> str:
         return PARAMETER_UNITS[name]
     if name in EXTRA_UNITS:
         return EXTRA_UNITS[name]
-    return "m" if name.startswith(ZERNIKE_PREFIX) else ""
+    return "m" if name.startswith(ZERNIKE_PREFIX) or _bump_key(name) is not None else ""

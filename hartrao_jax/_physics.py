@@ -425,6 +425,25 @@ def thermal_focal_length(f0_m: ArrayLike, df_dT_m_per_K: ArrayLike, temperature_
     return f0_m + df_dT_m_per_K * (temperature_c - reference_c)
 
 
+LOCAL_DEFORMATION_PARAMETERS: tuple[str, ...] = ("x_m", "y_m", "amplitude_m", "width_m")
+
+
+def local_deformation(x: ArrayLike, y: ArrayLike, x0_m: ArrayLike, y0_m: ArrayLike,
+                      amplitude_m: ArrayLike, width_m: ArrayLike) -> Array:
+    """Normal deviation (m, positive towards the focus) of a smooth local bump or dent.
+
+    ``a exp(-d^2 / (2 w^2))`` with ``d`` the distance of the aperture-plane point ``(x, y)``
+    (reflector frame, m) from the centre ``(x0_m, y0_m)``; ``amplitude_m`` is ``a`` (+ towards
+    the focus: a bump; - a dent), ``width_m`` is ``w`` (the Gaussian's standard deviation, m).
+    Actuators pushed, a damaged or loose panel, a load. The simulator builds it into the
+    surface, the fitter models it (``bump_*`` parameters of :mod:`hartrao_jax._model`) and the
+    diagnosis searches for it, all through this function.
+    """
+    dx = jnp.asarray(x) - x0_m
+    dy = jnp.asarray(y) - y0_m
+    return amplitude_m * jnp.exp(-(dx * dx + dy * dy) / (2.0 * width_m * width_m))
+
+
 def surface_height(rho: ArrayLike, f: ArrayLike, deviation_m: ArrayLike = 0.0) -> Array:
     """Height Z (m) of the deformed reflector at radius rho: ``rho^2/4f + dev * sqrt(1+(rho/2f)^2)``.
 
@@ -485,6 +504,11 @@ EFFECTS: dict[str, Effect] = {
         "gravity_deformation", "reflector", "gravity deformation",
         "elastic sag linear in the gravity vector: focal length and low-order surface modes "
         "change with the pointing", "across positions, with g"),
+    "local_deformation": Effect(
+        "local_deformation", "reflector", "local deformation",
+        "a smooth local bump or dent of the surface (actuators pushed, a damaged or loose panel, "
+        "a load): a Gaussian normal deviation a exp(-d^2 / 2 w^2) around a centre in the "
+        "aperture plane", "common to both cycles, compact on the dish"),
     "thermal": Effect(
         "thermal", "reflector", "thermal expansion",
         "focal length changing linearly with temperature", "across scans, with temperature"),

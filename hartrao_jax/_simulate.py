@@ -57,6 +57,7 @@ from ._physics import (
     INSTRUMENT,
     gravity_focal_length,
     gravity_zernike_coefficients,
+    local_deformation,
     panel_deviation,
     thermal_focal_length,
     zernike_deviation,
@@ -87,6 +88,7 @@ EFFECT_DEFAULTS: dict[str, dict[str, Any]] = {
                             "zernike_modes": DEFAULT_ZERNIKE_MODES, "zernike_per_g_m": _ZPG},
     "thermal": {"df_dT_m_per_K": 1.3e-4, "reference_c": 15.0},
     "unexplained": {"amplitude_m": 5e-4, "rho_m": 6.0, "psi_deg": 100.0, "width_m": 0.6},
+    "local_deformation": {"amplitude_m": 5e-4, "x_m": 4.0, "y_m": 3.0, "width_m": 0.6},
 }
 """Non-instrument effects: their keys and defaults; the first key is the main amplitude.
 
@@ -102,6 +104,8 @@ random part defaults to 0). ``gravity_deformation``: ``f = f0 + scale df_dg_m . 
 that the zenith gives the nominal focal length) and Zernike coefficients
 ``scale zernike_per_g_m @ g`` (rows: ``zernike_modes``). ``thermal``: ``f += df_dT (T - ref)``.
 ``unexplained``: a Gaussian bump of ``amplitude_m`` at (``rho_m``, ``psi_deg``), no catalog entry.
+``local_deformation``: the catalog's bump (:func:`._physics.local_deformation`) of ``amplitude_m``
+and ``width_m`` centred at (``x_m``, ``y_m``) of the north-aligned aperture plane.
 """
 
 
@@ -300,6 +304,7 @@ class Reflector:
     tilt_radial_rad: np.ndarray
     tilt_tangential_rad: np.ndarray
     bump: tuple[float, float, float, float]  # amplitude m, rho m, psi rad, width m
+    local: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)  # amplitude, x, y, width m
 
     def focal_length(self, g: np.ndarray, temperature_c: float | None) -> tuple[float, float]:
         """``(f, f_gravity)``: gravity (zenith gives the nominal), then temperature."""
@@ -342,10 +347,13 @@ def make_reflector(telescope, effects: Mapping[str, Any], seed: int = 0) -> Refl
     u = effects.get("unexplained")
     bump = ((u["amplitude_m"], u["rho_m"], math.radians(u["psi_deg"]), u["width_m"]) if u
             else (0.0, 0.0, 0.0, 1.0))
+    ld = effects.get("local_deformation")
+    local = ((ld["amplitude_m"], ld["x_m"], ld["y_m"], ld["width_m"]) if ld
+             else (0.0, 0.0, 0.0, 1.0))
     return Reflector(float(telescope.focal_length_m),
                      s * np.asarray(gd["df_dg_m"] if gd else (0.0, 0.0, 0.0), float), modes,
                      s * zpg, th["df_dT_m_per_K"] if th else 0.0, th["reference_c"] if th else 15.0,
-                     offset, tilt_r, tilt_t, bump)
+                     offset, tilt_r, tilt_t, bump, local)
 
 
 # ----------------------------------------------------------------------------------------- pose
@@ -503,12 +511,18 @@ class _Surface(eqx.Module):
                               self.rho_c, self.psi_c)
         if self.modes:
             dev = dev + zernike_deviation(rho / self.aperture, psi, self.zern, self.modes)
-        b = self.bump
-        d2 = (Xt[0] - b[1] * jnp.cos(b[2])) ** 2 + (Xt[1] - b[1] * jnp.sin(b[2])) ** 2
-        dev = dev + b[0] * jnp.exp(-0.5 * d2 / b[3] ** 2)
+        for b in self.bump:  # rows (amplitude, x, y, width): the catalog's local_deformation
+            dev = dev + local_deformation(Xt[0], Xt[1], b[1], b[2], b[0], b[3])
         if self.extra is not None:
             dev = dev + self.extra(Xt)
         return dev, panel
+
+
+def _bumps(refl: Reflector) -> np.ndarray:
+    """Rows ``(amplitude, x, y, width)`` (m) of the reflector's local deformations: the
+    ``unexplained`` bump (given by rho, psi) and the catalog's ``local_deformation``."""
+    a, rho, psi, w = refl.bump
+    return np.array([[a, rho * math.cos(psi), rho * math.sin(psi), w], list(refl.local)], float)
 
 
 def _surface(tel, refl: Reflector, kappa: float, zern: np.ndarray, extra) -> _Surface:
@@ -522,7 +536,7 @@ def _surface(tel, refl: Reflector, kappa: float, zern: np.ndarray, extra) -> _Su
     return _Surface(f64(kappa), f64(edges), f64(np.concatenate([[0], np.cumsum(counts)[:-1]])),
                     f64(counts), f64(refl.offset_m), f64(refl.tilt_radial_rad),
                     f64(refl.tilt_tangential_rad), f64(geo["rho_c"]), f64(geo["psi_c"]),
-                    f64(np.asarray(zern)[keep]), f64(refl.bump), tel.diameter_m / 2,
+                    f64(np.asarray(zern)[keep]), f64(_bumps(refl)), tel.diameter_m / 2,
                     tuple(refl.zernike_modes[i] for i in keep), extra)
 
 

@@ -1,0 +1,301 @@
+"""Search of the residual surface for a local deformation, judged against the reflector's own
+roughness (the ``local_deformation`` search of ``hartrao-jax diagnose``).
+
+Matched filter
+--------------
+For every width ``w`` of :data:`WIDTHS_M` and every centre ``c`` of a grid of the aperture
+plane (cells of ``w / 4``), the residual normal deviations ``r_i`` of the points near ``c`` are
+fitted by ``a g_i + b`` with ``g_i = exp(-|p_i - c|^2 / 2 w^2)`` (the catalog's
+:func:`~hartrao_jax._physics.local_deformation` of unit amplitude) and a local constant ``b``,
+by least squares weighted with a broad Gaussian window of ``3 w``: a smooth misfit of the whole
+surface does not count, only what is compact at the scale ``w``. All sums are Gaussian
+convolutions of the binned counts and residuals, so one width costs a few image filters.
+``z = a / se_white(a)`` is the white-noise score of the amplitude.
+
+The null: a calibrated maximum from the same reflector
+-----------------------------------------------------
+On a real reflector the residuals are not white: panel offsets and tilts, gaps and scanner
+columns make them correlated over 0.1-2 m, and ``z`` is inflated everywhere (a permutation of
+the points, or a shift of the residuals against the positions, destroys that correlation and
+declares everything significant). The question is whether the strongest candidate stands out
+from what *this* surface produces anywhere else. So:
+
+1. each width's ``z`` map is divided by its own robust spread over all valid centres
+   (``1.4826 MAD``): the *roughness factor* ``s_w`` (1 for white noise, 2-5 on real panels)
+   carries the correlated structure at that scale into the statistic ``t = z / s_w``;
+2. the local maxima of ``|t|`` (one per neighbourhood of radius ``w``) over the whole surface
+   are the placements the reflector offers; their heights, pooled over the widths and without
+   the candidate's own neighbourhood, give the null distribution of one placement's peak, whose
+   upper tail is fitted by an exponential above its 80th percentile (the median with fewer
+   than 100 peaks; heavier than the Gaussian tail of a smooth random field: conservative);
+3. the candidate's p-value is that of the *maximum* of the ``N`` peaks:
+   ``p = 1 - (1 - P_tail(t))^N``.
+
+This is the distribution of the matched-filter maximum over the placements of the residual
+field itself: whatever structure the surface has (panel gaps, notches, column stripes, edge
+effects) produces peaks of the same kind in the null, so a candidate is significant only when
+it exceeds the largest peaks the reflector's roughness produces elsewhere. Too few peaks for a
+tail (a small patch) and the search reports the candidate without a significance.
+
+A candidate that does not stand out is reported as the largest local structure, with its
+size, as "not distinguishable from the reflector's panel-scale roughness". An accepted one is
+modelled by the ``bump_*`` parameters of the model and refitted by the diagnosis.
+
+NumPy/SciPy on grids; units metres.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+WIDTHS_M: tuple[float, ...] = (0.3, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
+BACKGROUND = 3.0  # background window (Gaussian sigma) in units of the width
+TAIL_QUANTILE = 0.8  # 0.5 when there are fewer than 100 peaks (a strip, a small patch)
+MIN_PEAKS = 16  # fewer peaks: no calibrated significance
+NOT_DISTINGUISHABLE = "not distinguishable from the reflector's panel-scale roughness"
+
+
+@dataclass
+class WidthMap:
+    """The matched-filter maps of one width (grid of ``cell`` m from ``origin``)."""
+
+    width_m: float
+    cell_m: float
+    origin: np.ndarray
+    amplitude: np.ndarray  # a (m)
+    z: np.ndarray  # white score
+    t: np.ndarray  # z / roughness factor (0 where invalid)
+    valid: np.ndarray
+    roughness: float  # s_w
+    peaks: np.ndarray  # (k, 2) grid indices of the local maxima of |t|
+
+    def centre(self, ij) -> np.ndarray:
+        return self.origin + (np.asarray(ij, float) + 0.5) * self.cell_m
+
+
+@dataclass
+class Candidate:
+    """The strongest local structure and its significance against the reflector's own peaks."""
+
+    x_m: float
+    y_m: float
+    amplitude_m: float
+    width_m: float
+    t: float  # roughness-standardised score
+    z_white: float
+    roughness: float  # s_w at its width
+    p_value: float | None  # of the maximum over the reflector's placements (None: no null)
+    n_peaks: int
+    tail: dict = field(default_factory=dict)
+    significant: bool = False
+    note: str = ""
+
+    def to_json(self) -> dict:
+        return {"x_m": self.x_m, "y_m": self.y_m, "amplitude_m": self.amplitude_m,
+                "width_m": self.width_m, "t": self.t, "z_white": self.z_white,
+                "roughness_factor": self.roughness, "p_value": self.p_value,
+                "n_peaks": self.n_peaks, "tail": self.tail, "significant": self.significant,
+                "note": self.note}
+
+
+@dataclass
+class Search:
+    maps: list[WidthMap]
+    candidate: Candidate | None
+    sigma_m: float
+    skipped_widths: list[float]
+
+
+def _gauss(a: np.ndarray, s_cells: float) -> np.ndarray:
+    """Unnormalised Gaussian convolution ``sum_k a_k exp(-d^2 / 2 s^2)`` (d in cells)."""
+    return ndimage.gaussian_filter(a, s_cells, mode="constant", truncate=4.0) * (
+        2 * math.pi * s_cells * s_cells)
+
+
+def _density(xy: np.ndarray) -> float:
+    """Median point density (1/m^2) over occupied cells of about 30 points."""
+    span = np.ptp(xy, axis=0)
+    area0 = max(float(span[0] * span[1]), 1e-6)
+    h = max(math.sqrt(30.0 * area0 / len(xy)), 1e-3)
+    ij = np.floor((xy - xy.min(0)) / h).astype(np.int64)
+    _, cnt = np.unique(ij, axis=0, return_counts=True)
+    return float(np.median(cnt)) / (h * h)
+
+
+def width_map(xy: np.ndarray, r: np.ndarray, w: float, sigma: float, density: float,
+              min_coverage: float = 0.7, min_points: float = 8.0) -> WidthMap | None:
+    """Matched-filter maps of width ``w`` (see the module docstring)."""
+    h = w / 4.0
+    pad = 4 * BACKGROUND * w
+    lo = xy.min(0) - pad
+    shape = tuple(np.ceil((xy.max(0) + pad - lo) / h).astype(int) + 1)
+    if shape[0] * shape[1] > 2.5e7:
+        return None
+    ij = np.floor((xy - lo) / h).astype(np.int64)
+    C = np.zeros(shape)
+    R = np.zeros(shape)
+    np.add.at(C, (ij[:, 0], ij[:, 1]), 1.0)
+    np.add.at(R, (ij[:, 0], ij[:, 1]), r)
+    sw = w / h
+    sb = BACKGROUND * sw
+    s1 = 1.0 / math.sqrt(1.0 / sb**2 + 1.0 / sw**2)  # W g
+    s2 = 1.0 / math.sqrt(1.0 / sb**2 + 2.0 / sw**2)  # W g^2
+    S11 = _gauss(C, sb)
+    Sg1 = _gauss(C, s1)
+    Sgg = _gauss(C, s2)
+    Sgr = _gauss(R, s1)
+    S1r = _gauss(R, sb)
+    det = S11 * Sgg - Sg1 * Sg1
+    # points under the bump (unweighted sum of g^2) and coverage of the disc of radius w
+    ng = _gauss(C, sw / math.sqrt(2.0))
+    yy, xx = np.mgrid[-4:5, -4:5]
+    disc = (xx * xx + yy * yy <= 16).astype(float)
+    n_disc = ndimage.convolve(C, disc, mode="constant")
+    expect = density * disc.sum() * h * h
+    # the core (radius w / 2) must hold points too: a ring of points around a hole is no bump
+    core = (xx * xx + yy * yy <= 4).astype(float)
+    n_core = ndimage.convolve(C, core, mode="constant")
+    expect_core = density * core.sum() * h * h
+    valid = (det > 1e-9 * np.maximum(S11 * Sgg, 1e-300)) & (ng >= min_points) & (
+        n_disc >= min_coverage * expect) & (S11 > 3.0 * Sgg) & (
+        n_core >= max(1.0, 0.6 * expect_core))
+    detv = np.where(valid, det, 1.0)
+    a = np.where(valid, (S11 * Sgr - Sg1 * S1r) / detv, 0.0)
+    se = sigma * np.sqrt(np.where(valid, np.maximum(S11, 0.0) / detv, 1.0))
+    z = np.where(valid, a / se, 0.0)
+    if valid.sum() < 16:
+        return WidthMap(w, h, lo, a, z, np.zeros_like(z), valid, float("nan"), np.zeros((0, 2), int))
+    zv = z[valid]
+    s_w = float(1.4826 * np.median(np.abs(zv - np.median(zv))))
+    s_w = max(s_w, 1.0)  # never below the white noise
+    t = np.where(valid, z / s_w, 0.0)
+    at = np.abs(t)
+    mx = ndimage.maximum_filter(at, footprint=disc.astype(bool), mode="constant")
+    pk = np.argwhere(valid & (at == mx) & (at > 0))
+    return WidthMap(w, h, lo, a, z, t, valid, s_w, pk)
+
+
+def _distinct_peaks(maps: Sequence[WidthMap], exclude=()) -> np.ndarray:
+    """Local maxima of ``|t|`` over all widths, one per feature: rows ``(|t|, map, i, j)``,
+    strongest first. A feature answers at several widths and at neighbouring centres; a
+    peak is kept only if no stronger kept peak lies within ``1.5 max(w, w')`` (otherwise
+    one structure would weigh several times in the null). Peaks within ``2 w`` of a modelled
+    deformation in ``exclude`` are left out."""
+    rows = []
+    for k, m in enumerate(maps):
+        if len(m.peaks):
+            c = m.centre(m.peaks)
+            far = np.ones(len(c), bool)
+            for ex, ey, ew in exclude:
+                far &= np.hypot(c[:, 0] - ex, c[:, 1] - ey) > 2 * max(ew, m.width_m)
+            t = np.abs(m.t[m.peaks[:, 0], m.peaks[:, 1]])
+            rows.append(np.column_stack([t, np.full(len(t), k), m.peaks, c,
+                                         np.full(len(t), m.width_m)])[far])
+    if not rows:
+        return np.zeros((0, 7))
+    P = np.concatenate(rows)
+    P = P[np.argsort(-P[:, 0])]
+    from scipy.spatial import cKDTree
+
+    wmax = float(P[:, 6].max())
+    tree = cKDTree(P[:, 4:6])
+    kept = np.zeros(len(P), bool)
+    for n in range(len(P)):
+        near = tree.query_ball_point(P[n, 4:6], 1.5 * wmax)
+        if not any(kept[q] and math.hypot(*(P[q, 4:6] - P[n, 4:6])) < 1.5 * max(P[q, 6], P[n, 6])
+                   for q in near):
+            kept[n] = True
+    return P[kept][:, :4]
+
+
+def _tail(heights: np.ndarray) -> dict | None:
+    if len(heights) < MIN_PEAKS:
+        return None
+    u = float(np.quantile(heights, TAIL_QUANTILE if len(heights) >= 100 else 0.5))
+    exc = heights[heights > u] - u
+    if len(exc) < 8:
+        return None
+    return {"threshold": u, "scale": float(np.mean(exc)), "fraction": len(exc) / len(heights),
+            "n": int(len(heights))}
+
+
+def _p_tail(t: float, tail: dict) -> float:
+    if t <= tail["threshold"]:
+        return 1.0
+    return tail["fraction"] * math.exp(-(t - tail["threshold"]) / tail["scale"])
+
+
+def search(xy: np.ndarray, r: np.ndarray, *, widths: Sequence[float] = WIDTHS_M,
+           alpha: float = 1e-3, min_amplitude_m: float = 5e-5,
+           exclude: Sequence[tuple[float, float, float]] = ()) -> Search:
+    """Matched-filter search of residuals ``r`` (m, normal) at aperture positions ``xy`` (m).
+
+    ``exclude``: centres ``(x, y, w)`` of deformations already modelled (their neighbourhood
+    of ``2 w`` is no candidate). Returns the maps, the best candidate with its p-value against
+    the reflector's own peaks and whether it is significant (``p < alpha`` and ``|a| >=
+    min_amplitude_m``).
+    """
+    xy = np.asarray(xy, float)
+    r = np.asarray(r, float)
+    ok = np.all(np.isfinite(xy), 1) & np.isfinite(r)
+    xy, r = xy[ok], r[ok]
+    med = float(np.median(r))
+    sigma = float(1.4826 * np.median(np.abs(r - med))) or float(np.std(r)) or 1e-4
+    # gross outliers (mixed pixels, edges) clipped to 5 sigma: they are not deformations
+    r = np.clip(r - med, -5 * sigma, 5 * sigma)
+    dens = _density(xy)
+    maps, skipped = [], []
+    for w in widths:
+        m = width_map(xy, r, w, sigma, dens)
+        if m is None or not np.isfinite(m.roughness) or len(m.peaks) == 0:
+            skipped.append(float(w))
+            continue
+        maps.append(m)
+    if not maps:
+        return Search(maps, None, sigma, skipped)
+    peaks = _distinct_peaks(maps, exclude)
+    if not len(peaks):
+        return Search(maps, None, sigma, skipped)
+    # candidate: the largest |t| over widths and places; the null: every other distinct peak
+    v, k, i, j = peaks[0][0], int(peaks[0][1]), int(peaks[0][2]), int(peaks[0][3])
+    m = maps[k]
+    c = m.centre((i, j))
+    hts = peaks[1:, 0]
+    tail = _tail(hts)
+    cand = Candidate(float(c[0]), float(c[1]), float(m.amplitude[i, j]), m.width_m,
+                     float(m.t[i, j]), float(m.z[i, j]), m.roughness, None, int(len(hts) + 1))
+    if tail is None:
+        cand.note = (f"{len(hts)} peaks of the reflector's own matched-filter field: too few "
+                     "to calibrate the maximum; no significance")
+    else:
+        p1 = _p_tail(v, tail)
+        cand.p_value = float(-math.expm1(cand.n_peaks * math.log1p(-min(p1, 1 - 1e-16))))
+        cand.tail = tail
+        cand.significant = bool(cand.p_value < alpha and abs(cand.amplitude_m) >= min_amplitude_m)
+    return Search(maps, cand, sigma, skipped)
+
+
+def covered_ids(xy: np.ndarray, ids: np.ndarray, x0: float, y0: float, radius: float,
+                limit: int = 12) -> list[int]:
+    """Ids (panels or cells) of the points within ``radius`` of ``(x0, y0)``, most points first."""
+    near = (np.hypot(xy[:, 0] - x0, xy[:, 1] - y0) < radius) & (ids >= 0)
+    u, c = np.unique(ids[near], return_counts=True)
+    return [int(v) for v in u[np.argsort(-c)][:limit]]
+
+
+def scan_point(xy: np.ndarray, xs: np.ndarray, x0: float, y0: float, w: float) -> list[float] | None:
+    """The surface point above ``(x0, y0)`` in the scan's own Cartesian frame: a plane of the
+    recorded coordinates ``xs`` (n, 3) against the aperture positions ``xy`` of the points
+    within ``w`` (at least 6), evaluated at the centre."""
+    for rad in (w, 2 * w, 4 * w):
+        near = np.hypot(xy[:, 0] - x0, xy[:, 1] - y0) < rad
+        if near.sum() >= 6:
+            A = np.column_stack([np.ones(near.sum()), xy[near, 0] - x0, xy[near, 1] - y0])
+            coef = np.linalg.lstsq(A, xs[near], rcond=None)[0]
+            return [float(v) for v in coef[0]]
+    return None

@@ -71,6 +71,7 @@ from ._campaign import (
     Telescope,
     write_campaign,
 )
+from ._cli_checks import OneLineCommand
 from ._geometry import cartesian_to_raw
 
 log = logging.getLogger(__name__)
@@ -848,9 +849,6 @@ def import_file(path, fmt: str | None = None, out_dir=None, telescope="gbt",
 
 
 # ----------------------------------------------------------------------------- CLI
-
-from ._cli_checks import OneLineCommand  # noqa: E402
-
 
 
 @click.command("import", cls=OneLineCommand)

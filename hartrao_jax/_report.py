@@ -718,14 +718,25 @@ def _fit_section(doc: _Doc, inp: ReportInputs):
                                                    for i, n in notes) + "</ul>")
         prow = []
         for p in fj.get("positions", []):
-            prow.append([p.get("position"), _f(p.get("ha_deg"), "{:.1f}"),
+            fp = p.get("f") or {}
+            prow.append([p.get("position"), _position_kind(p), _f(p.get("ha_deg"), "{:.1f}"),
                          _f(p.get("dec_deg"), "{:.1f}"), _f(p.get("elevation_deg"), "{:.2f}"),
-                         _f(p["f"]["value"], "{:.6f}"), _f(p["f"]["sigma"], "{:.4f}", 1e3),
+                         _f(fp.get("value"), "{:.6f}"), _f(fp.get("sigma"), "{:.4f}", 1e3),
                          ", ".join(p.get("scans", []))])
-        doc.add("<p class='small'>Positions (inverse-variance mean of the scans' focal "
-                "lengths):</p>")
-        doc.add(_table(["position", "HA [deg]", "DEC [deg]", "elevation [deg]", "f [m]",
-                        "\u03c3 f [mm]", "scans"], prow))
+        doc.add("<p class='small'>Positions: both faces adjusted together, or a position with "
+                "one usable cycle (labelled so: no cycle average, the two-face-sensitive errors "
+                "do not cancel).</p>")
+        doc.add(_table(["position", "faces", "HA [deg]", "DEC [deg]", "elevation [deg]",
+                        "f [m]", "\u03c3 f [mm]", "scans"], prow))
+
+
+def _position_kind(p: dict) -> str:
+    """How a fit.json position was formed: two faces, or one usable cycle (never called a
+    cycle average)."""
+    faces = p.get("faces")
+    if faces == 1 or (faces is None and len(p.get("scans", [])) < 2):
+        return "one usable cycle"
+    return str(p.get("kind") or ("two faces" if faces == 2 else "mean of the cycles"))
 
 
 def _focal_section(doc: _Doc, inp: ReportInputs):

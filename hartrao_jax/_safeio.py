@@ -49,6 +49,11 @@ import numpy as np
 
 from ._campaign import CampaignError
 
+#: Fault-injection hook of the crash tests: with ``HARTRAO_JAX_SAFEIO_PAUSE_S=<seconds>`` in
+#: the environment an :class:`OutputDir` pauses after each file it writes and after each step
+#: of its commit, so that a test can kill the process inside every phase. Unset in normal use.
+PAUSE_ENV = "HARTRAO_JAX_SAFEIO_PAUSE_S"
+
 _TMP_RE = re.compile(r"^\.(?P<name>.+)\.tmp-(?P<pid>\d+)-[0-9a-f]{8}$")
 _CHUNK = 1 << 20
 
@@ -157,6 +162,14 @@ def _fsync_dir(path: pathlib.Path) -> None:
 def _unlink(path: pathlib.Path) -> None:
     with contextlib.suppress(FileNotFoundError):
         path.unlink()
+
+
+def _pause() -> None:
+    t = os.environ.get(PAUSE_ENV)
+    if t:
+        import time
+
+        time.sleep(float(t))
 
 
 def _pid_alive(pid: int) -> bool:
@@ -326,6 +339,7 @@ class OutputDir:
             raise
         if not tmp.is_file():
             raise RuntimeError(f"{rel}: the writer wrote no file")
+        _pause()
         return self.final_path(rel)
 
     def write_bytes(self, rel: str, data: bytes) -> pathlib.Path:
@@ -397,6 +411,7 @@ class OutputDir:
             _unlink(main_tmp)
             raise
         old = _old_manifest(main)
+        _pause()
         # the commit: no valid main JSON while the files move, the new one last
         _unlink(main)
         dirs = {main.parent}
@@ -404,6 +419,7 @@ class OutputDir:
             final = self.root / rel
             os.replace(tmp, final)
             dirs.add(final.parent)
+            _pause()
         if self.durable:
             for d in dirs:
                 _fsync_dir(d)

@@ -866,7 +866,12 @@ def _temporaries(out: pathlib.Path) -> list[pathlib.Path]:
 def test_kill_during_fit_leaves_old_or_new_result(tmp_path):
     """kill -9 a `fit` writing over a previous result at several moments: afterwards the
     directory verifies as the old or the new complete result, or (only inside the commit's
-    renames) has no fit.json; `surface --fit` then works or refuses in one line."""
+    renames) has no fit.json; `surface --fit` then works or refuses in one line.
+
+    ``HARTRAO_JAX_SAFEIO_PAUSE_S`` slows every step of the write (0.4 s) so that the kills land
+    inside each phase: before any file, while the residual tables go to temporary names,
+    during the commit's renames, and not at all."""
+    from hartrao_jax._safeio import PAUSE_ENV
     from hartrao_jax._simulate import simulate_campaign
 
     camp = tmp_path / "camp"
@@ -881,31 +886,36 @@ def test_kill_during_fit_leaves_old_or_new_result(tmp_path):
     new = verify_result_dir(tmp_path / "new", "fit.json")
     assert old["files"] != new["files"]
     shutil.rmtree(tmp_path / "new")
+    snapshot = tmp_path / "snap"
+    shutil.copytree(out, snapshot)
+    slow = {**env, PAUSE_ENV: "0.4"}
 
+    # (event, delay after it): "start" = process start, "temp" = first temporary file in the
+    # result directory, "commit" = the old fit.json removed (the renames are under way),
+    # "end" = no kill
+    moments = [("start", 1.0), ("temp", 0.05), ("temp", 0.5), ("commit", 0.05),
+               ("commit", 0.5), ("end", 0.0)]
     outcomes = []
-    # moments: fixed delays (start-up, fitting) and "as soon as a temporary file appears"
-    moments = [("delay", 2.0), ("delay", 8.0), ("temp", 0.0), ("temp", 0.002), ("temp", 0.02),
-               ("delay", 60.0)]
-    for kind, t in moments:
-        snapshot = tmp_path / "snap"
-        if snapshot.exists():
-            shutil.rmtree(snapshot)
-        shutil.copytree(out, snapshot)  # each run starts from the old complete result
+    for event, delay in moments:
         shutil.rmtree(out)
-        shutil.copytree(snapshot, out)
-        p = _run_fit(camp, out, "extended", env)
+        shutil.copytree(snapshot, out)  # each run starts from the old complete result
+        p = _run_fit(camp, out, "extended", slow)
         t0 = time.time()
-        if kind == "delay":
-            while time.time() - t0 < t and p.poll() is None:
-                time.sleep(0.01)
-        else:
-            while not _temporaries(out) and p.poll() is None and time.time() - t0 < 600:
-                time.sleep(0.0005)
-            time.sleep(t)
-        finished = p.poll() is not None
-        if not finished:
+
+        def seen():
+            if event == "temp":
+                return bool(_temporaries(out))
+            if event == "commit":
+                return not (out / "fit.json").exists()
+            return event == "start"
+
+        while event != "end" and not seen() and p.poll() is None and time.time() - t0 < 600:
+            time.sleep(0.002)
+        time.sleep(delay)
+        killed = event != "end" and p.poll() is None
+        if killed:
             p.send_signal(signal.SIGKILL)
-        p.wait()
+        p.wait(timeout=600)
         try:
             doc = verify_result_dir(out, "fit.json")
             state = "old" if doc["files"] == old["files"] else \
@@ -920,8 +930,14 @@ def test_kill_during_fit_leaves_old_or_new_result(tmp_path):
             assert r.returncode == 0, r.stderr
         else:
             lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-            assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: ")
-        outcomes.append((kind, t, "finished" if finished else "killed", state))
+            assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: "), \
+                r.stderr
+        outcomes.append((event, delay, "killed" if killed else "finished", state))
     print("crash outcomes:", outcomes)
-    assert all(s in ("old", "new", "refused") for *_, s in outcomes)
-    assert {s for *_, s in outcomes} & {"old"} and {s for *_, s in outcomes} & {"new"}
+    states = [o[-1] for o in outcomes]
+    assert all(s in ("old", "new", "refused") for s in states), outcomes
+    # before the commit the old result stands, inside it the directory is refused, after it
+    # the new result stands
+    assert states[0] == states[1] == states[2] == "old", outcomes
+    assert states[3] == states[4] == "refused", outcomes
+    assert states[5] == "new", outcomes

@@ -209,6 +209,17 @@ def case_ten_point_scans_fit_all(tmp, camp):
     return _c("fit", camp, "--out", tmp / "o"), ["r23c1", "10 rows", "expected at least"]
 
 
+def case_ten_point_scan_in_campaign(tmp, camp):
+    """One small scan among good ones: refused by name until the fitting core excludes it
+    from the averages with a note (``_cli_checks.REFUSE_SMALL_SCANS_IN_CAMPAIGN``)."""
+    from hartrao_jax import _cli_checks
+
+    if not _cli_checks.REFUSE_SMALL_SCANS_IN_CAMPAIGN:
+        pytest.skip("the fitting core excludes small scans with a note")
+    _edit_scan(camp, "r23c2", lambda c: {k: v[:10] for k, v in c.items()})
+    return _c("fit", camp, "--out", tmp / "o"), ["r23c2", "10 rows", "expected at least"]
+
+
 def case_simulate_unknown_preset(tmp, camp):
     return _c("simulate", tmp / "sim", "--preset", "nope"), ["--preset", "nope", "expected",
                                                              "clean"]

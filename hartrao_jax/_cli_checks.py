@@ -272,6 +272,12 @@ _TYPE_EXPECTED = {"float": "a number", "integer": "an integer", "boolean": "true
 def click_error_line(e: click.ClickException) -> str:
     """One line ``<option>: <what is wrong>, expected <what>`` for click's own usage errors."""
     msg = " ".join(e.format_message().split())
+    if isinstance(e, click.MissingParameter):
+        q = e.param
+        name = (max(q.opts, key=len) if isinstance(q, click.Option) and q.opts else
+                (q.human_readable_name or q.name or "?")) if q is not None else "?"
+        kind = "option" if isinstance(q, click.Option) else "argument"
+        return f"{name}: missing {kind}, expected it on the command line (see --help)"
     if isinstance(e, click.BadParameter) and e.param is not None:
         p = e.param
         name = max(p.opts, key=len) if isinstance(p, click.Option) and p.opts else \
@@ -292,8 +298,6 @@ def click_error_line(e: click.ClickException) -> str:
         hint = f" (did you mean {', '.join(e.possibilities)}?)" if e.possibilities else ""
         return f"{e.option_name}: no such option{hint}, expected an option of the command " \
                "(see --help)"
-    if isinstance(e, click.MissingParameter):
-        return msg.rstrip(".") + ", expected it on the command line (see --help)"
     return msg.rstrip(".")
 
 
@@ -310,7 +314,8 @@ class _OneLineMain:
         try:
             rv = super().main(argv, prog_name, complete_var, False, **extra)
         except click.ClickException as e:
-            if "--debug" in argv:
+            help_error = getattr(click.exceptions, "NoArgsIsHelpError", ())
+            if "--debug" in argv or isinstance(e, help_error):  # no arguments: the help
                 e.show()
                 sys.exit(e.exit_code)
             click.echo(f"error: {click_error_line(e)}", err=True)

@@ -396,6 +396,14 @@ def case_invalid_toml(tmp, camp):
     return _c("fit", camp, "--out", tmp / "o"), ["campaign.toml", "TOML", "expected"]
 
 
+def case_missing_argument(tmp, camp):
+    return _c("fit", "--out", tmp / "o"), ["CAMPAIGN", "missing argument", "expected"]
+
+
+def case_missing_required_option(tmp, camp):
+    return _c("fit", camp), ["--out", "missing option", "expected"]
+
+
 def case_unknown_option(tmp, camp):
     return _c("fit", camp, "--out", tmp / "o", "--bogus"), ["--bogus", "no such option"]
 

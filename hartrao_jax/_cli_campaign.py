@@ -128,7 +128,8 @@ def sensitivity(campaign, json_file, model, params, fixes, scans, joint, batch, 
     camp = load_campaign(campaign)
     t0 = time.time()
     start = fit_campaign(camp, model, scans=scans.split(",") if scans else None,
-                         fixed=_parse_fixes(fixes), keep=_keep_fn(preprocess, camp), batch=batch)
+                         fixed=_parse_fixes(fixes), keep=_keep_fn(preprocess, camp), batch=batch,
+                         per_cycle=True)  # implicit derivatives of the per-scan adjustment
     if joint:
         start = fit_joint(camp, model, shared=[p for p in _names(params) if p in start.model_names],
                           group="campaign", start=start).campaign_fit()
@@ -165,9 +166,12 @@ def sensitivity(campaign, json_file, model, params, fixes, scans, joint, batch, 
 @click.option("--shared", default="x4,x6,x7", show_default=True)
 @click.option("--group", type=click.Choice(["night", "campaign"]), default="night",
               show_default=True)
+@click.option("--per-cycle", is_flag=True,
+              help="One task per scan, each cycle alone (default: one task per position, both "
+                   "faces adjusted together with the surface as a random effect).")
 @command
 def fit_dask_command(campaign, out_dir, scheduler, n_workers, model, scans, fixes, robust_k,
-                     preprocess, joint, shared, group):
+                     preprocess, joint, shared, group, per_cycle):
     """Fit CAMPAIGN on Dask workers; writes the same OUT/fit.json as `fit`."""
     from ._campaign import load_campaign
     from ._distributed import fit_dask
@@ -177,7 +181,7 @@ def fit_dask_command(campaign, out_dir, scheduler, n_workers, model, scans, fixe
         res = fit_dask(camp, model, scheduler=scheduler, n_workers=n_workers,
                        scans=scans.split(",") if scans else None, fixed=_parse_fixes(fixes),
                        robust_k=robust_k or None, preprocess=preprocess, out_dir=out_dir,
-                       joint=joint, shared=_names(shared), group=group)
+                       joint=joint, shared=_names(shared), group=group, per_cycle=per_cycle)
     except ValueError as e:
         raise UserError(str(e)) from None
     n = len(res.summaries)

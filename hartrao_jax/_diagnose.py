@@ -1524,12 +1524,17 @@ class _Option:
     payload: Any
     eligible: bool = True
     reason: str = ""
+    rms_drop_m: float | None = None  # practical effect of unexplained structure (footprint)
+    rms_drop_fraction: float | None = None
 
     def row(self) -> dict:
         return {"kind": self.kind, "effect": self.effect, "family": self.family,
                 "statistic": _num(self.T), "dof": self.dof,
                 "log10_p_adjusted": _num(self.log_p / math.log(10)),
                 "effect_size_m": _num(self.effect_m), "eligible": self.eligible,
+                **({"rms_drop_m": _num(self.rms_drop_m),
+                    "rms_drop_fraction": _num(self.rms_drop_fraction)}
+                   if self.rms_drop_m is not None else {}),
                 "reason": self.reason,
                 "scans": getattr(self.payload, "cand", None) and self.payload.cand.scans,
                 **({"covariate": self.payload["covariate"]} if self.kind == "covariate" else {})}
@@ -1698,6 +1703,12 @@ def diagnose(
         f.p_value = math.exp(max(_log_sf(best.T, best.dof), -745.0))
         f.extra["log10_p_adjusted"] = _num(best.log_p / math.log(10))
         f.effect_size_m = best.effect_m
+        if best.rms_drop_m is not None:
+            f.extra["practical_effect"] = {
+                "rms_drop_m": _num(best.rms_drop_m),
+                "rms_drop_fraction": _num(best.rms_drop_fraction),
+                "rule": f"rms of the footprint drops by >= {100 * UNEXPLAINED_MIN_DROP:.0f} % "
+                        f"or >= {UNEXPLAINED_MIN_DROP_M * 1e6:.0f} um"}
         findings.append(f)
         spec.accepted.append(f.effect)
         history.append({"step": step, "label": f.effect, "maps": _snapshot(S),
@@ -1782,11 +1793,26 @@ def _options(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint,
     lm = math.log(m_tests)
     opts: list[_Option] = []
 
-    def add(o: _Option):
+    rms_all = s0 * math.sqrt(joint.n_used / max(joint.sum_q, 1e-300))
+
+    def add(o: _Option, footprint_rms_m: float | None = None):
         if o.log_p >= la:
             o.eligible, o.reason = False, "not significant"
         elif o.effect_m < cfg.min_effect_m:
             o.eligible, o.reason = False, "below the practical effect size"
+        elif o.effect == "unexplained":
+            # structure with no physics signature must matter in millimetres: the rms of its
+            # own footprint must drop by >= 1 % or >= 10 micrometres (a significant but tiny
+            # structure is the panel pattern seen through a covariate, not a finding)
+            rms = footprint_rms_m or rms_all
+            drop = rms - math.sqrt(max(rms * rms - o.effect_m**2, 0.0))
+            o.rms_drop_m, o.rms_drop_fraction = drop, drop / max(rms, 1e-300)
+            if drop < UNEXPLAINED_MIN_DROP_M and drop / max(rms, 1e-300) < UNEXPLAINED_MIN_DROP:
+                o.eligible = False
+                o.reason = (f"below the practical effect size: the rms of its footprint drops by "
+                            f"{drop * 1e6:.2f} um ({100 * drop / max(rms, 1e-300):.2f} %), "
+                            f"needs {UNEXPLAINED_MIN_DROP_M * 1e6:.0f} um or "
+                            f"{100 * UNEXPLAINED_MIN_DROP:.0f} %")
         opts.append(o)
 
     for t in tests:
@@ -1820,9 +1846,11 @@ def _options(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint,
         T = float(np.sum(Tg[flagged]))
         dof = int(np.sum(dofg[flagged]))
         qf = sum(float(np.sum((1.0 / sc.m)[sc.used & np.isin(sc.panel, flagged)])) for sc in S)
+        nf = sum(int(np.sum(sc.used & np.isin(sc.panel, flagged))) for sc in S)
         eff = math.sqrt(max(T - dof, 0.0) * s0**2 / max(qf, 1e-300))
         add(_Option("dish", "unexplained", "generic", _log_sf(T, dof) + lm, T, dof, eff,
-                    {"flagged": flagged, "est": est, "cells": cells, "Tg": Tg}))
+                    {"flagged": flagged, "est": est, "cells": cells, "Tg": Tg}),
+            footprint_rms_m=s0 * math.sqrt(nf / max(qf, 1e-300)))
     if do_unexp:
         ct = _covariate_tests(ctx, S, s0, skip=spec.modelled | spec.no_covariates)
         cv = None
@@ -1843,6 +1871,11 @@ def _options(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint,
                                         "all": {k: (v["T"], v["dof"]) for k, v in ct.items()}}))
     return opts
 
+
+#: practical effect size of an ``unexplained`` finding: the rms of its footprint must drop by
+#: at least this fraction or this much (m)
+UNEXPLAINED_MIN_DROP = 0.01
+UNEXPLAINED_MIN_DROP_M = 1.0e-5
 
 THERMAL_REFERENCE_C = 15.0
 THERMAL_MIN_POSITIONS = 10  # with 7 the temperature term took up 0.4 mm/K of pointing effects

@@ -235,7 +235,31 @@ def task_fit_scan(root: str, scan_id: str, model, fixed: dict | None, robust_k: 
     return fit
 
 
-def task_summary(fit, out_dir: str | None = None) -> ScanSummary:
+def task_fit_position(root: str, scan_ids: Sequence[str], model, fixed: dict | None,
+                      robust_k: float | None, preprocess: bool, heading_hint_rad: float | None,
+                      out_dir: str | None):
+    """Worker: read, preprocess and adjust the scans of one position together (two faces, the
+    surface a random effect); returns the scans' summaries and the position's record."""
+    import time
+
+    worker_setup()
+    from ._fit import fit_position, position_record
+
+    release_compiled()
+    t0 = time.perf_counter()
+    camp = _campaign(root)
+    metas = [camp.scan(i) for i in scan_ids]
+    pf = fit_position(camp, metas, model, keep=_keep_fn(preprocess, camp), fixed=fixed,
+                      robust_k=robust_k, heading_hint_rad=heading_hint_rad)
+    seconds = time.perf_counter() - t0
+    out = []
+    for s in pf.scans:
+        s._seconds = seconds / len(pf.scans)  # type: ignore[attr-defined]
+        out.append(task_summary(s, out_dir, held=pf.held))
+    return out, position_record(pf)
+
+
+def task_summary(fit, out_dir: str | None = None, held=None) -> ScanSummary:
     """Worker: the small summary of a fitted scan (and its residual table, if ``out_dir``)."""
     from distributed import get_worker
 
@@ -254,7 +278,7 @@ def task_summary(fit, out_dir: str | None = None) -> ScanSummary:
     except ValueError:
         wname = "local"
     return ScanSummary(fit.meta.id, tuple(fit.names), np.asarray(fit.x), np.asarray(fit.cov),
-                       float(fit.sigma0), scan_record(fit), fit.alignment.source, heading,
+                       float(fit.sigma0), scan_record(fit, held), fit.alignment.source, heading,
                        np.asarray(fit.gravity), float(fit.elevation_deg), int(fit.n_points),
                        float(getattr(fit, "_seconds", math.nan)), wname)
 
@@ -315,14 +339,20 @@ def thin_scan_fit(summary: ScanSummary, meta):
                    elevation_deg=summary.elevation_deg)
 
 
-def fit_document(campaign, names, summaries: Sequence[ScanSummary]) -> dict:
-    """``fit.json`` from worker summaries, in the form :func:`._fit.fit_json` gives."""
+def fit_document(campaign, names, summaries: Sequence[ScanSummary],
+                 positions: Sequence[dict] | None = None) -> dict:
+    """``fit.json`` from worker summaries, in the form :func:`._fit.fit_json` gives
+    (``positions``: the records of two-face position adjustments; None: per-cycle fits)."""
     from ._fit import FIT_SCHEMA, CampaignFit
 
     thin = [thin_scan_fit(s, campaign.scan(s.id)) for s in summaries]
-    return {"schema": FIT_SCHEMA, "model": list(names), "campaign": str(campaign.root),
-            "scans": [s.record for s in summaries],
-            "positions": CampaignFit(campaign, tuple(names), thin).positions()}
+    doc = {"schema": FIT_SCHEMA, "model": list(names)}
+    if positions is not None:
+        doc["adjustment"] = "two-face, surface random effect"
+    doc.update({"campaign": str(campaign.root), "scans": [s.record for s in summaries],
+                "positions": list(positions) if positions is not None
+                else CampaignFit(campaign, tuple(names), thin).positions()})
+    return doc
 
 
 @dataclass
@@ -378,6 +408,7 @@ def fit_dask(
     shared: Sequence[str] = ("x4", "x6", "x7"),
     group: str = "night",
     keep_futures: bool = False,
+    per_cycle: bool = False,
 ) -> DaskFit:
     """Fit the scans of ``campaign`` on Dask workers; with ``out_dir`` write ``fit.json`` (and
     the workers write ``residuals/``) as ``hartrao-jax fit`` does.
@@ -385,7 +416,9 @@ def fit_dask(
     ``client``: an existing client; else one to ``scheduler`` or to a new
     ``LocalCluster(n_workers, threads_per_worker=1, processes=True)`` (closed at the end).
     ``joint=True``: then the joint adjustment (shared calibration per ``group``) with the
-    Schur-complement iteration over the worker-resident scans.
+    Schur-complement iteration over the worker-resident scans. Default: one task per position,
+    both faces adjusted together with the surface as a random effect (as ``fit``);
+    ``per_cycle=True``: one task per scan, each cycle alone.
     """
     import time
 
@@ -415,6 +448,42 @@ def fit_dask(
             od.invalidate()
         fits: dict[str, object] = {}
         summaries: dict[str, ScanSummary] = {}
+        if not joint and not per_cycle:  # one task per position: both faces together
+            groups: dict[str, list] = {}
+            for m in order:
+                groups.setdefault(m.position, []).append(m)
+            records: dict[str, dict] = {}
+
+            def run_positions(names_, hint):
+                fut = client.map(task_fit_position, [root] * len(names_),
+                                 [[m.id for m in groups[p]] for p in names_],
+                                 [model] * len(names_), [fixed] * len(names_),
+                                 [robust_k] * len(names_), [preprocess] * len(names_),
+                                 [hint] * len(names_), [outd] * len(names_), pure=False)
+                for p, (summ, rec) in zip(names_, client.gather(fut)):
+                    records[p] = rec
+                    for s in summ:
+                        summaries[s.id] = s
+
+            first = [p for p in groups if _tilt(groups[p][0], campaign) >= MIN_TILT_RAD]
+            run_positions(first, None)
+            hs = [summaries[m.id].heading_rad for p in first for m in groups[p][:1]
+                  if summaries[m.id].alignment_source == "gravity"]
+            hint = float(np.angle(np.mean(np.exp(1j * np.array(hs))))) if hs else None
+            rest = [p for p in groups if p not in first]
+            if rest:
+                run_positions(rest, hint)
+            ordered = [summaries[m.id] for m in metas]
+            pos_order = list(dict.fromkeys(m.position for m in metas))
+            doc = fit_document(campaign, parse_model(model), ordered,
+                               [records[p] for p in pos_order])
+            if od is not None:
+                for m in metas:
+                    if (Path(out_dir) / "residuals" / f"{m.id}.parquet").is_file():
+                        od.adopt(f"residuals/{m.id}.parquet")
+                od.commit(doc)
+            n_w = len(client.scheduler_info().get("workers", {}))
+            return DaskFit(doc, ordered, time.perf_counter() - t0, n_w, None, None)
 
         def run(batch, hint):
             fut = client.map(task_fit_scan, [root] * len(batch), [m.id for m in batch],

@@ -28,7 +28,7 @@ from ._init import (
     patch_initial_values,
     quadric_initial_values,
 )
-from ._model import N_CONSTS, ParaboloidModel, make_model, parameter_unit
+from ._model import N_CONSTS, ZERNIKE_PREFIX, ParaboloidModel, make_model, parameter_unit
 from ._physics import INSTRUMENT
 
 log = logging.getLogger("hartrao_jax")
@@ -94,17 +94,86 @@ class ScanFit:
 
 
 @dataclass
+class Held:
+    """A parameter the data cannot determine: held at ``value`` (its fixed or prior value)."""
+
+    value: float
+    note: str
+    confounded_with: tuple[str, ...] = ()
+    correlation: float | None = None
+
+
+@dataclass
+class SurfaceEffect:
+    """The surface random effect of a position adjustment (``shared/spec/physics.md``).
+
+    ``cells``: description of the cells (panels, or square cells where the telescope has no
+    panel layout); ``u`` (g, 3) the cells' predicted offset (m, positive towards the focus) and
+    tilts (rad: radial/tangential, or x/y for square cells) with prediction-error covariances
+    ``u_cov`` (g, 3, 3); ``n`` points per cell. ``variances``: the estimated components
+    (``noise``: factor on the a priori variances; ``offset_m2``, ``tilt_rad2``, ``modes_m2``)
+    and their redundancy shares.
+    """
+
+    cells: str
+    u: np.ndarray
+    u_cov: np.ndarray
+    n: np.ndarray
+    variances: dict[str, float]
+    redundancy: dict[str, float]
+    modes: dict[str, tuple[float, float]] = field(default_factory=dict)
+
+
+@dataclass
+class PositionFit:
+    """One telescope position adjusted from both faces at once (or from its one usable face).
+
+    One pose, one f and one set of calibration parameters (``names``, ``x``, ``cov``) for all
+    of ``scans``; ``cov`` includes the surface random effect. ``held``: parameters not
+    identifiable from these data, held at their fixed/prior value. ``faces``: 2 when both
+    cycles entered the adjustment, 1 otherwise (never called a cycle average).
+    """
+
+    position: str
+    scans: list[ScanFit]
+    names: tuple[str, ...]
+    x: np.ndarray
+    cov: np.ndarray
+    held: dict[str, Held]
+    faces: int
+    sigma0: float
+    surface: SurfaceEffect | None
+    iterations: int
+    converged: bool
+    n_points: int
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def sigma(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.cov))
+
+    def estimate(self, name: str) -> tuple[float, float]:
+        i = self.names.index(name)
+        return float(self.x[i]), float(self.sigma[i])
+
+
+@dataclass
 class CampaignFit:
     """The fitted scans of a campaign. ``shared``: parameters estimated jointly by all scans of
-    a group (a joint adjustment's calibration; empty for scan-by-scan fits)."""
+    a group (a joint adjustment's calibration; empty for scan-by-scan fits). ``position_fits``:
+    the two-face adjustments the scans come from (empty for per-cycle fits)."""
 
     campaign: Campaign
     model_names: tuple[str, ...]
     scans: list[ScanFit]
     shared: tuple[str, ...] = ()
+    position_fits: list[PositionFit] = field(default_factory=list)
 
     def positions(self) -> list[dict]:
-        """Per position: inverse-variance mean focal length of its scans (m)."""
+        """Per position: its adjustment's estimates (two-face fits), or the inverse-variance mean
+        focal length of its scans (per-cycle fits)."""
+        if self.position_fits:
+            return [position_record(p) for p in self.position_fits]
         out: dict[str, list[ScanFit]] = {}
         for s in self.scans:
             out.setdefault(s.meta.position, []).append(s)
@@ -292,6 +361,339 @@ def finish_scan_fit(
     )
 
 
+# --------------------------------------------------------------------------------------------
+# Two-face position adjustment with the surface as a random effect
+# --------------------------------------------------------------------------------------------
+
+#: Smooth surface modes (Noll indices) carried as random effects on a centred reflector:
+#: astigmatism, coma, trefoil, spherical -- what gravity produces. Piston, tilt and defocus are
+#: the pose and f themselves.
+SURFACE_MODES: tuple[int, ...] = (5, 6, 7, 8, 9, 10, 11)
+#: Start values of the variance components: offsets (m^2), tilts (rad^2), modes (m^2).
+_CELL_VAR0 = (1e-8, 1e-8, 1e-8)
+_MODE_VAR0 = 1e-8
+
+
+def two_face_parameters(names: Iterable[str]) -> tuple[str, ...]:
+    """Calibration parameters whose effect flips between the faces: a one-face recording cannot
+    separate them from the pose and f."""
+    return tuple(n for n in names if n in INSTRUMENT and INSTRUMENT[n].two_face != "no")
+
+
+def _faces(metas: Sequence[ScanMeta]) -> int:
+    return 2 if {1, 2} <= {m.cycle for m in metas} else 1
+
+
+def _concat(parts: Sequence[np.ndarray]) -> np.ndarray:
+    return np.concatenate(parts, axis=0)
+
+
+def _pad_rows(a: np.ndarray, n_pad: int) -> np.ndarray:
+    n = len(a)
+    if n_pad <= n:
+        return a
+    return np.concatenate([a, np.repeat(a[:1], n_pad - n, axis=0)], axis=0)
+
+
+def _hold_note(group, partners, corr, reason, sigmas, elevation_deg) -> str:
+    """One line saying what the data cannot determine, and why."""
+    who = " and ".join(group)
+    verb = "is" if len(group) == 1 else "are"
+    where = (f"near zenith (elevation {elevation_deg:.1f} deg)" if elevation_deg is not None
+             and elevation_deg > 80 else f"at elevation {elevation_deg:.1f} deg"
+             if elevation_deg is not None else "")
+    if reason == "correlation":
+        with_ = ", ".join(partners) if partners else "the other unknowns together"
+        text = f"{who} {verb} not separable from {with_} {where} (|correlation| {corr:.4f})"
+    else:
+        sig = ", ".join(f"{n} {sigmas[n]:.2g}" for n in group)
+        text = (f"{who} {verb} not determined {where}: sigma ({sig}) exceeds the typical "
+                f"magnitude" + (f"; correlated with {', '.join(partners)}" if partners else ""))
+    return text.replace("  ", " ") + "; held at the fixed/prior value"
+
+
+def _typical() -> dict[str, float]:
+    return {k: p.typical for k, p in INSTRUMENT.items()}
+
+
+def _hold(held, fixed, bad, cov, names, elevation):
+    sig = dict(zip(names, np.sqrt(np.diag(np.asarray(cov)))))
+    for group, partners, corr, reason in bad:
+        note = _hold_note(group, partners, corr, reason, sig, elevation)
+        for n_ in group:
+            held[n_] = Held(fixed.get(n_, 0.0), note, partners, corr)
+
+
+def fit_position(
+    campaign: Campaign,
+    metas: Sequence[ScanMeta],
+    model: str | Iterable[str] = "extended",
+    *,
+    datas: Sequence[ScanData] | None = None,
+    keep: Callable[[ScanMeta, ScanData], np.ndarray] | None = None,
+    fixed: dict[str, float] | None = None,
+    robust_k: float | None = 4.0,
+    window_m: float = 0.10,
+    heading_hint_rad: float | None = None,
+    surface: bool = True,
+    max_iter: int = 30,
+) -> PositionFit:
+    """Adjust the scans of one position together: one pose, one f, one set of calibration.
+
+    1. Initial values and the geometry window per scan; the best-fitting scan's initial values
+       start the joint adjustment (both cycles share the scanner set-up).
+    2. A robust Gauss-Helmert adjustment of all points (white noise) rejects outliers and gives
+       the pose for the north alignment, hence each point's panel (surface cell).
+    3. The adjustment with the surface as a random effect (:mod:`._mixed`): panel offsets and
+       tilts (and, on a centred reflector, the smooth modes of :data:`SURFACE_MODES`) with
+       variances estimated from the data; sigmas include the surface's blur.
+    4. Identifiability: two-face parameters are held on a one-face position; any calibration
+       parameter the normal matrix cannot separate (``|correlation| > 0.99``, e.g. x6/x7 near
+       the zenith) is held at its fixed/prior value with a note, and the position refitted.
+    """
+    from ._mixed import gauss_helmert_mixed, unidentifiable
+
+    metas = list(metas)
+    fixed = dict(fixed or {})
+    tel = campaign.telescope
+    faces = _faces(metas)
+    names = tuple(n for n in parse_names(model) if n not in fixed)
+    held: dict[str, Held] = {}
+    if faces == 1:
+        for n in two_face_parameters(names):
+            held[n] = Held(fixed.get(n, 0.0), f"{n} flips sign between the faces: a one-face "
+                           "recording cannot separate it from the pose and f; held at "
+                           f"{fixed.get(n, 0.0):g}")
+    prepared = []
+    for i, m in enumerate(metas):
+        data = datas[i] if datas is not None else read_scan(campaign, m)
+        k = keep(m, data) if keep is not None else None
+        prepared.append(prepare_scan(campaign, m, data, window_m=window_m, keep=k))
+    init = max((p[2] for p in prepared), key=lambda c: c.inlier_fraction)
+    g = prepared[0][1]
+    elevation = pointing_elevation_deg(metas[0], tel, campaign.site)
+    sizes = [len(p[0]) for p in prepared]
+    n = int(sum(sizes))
+    l = _concat([scan_arrays(p[0])[0] for p in prepared])
+    c = _concat([scan_arrays(p[0])[1] for p in prepared])
+    w = _concat([p[3] for p in prepared]).astype(float)
+    n_pad = _bucket(n)
+    l, c = _pad_rows(l, n_pad), _pad_rows(c, n_pad)
+    c[n:] = 0.0
+    w = np.concatenate([w, np.zeros(n_pad - n)])
+    sig = sigma_vector(campaign)
+    aperture = tel.diameter_m / 2
+
+    def free_of(extra=()):
+        return tuple(n_ for n_ in names if n_ not in held) + tuple(extra)
+
+    def model_of(free, kappa=0.0):
+        fx = {**fixed, **{k_: h.value for k_, h in held.items()}}
+        return make_model(free, fx, aperture_radius_m=aperture, kappa_rad=kappa,
+                          check_separable=False)
+
+    # 2. white-noise robust adjustment, with identifiability on its normal matrix
+    for _ in range(4):
+        mdl = model_of(free_of())
+        x0 = _x0(mdl.free, init, fixed)
+        if robust_k is None:
+            from ._ghm import gauss_helmert
+
+            res = gauss_helmert(mdl, l, x0, sig, c, w, v0=np.zeros_like(l), max_iter=max_iter)
+        else:
+            res = robust_gauss_helmert(mdl, l, x0, sig, c, w, k=robust_k, max_iter=max_iter)
+        cand = [n_ for n_ in mdl.free if n_ in INSTRUMENT]
+        bad = unidentifiable(np.asarray(res.cov), mdl.free, cand, typical=_typical())
+        if not bad:
+            break
+        _hold(held, fixed, bad, res.cov, mdl.free, elevation)
+    used = np.asarray(res.weights) > 0
+    fit1 = finish_scan_fit(campaign, metas[0], mdl, _PaddedData.of(prepared, n_pad), res, g,
+                           init, used, heading_hint_rad=heading_hint_rad)
+    kappa = fit1.alignment.kappa_rad
+    res_final, surf, mdl_final, notes = res, None, mdl, []
+    if surface:
+        from ._geometry import panel_cells
+
+        cell, local, n_cells, desc = panel_cells(
+            fit1.X_tel, tel.ring_edges_m, tel.panels_per_ring,
+            cell_m=float(tel.extra.get("panel_cell_m", 2.0)) if tel.extra else 2.0)
+        design = np.column_stack([np.ones(n_pad), local]) * (cell >= 0)[:, None]
+        modes = SURFACE_MODES if tel.offset_m == 0 else ()
+        for _ in range(3):
+            extra = tuple(f"{ZERNIKE_PREFIX}{j}" for j in modes)
+            mdl2 = model_of(free_of(extra), kappa)
+            x0 = np.array([float(res.x[list(mdl.free).index(n_)]) if n_ in mdl.free else 0.0
+                           for n_ in mdl2.free])
+            ridge = {"modes": [mdl2.free.index(e) for e in extra]} if extra else None
+            rm = gauss_helmert_mixed(
+                mdl2, l, x0, sig, c, used.astype(float), cell, design, n_cells,
+                robust_k=robust_k, cell_var0=np.asarray(_CELL_VAR0), ridge=ridge,
+                ridge_var0=_MODE_VAR0, v0=np.asarray(res.v), max_iter=60)
+            cand = [n_ for n_ in mdl2.free if n_ in INSTRUMENT]
+            bad = unidentifiable(np.asarray(rm.cov), mdl2.free, cand, typical=_typical())
+            if not bad:
+                break
+            _hold(held, fixed, bad, rm.cov, mdl2.free, elevation)
+        keep_idx = [i for i, n_ in enumerate(mdl2.free) if not n_.startswith(ZERNIKE_PREFIX)]
+        mode_idx = [i for i, n_ in enumerate(mdl2.free) if n_.startswith(ZERNIKE_PREFIX)]
+        xs = np.asarray(rm.x)
+        cov = np.asarray(rm.cov)
+        counts = np.bincount(cell[(cell >= 0) & (np.asarray(rm.weights) > 0)],
+                             minlength=n_cells)
+        surf = SurfaceEffect(
+            cells=desc, u=np.asarray(rm.u), u_cov=np.asarray(rm.u_cov), n=counts,
+            variances={"noise": float(rm.noise_var),
+                       "offset_m2": float(rm.cell_var[0]), "tilt_rad2": float(
+                           np.mean(np.asarray(rm.cell_var[1:]))),
+                       **({"modes_m2": float(rm.ridge_var[0])} if mode_idx else {})},
+            redundancy={"noise": float(rm.redundancy_noise),
+                        "offset": float(rm.redundancy_cells[0]),
+                        "tilt": float(np.sum(np.asarray(rm.redundancy_cells[1:]))),
+                        **({"modes": float(rm.redundancy_ridge[0])} if mode_idx else {})},
+            modes={mdl2.free[i]: (float(xs[i]), float(np.sqrt(cov[i, i]))) for i in mode_idx})
+        free = tuple(mdl2.free[i] for i in keep_idx)
+        x_pos, cov_pos = xs[keep_idx], cov[np.ix_(keep_idx, keep_idx)]
+        mdl_final = model_of(free, kappa)
+        weights = np.asarray(rm.weights)
+        v, omega_pt = np.asarray(rm.v), np.asarray(rm.omega_point)
+        noise = float(rm.noise_var)
+        r_e = float(rm.redundancy_noise)
+        sigma0 = float(rm.sigma0)
+        iterations, converged = int(rm.iterations), bool(rm.converged)
+        if not converged:
+            notes.append(f"surface random effect: not converged after {iterations} iterations")
+        normalized = np.asarray(rm.normalized)
+    else:
+        free, x_pos, cov_pos = mdl.free, np.asarray(res.x), np.asarray(res.cov)
+        weights = np.asarray(res.weights)
+        v = np.asarray(res.v)
+        k_ = np.asarray(res.normalized) * float(res.sigma0)
+        omega_pt = k_ * k_
+        noise = float(res.sigma0) ** 2
+        r_e = float(res.redundancy)
+        sigma0 = float(res.sigma0)
+        iterations, converged = int(res.iterations), bool(res.converged)
+        normalized = np.asarray(res.normalized)
+    n_used = int(np.sum(weights > 0))
+    # 4. per-scan views: the shared estimates, each scan's own residuals and statistics
+    scans, start = [], 0
+    for (data, gg, init_s, window), m, size in zip(prepared, metas, sizes):
+        sl = slice(start, start + size)
+        start += size
+        ws = weights[sl]
+        n_s = int(np.sum(ws > 0))
+        r_s = max(r_e * n_s / max(n_used, 1), 1.0)
+        s0 = math.sqrt(float(np.sum(np.where(ws > 0, omega_pt[sl], 0.0))) / r_s)
+        gh = GHResult(x=jnp.asarray(x_pos), cov=jnp.asarray(cov_pos),
+                      N=jnp.asarray(np.linalg.pinv(cov_pos)), sigma0=jnp.asarray(s0),
+                      v=jnp.asarray(v[sl]), misclosure=jnp.zeros(size),
+                      normalized=jnp.asarray(normalized[sl]), weights=jnp.asarray(ws),
+                      redundancy=jnp.asarray(n_s), iterations=jnp.asarray(iterations),
+                      converged=jnp.asarray(converged))
+        sf = finish_scan_fit(campaign, m, mdl_final, data, gh, gg, init_s, window,
+                             heading_hint_rad=heading_hint_rad)
+        sf.notes = [t for t in sf.notes if not t.startswith("one-face scan")]
+        sf.notes.append("two-face position adjustment" if faces == 2 else
+                        "one usable face: adjusted alone")
+        scans.append(sf)
+    for h in held.values():
+        if h.note not in notes:
+            notes.append(h.note)
+    return PositionFit(
+        position=metas[0].position, scans=scans, names=tuple(free), x=x_pos, cov=cov_pos,
+        held=held, faces=faces, sigma0=sigma0, surface=surf, iterations=iterations,
+        converged=converged, n_points=n_used, notes=notes)
+
+
+class _PaddedData:
+    """The concatenated (padded) rows of a position's scans, as :class:`ScanData` for the
+    alignment (only what :func:`finish_scan_fit` reads)."""
+
+    @staticmethod
+    def of(prepared, n_pad: int) -> ScanData:
+        from ._campaign import _concat as concat_scans
+
+        d = concat_scans([p[0] for p in prepared])
+        n = len(d)
+        if n_pad > n:
+            d = d.subset(np.concatenate([np.arange(n), np.zeros(n_pad - n, np.int64)]))
+        return d
+
+
+def _bucket(n: int) -> int:
+    """Padded length (one compiled program per size bucket; see :func:`._joint.bucket_size`)."""
+    p2 = 1 << max(0, int(math.ceil(math.log2(max(n, 1)))))
+    q = max(4096, p2 // 8)
+    return int(-(-n // q) * q)
+
+
+def _value_sigma(v: float, s: float | None, unit: str) -> dict:
+    return {"value": _num(v), "sigma": None if s is None else _num(s), "unit": unit}
+
+
+def panel_predictions(p: PositionFit) -> list[dict]:
+    """The surface random effect's predictions (BLUPs) per cell with points, with their sigmas.
+
+    Offsets in m (positive towards the focus), tilts in rad (``tilt_radial_rad``: outer edge up,
+    ``tilt_tangential_rad``: counter-clockwise edge up; for square cells ``tilt_x_rad``,
+    ``tilt_y_rad``), from every point of both faces. Deviations are from the fitted paraboloid
+    plus the smooth modes (``surface_modes``).
+    """
+    if p.surface is None:
+        return []
+    sf = p.surface
+    names = (("tilt_radial_rad", "tilt_tangential_rad") if sf.cells.startswith("panels")
+             else ("tilt_x_rad", "tilt_y_rad"))
+    out = []
+    for g in np.flatnonzero(sf.n > 0):
+        sd = np.sqrt(np.clip(np.diag(sf.u_cov[g]), 0.0, None))
+        out.append({"panel" if sf.cells.startswith("panels") else "cell": int(g),
+                    "offset_m": _num(sf.u[g, 0]), "offset_sigma_m": _num(sd[0]),
+                    names[0]: _num(sf.u[g, 1]), names[0].replace("_rad", "_sigma_rad"): _num(sd[1]),
+                    names[1]: _num(sf.u[g, 2]), names[1].replace("_rad", "_sigma_rad"): _num(sd[2]),
+                    "n": int(sf.n[g])})
+    return out
+
+
+def position_record(p: PositionFit) -> dict:
+    """The ``positions[]`` entry of ``fit.json`` for a position adjustment."""
+    m = p.scans[0].meta
+    s0 = p.scans[0]
+    row: dict = {"position": p.position}
+    if m.ha_deg is not None:
+        row.update(ha_deg=m.ha_deg, dec_deg=m.dec_deg)
+    if m.azimuth_deg is not None:
+        row.update(azimuth_deg=m.azimuth_deg)
+    row.update(elevation_deg=s0.elevation_deg, faces=p.faces,
+               kind="two-face adjustment" if p.faces == 2 else "one face",
+               scans=[s.meta.id for s in p.scans])
+    for i, n in enumerate(p.names):
+        row[n] = _value_sigma(p.x[i], p.sigma[i], parameter_unit(n))
+    for n, h in p.held.items():
+        row[n] = {"value": _num(h.value), "sigma": None, "identifiable": False, "note": h.note,
+                  "unit": parameter_unit(n)}
+    row["sigma0"] = _num(p.sigma0)
+    row["n_points"] = p.n_points
+    row["iterations"] = p.iterations
+    row["converged"] = p.converged
+    if p.surface is not None:
+        v = p.surface.variances
+        row["variance_components"] = {
+            "noise": _num(v["noise"]), "surface_m": _num(math.sqrt(v["offset_m2"])),
+            "tilt_rad": _num(math.sqrt(v["tilt_rad2"])),
+            **({"modes_m": _num(math.sqrt(v["modes_m2"]))} if "modes_m2" in v else {}),
+            "redundancy": {k: _num(x) for k, x in p.surface.redundancy.items()},
+            "cells": p.surface.cells}
+        if p.surface.modes:
+            row["surface_modes"] = {k: _value_sigma(a, b, "m") for k, (a, b) in
+                                    p.surface.modes.items()}
+        row["panels"] = panel_predictions(p)
+    row["gravity"] = [float(a) for a in s0.gravity]
+    row["notes"] = list(p.notes)
+    return row
+
+
 def _progress(disable: bool):
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -311,16 +713,45 @@ def fit_campaign(
     keep: Callable[[ScanMeta, ScanData], np.ndarray] | None = None,
     batch: bool = False,
     progress: bool = True,
+    per_cycle: bool = False,
+    surface: bool = True,
 ) -> CampaignFit:
-    """Fit every scan (or those named) of a campaign with one model.
+    """Fit a campaign (or the scans named) with one model.
 
-    Scans away from the zenith are fitted first; their mount heading then resolves the
-    quadrupod symmetry of zenith scans' north alignment. ``batch=True`` fits all scans in one
-    compiled call (padded and masked), with the same results as one by one.
+    Default: one adjustment per position from both faces together, the surface a random effect
+    (:func:`fit_position`); a position with one usable cycle is adjusted alone and says so.
+    ``per_cycle=True``: every scan by itself, white noise (the paper's procedure; the
+    disturbed-scan checks need it); ``batch=True`` fits the scans that way in one compiled call.
+    Positions away from the zenith are fitted first; their mount heading then resolves the
+    quadrupod symmetry of zenith positions' north alignment.
     """
     metas = [campaign.scan(s) for s in scans] if scans else list(campaign.scans)
     tel, site = campaign.telescope, campaign.site
     tilt = {m.id: np.arccos(np.clip(-pointing_gravity(m, tel, site)[2], -1, 1)) for m in metas}
+    names = parse_names(model)
+    if not per_cycle and not batch:
+        groups: dict[str, list[ScanMeta]] = {}
+        for m in metas:
+            groups.setdefault(m.position, []).append(m)
+        order = sorted(groups, key=lambda p: -tilt[groups[p][0].id])
+        pfits: dict[str, PositionFit] = {}
+        headings: list[float] = []
+        with _progress(not progress) as prog:
+            task = prog.add_task("fitting positions", total=len(order))
+            for pos in order:
+                prog.update(task, description=f"fitting {pos}")
+                hint = float(np.angle(np.mean(np.exp(1j * np.array(headings))))) if headings else None
+                pf = fit_position(campaign, groups[pos], model, keep=keep, fixed=fixed,
+                                  robust_k=robust_k, heading_hint_rad=hint, surface=surface)
+                s0 = pf.scans[0]
+                if s0.alignment.source == "gravity":
+                    headings.append(mount_heading(s0.alignment.kappa_rad, s0.value("rx"),
+                                                  s0.value("ry"), s0.gravity))
+                pfits[pos] = pf
+                prog.advance(task)
+        by_id = {s.meta.id: s for pf in pfits.values() for s in pf.scans}
+        plist = [pfits[p] for p in groups]
+        return CampaignFit(campaign, names, [by_id[m.id] for m in metas], position_fits=plist)
     order = sorted(metas, key=lambda m: -tilt[m.id])
     if batch:
         fits = _fit_batch(campaign, order, model, fixed=fixed, robust_k=robust_k, keep=keep,
@@ -342,7 +773,6 @@ def fit_campaign(
                                                   fit.value("ry"), fit.gravity))
                 fits[m.id] = fit
                 prog.advance(task)
-    names = parse_names(model)
     return CampaignFit(campaign, names, [fits[m.id] for m in metas])
 
 
@@ -413,8 +843,9 @@ def _num(v: float) -> float | None:
     return float(v) if np.isfinite(v) else None
 
 
-def scan_record(s: ScanFit) -> dict:
-    """The ``scans[]`` entry of ``fit.json`` for one scan."""
+def scan_record(s: ScanFit, held: dict[str, Held] | None = None) -> dict:
+    """The ``scans[]`` entry of ``fit.json`` for one scan (``held``: the parameters its
+    position adjustment could not determine, listed with ``identifiable: false``)."""
     corr = s.correlation
     high = []
     for i in range(len(s.names)):
@@ -426,7 +857,10 @@ def scan_record(s: ScanFit) -> dict:
         "position": s.meta.position,
         "cycle": s.meta.cycle,
         "estimates": {
-            n: {"value": v, "sigma": sg, "unit": parameter_unit(n)} for n, (v, sg) in s.estimates.items()
+            **{n: {"value": v, "sigma": sg, "unit": parameter_unit(n)}
+               for n, (v, sg) in s.estimates.items()},
+            **{n: {"value": h.value, "sigma": None, "identifiable": False, "note": h.note,
+                   "unit": parameter_unit(n)} for n, h in (held or {}).items()},
         },
         "sigma0": s.sigma0,
         "n_points": s.n_points,
@@ -447,11 +881,21 @@ def scan_record(s: ScanFit) -> dict:
 
 
 def fit_json(cf: CampaignFit) -> dict:
+    """``fit.json`` (schema ``hartrao-fit/1``, ``shared/spec/outputs.md``).
+
+    Two-face fits: ``positions[]`` carry the shared estimates (f, pose, every calibration
+    parameter, each ``{value, sigma}``; not identifiable ones ``{value, sigma: null,
+    identifiable: false, note}``) and the variance components; ``scans[]`` repeat them under
+    ``estimates`` and keep their own sigma0, counts and convergence.
+    """
+    held = {s.meta.id: p.held for p in cf.position_fits for s in p.scans}
+    scans = [scan_record(s, held.get(s.meta.id)) for s in cf.scans]
     return {
         "schema": FIT_SCHEMA,
         "model": list(cf.model_names),
+        "adjustment": "two-face, surface random effect" if cf.position_fits else "per cycle",
         "campaign": str(cf.campaign.root),
-        "scans": [scan_record(s) for s in cf.scans],
+        "scans": scans,
         "positions": cf.positions(),
     }
 

@@ -246,6 +246,49 @@ def panel_ids(
     return np.where(inside, first[ring_c] + k, -1)
 
 
+#: Side (m) of the square cells that stand in for panels on a reflector with no panel layout.
+DEFAULT_CELL_M = 2.0
+
+
+def panel_cells(
+    X: np.ndarray,
+    ring_edges_m=None,
+    panels_per_ring=None,
+    *,
+    cell_m: float = DEFAULT_CELL_M,
+) -> tuple[np.ndarray, np.ndarray, int, str]:
+    """Surface cells of points for the surface random effect, and each point's local coordinates.
+
+    ``X``: (n, 3) points in the north-aligned telescope frame (m). With a ring layout
+    (``ring_edges_m``, ``panels_per_ring``) the cells are the panels of :func:`panel_ids` and
+    the local coordinates ``(rho - rho_c, rho_c * dpsi)`` are those of the panel tilts of
+    :func:`._physics.panel_deviation` (radial, tangential; m). Without one, the aperture plane
+    is cut into squares of ``cell_m`` (a stated regular grid, never another telescope's panel
+    numbers) with local coordinates ``(x - x_c, y - y_c)``.
+
+    Returns ``(cell (n,) int64 compact ids, -1 outside any cell; local (n, 2) m; n_cells;
+    description)``.
+    """
+    X = np.asarray(X, float)
+    if ring_edges_m is not None and panels_per_ring is not None:
+        rho = np.hypot(X[:, 0], X[:, 1])
+        psi = np.mod(np.arctan2(X[:, 1], X[:, 0]), 2 * np.pi)
+        ids = panel_ids(rho, psi, ring_edges_m, panels_per_ring)
+        geo = panel_geometry(ring_edges_m, panels_per_ring)
+        k = np.where(ids >= 0, ids, 0)
+        dpsi = np.mod(psi - geo["psi_c"][k] + np.pi, 2 * np.pi) - np.pi
+        local = np.stack([rho - geo["rho_c"][k], geo["rho_c"][k] * dpsi], 1)
+        local[ids < 0] = 0.0
+        return ids.astype(np.int64), local, int(len(geo["ring"])), (
+            f"panels ({len(geo['ring'])} in {len(panels_per_ring)} rings)")
+    ij = np.floor(X[:, :2] / cell_m).astype(np.int64)
+    keys, cell = np.unique(ij, axis=0, return_inverse=True)
+    centre = (keys + 0.5) * cell_m
+    local = X[:, :2] - centre[cell.reshape(-1)]
+    return cell.reshape(-1).astype(np.int64), local, int(len(keys)), (
+        f"square cells of {cell_m:g} m (no panel layout)")
+
+
 def panel_geometry(ring_edges_m, panels_per_ring) -> dict[str, np.ndarray]:
     """Per-panel ring, inner/outer radius (m), azimuth start/end and centre (rad)."""
     edges = np.asarray(ring_edges_m, dtype=float)

@@ -74,6 +74,9 @@ class ScanSample:
     # leak[j] = d f_hat / d a_j, retention[j, k] = d (projection j of the residuals) / d a_k
     leak: np.ndarray | None = None
     retention: np.ndarray | None = None
+    # True when f comes from the position's two-face adjustment, shared by its scans: the
+    # position then contributes f once (not once per scan, as independent cycles would)
+    shared_f: bool = False
 
 
 def samples_from_fit(cf, *, with_points: bool = True, modes: Sequence[int] = (),
@@ -102,12 +105,15 @@ def samples_from_fit(cf, *, with_points: bool = True, modes: Sequence[int] = (),
         sigma_l = sigma_vector(camp)
     if aperture_radius_m is None:
         aperture_radius_m = camp.telescope.diameter_m / 2 if camp is not None else 12.95
+    two_face = bool(getattr(cf, "position_fits", None))
     out = []
     for s in scans:
         v, sg = s.estimates["f"]
         m = s.meta
         resp = (None, None)
-        if with_points and modes and sigma_l is not None and s.model is not None \
+        # the mode take-up of a white-noise adjustment; a two-face adjustment carries the
+        # smooth modes as random effects itself
+        if with_points and modes and not two_face and sigma_l is not None and s.model is not None \
                 and getattr(s, "data", None) is not None and len(s.data) == len(s.used):
             from ._fit import scan_arrays
 
@@ -119,7 +125,7 @@ def samples_from_fit(cf, *, with_points: bool = True, modes: Sequence[int] = (),
             m.id, m.position, np.asarray(s.gravity, float), v, sg, m.ha_deg, m.dec_deg,
             s.elevation_deg, m.temperature_c,
             s.X_tel[s.used] if with_points else None,
-            s.deviation_m[s.used] if with_points else None, *resp))
+            s.deviation_m[s.used] if with_points else None, *resp, shared_f=two_face))
     return out
 
 
@@ -267,6 +273,7 @@ def samples_from_dir(results_dir, *, with_points: bool = True, modes: Sequence[i
     cols = ["used", "X_m", "Y_m", "Z_m", "deviation_m"]
     lcols = ["range_m", "phi_rad", "theta_rad", "v_range_m", "v_phi_rad", "v_theta_rad",
              "time_s"]
+    two_face = str(doc.get("adjustment", "")).startswith("two-face")
     for s in doc["scans"]:
         est = s["estimates"].get("f") or shared_f
         q = pos.get(s["position"], {})
@@ -276,8 +283,8 @@ def samples_from_dir(results_dir, *, with_points: bool = True, modes: Sequence[i
             rp = root / "residuals" / f"{s['id']}.parquet"
             if rp.is_file():
                 names = pq.ParquetFile(rp).schema_arrow.names
-                lin = bool(modes) and sigma_l is not None and "f" in s["estimates"] and all(
-                    c in names for c in lcols)
+                lin = bool(modes) and not two_face and sigma_l is not None \
+                    and "f" in s["estimates"] and all(c in names for c in lcols)
                 t = pq.read_table(rp, columns=cols + (lcols if lin else []))
                 used = t.column("used").to_numpy(zero_copy_only=False)
                 X = np.column_stack([t.column(c).to_numpy() for c in ("X_m", "Y_m", "Z_m")])[used]
@@ -288,7 +295,8 @@ def samples_from_dir(results_dir, *, with_points: bool = True, modes: Sequence[i
         out.append(ScanSample(
             s["id"], s["position"], np.asarray(s.get("gravity") or q.get("gravity"), float),
             float(est["value"]), float(est["sigma"]), q.get("ha_deg"), q.get("dec_deg"),
-            s.get("elevation_deg", q.get("elevation_deg")), temps.get(s["id"]), X, dev, *resp))
+            s.get("elevation_deg", q.get("elevation_deg")), temps.get(s["id"]), X, dev, *resp,
+            shared_f=two_face))
     return out
 
 
@@ -372,21 +380,30 @@ def zernike_projection(X: np.ndarray, dev: np.ndarray, aperture_radius_m: float,
                        nuisance: Sequence[int] = NUISANCE_MODES, layout=None):
     """Least-squares Zernike coefficients (m) of a normal deviation sampled at points ``X``.
 
-    Returns ``(coef, sigma, surface_rms)`` for ``modes`` (nuisance modes dropped); ``sigma`` from
-    the residual scatter assuming independent points (optimistic for panel-correlated
-    residuals). ``surface_rms``: rms of the surface the modes leave, at panel scale -- the rms of
+    Returns ``(coef, sigma, surface_rms)`` for ``modes`` (nuisance modes dropped). ``sigma`` is
+    the cluster-robust (sandwich) standard error clustered by panel (by the square cells of
+    :func:`._geometry.panel_cells` without a layout): the residuals of one panel share its
+    offset and tilt, so treating the points as independent would make the sigma shrink as
+    ``1/sqrt(n)`` while the panel pattern's blur of the coefficients does not.
+    ``surface_rms``: rms of the surface the modes leave, at panel scale -- the rms of
     the per-panel mean residuals with their noise variance removed (``layout = (ring_edges_m,
     panels_per_ring)``; without a layout the point rms, which includes the measurement noise).
     """
+    from ._geometry import panel_cells
+
     u = np.hypot(X[:, 0], X[:, 1]) / aperture_radius_m
     psi = np.arctan2(X[:, 1], X[:, 0])
     allm = tuple(nuisance) + tuple(j for j in modes if j not in nuisance)
     A = np.column_stack([zernike_np(j, u, psi) for j in allm])
     coef, *_ = np.linalg.lstsq(A, dev, rcond=None)
     r = dev - A @ coef
-    dof = max(len(dev) - A.shape[1], 1)
-    s2 = float(r @ r) / dof
-    cov = s2 * np.linalg.inv(A.T @ A)
+    cells, _, n_cells, _ = panel_cells(X, *(layout or (None, None)))
+    live = cells >= 0
+    score = np.zeros((n_cells, A.shape[1]))
+    np.add.at(score, cells[live], A[live] * r[live, None])
+    iA = np.linalg.inv(A.T @ A)
+    g = max(int(np.sum(np.any(score != 0, axis=1))), 2)
+    cov = iA @ (score.T @ score) @ iA * g / (g - 1)
     keep = [allm.index(j) for j in modes]
     return coef[keep], np.sqrt(np.diag(cov))[keep], surface_rms(X, r, layout)
 
@@ -694,10 +711,17 @@ def _positions(samples: Sequence[ScanSample], modes, aperture: float, layout=Non
         w = np.array([1.0 / s.sigma_f**2 for s in ss])
         f = float(np.sum(w * np.array([s.f for s in ss])) / np.sum(w))
         sf = float(1.0 / math.sqrt(np.sum(w)))
+        if all(s.shared_f for s in ss):  # one two-face estimate, repeated by its scans
+            f, sf = ss[0].f, ss[0].sigma_f
         z = zs = rr = leak = ret = None
         ok = [s for s in ss if s.X is not None and len(s.X) > 3 * (len(modes) + 3)]
-        proj = [zernike_projection(s.X, s.deviation_m, aperture, modes, layout=layout)
-                for s in ok]
+        if ok and all(s.shared_f for s in ss):  # one surface seen by both faces: one projection
+            proj = [zernike_projection(np.concatenate([s.X for s in ok]),
+                                       np.concatenate([s.deviation_m for s in ok]), aperture,
+                                       modes, layout=layout)]
+        else:
+            proj = [zernike_projection(s.X, s.deviation_m, aperture, modes, layout=layout)
+                    for s in ok]
         if proj and modes:
             a = np.array([p[0] for p in proj])
             sa = np.array([p[1] for p in proj])

@@ -521,9 +521,9 @@ def fit_joint(
     """
     if group not in GROUPS and group != "tour":
         raise ValueError(f"group: expected one of {', '.join(GROUPS)}, found {group!r}")
-    if start is None:
+    if start is None or start.position_fits:  # the joint adjustment starts from single cycles
         start = fit_campaign(campaign, model, scans=scans, fixed=fixed, robust_k=robust_k,
-                             keep=keep, batch=batch, progress=progress)
+                             keep=keep, batch=batch, progress=progress, per_cycle=True)
     elif scans:
         start = CampaignFit(start.campaign, start.model_names,
                             [s for s in start.scans if s.meta.id in set(scans)])

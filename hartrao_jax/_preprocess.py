@@ -1131,7 +1131,7 @@ def preprocess_json(results: Mapping[str, PreprocessResult],
         tot["n_rows"] += s["n_rows"]
         tot["n_kept"] += s["n_kept"]
         for k, v in s["removed"].items():
-            tot["removed"][k] += v
+            tot["removed"][k] = tot["removed"].get(k, 0) + v  # stages and reading drops
     doc = {
         "schema": PREPROCESS_SCHEMA,
         "reasons": {str(k): v for k, v in REASONS.items()},

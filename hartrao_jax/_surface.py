@@ -216,6 +216,10 @@ class PositionSurface:
     kappa_rad: dict[str, float] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
     radius_m: float = 0.01  # averaging radius used
+    # the position adjustment's panel predictions (random effect, both faces; see
+    # ``_fit.panel_predictions``) and how many faces it used
+    adjusted_panels: list[dict] = field(default_factory=list)
+    faces: int | None = None
 
 
 @dataclass
@@ -641,6 +645,12 @@ def surface_from_fit(campaign_fit, config: SurfaceConfig | None = None, *,
             kap[s.meta.id] = float(s.alignment.kappa_rad)
         ps = position_surface(pos, cps, layout, cfg, _pointing(fits[0].meta), kap)
         ps.pointing.setdefault("elevation_deg", float(fits[0].elevation_deg))
+        pf = next((p for p in getattr(campaign_fit, "position_fits", ()) or ()
+                   if p.position == pos), None)
+        if pf is not None:
+            from ._fit import panel_predictions
+
+            ps.adjusted_panels, ps.faces = panel_predictions(pf), pf.faces
         positions.append(ps)
     return SurfaceResult(cfg, layout, positions,
                          {"model": list(campaign_fit.model_names), "campaign": str(camp.root)})
@@ -713,7 +723,9 @@ def surface_from_fit_dir(fit_dir, config: SurfaceConfig | None = None, *, campai
         pm = pos_meta.get(pos, {})
         pointing = {k: float(pm[k]) for k in ("ha_deg", "dec_deg", "elevation_deg", "azimuth_deg")
                     if pm.get(k) is not None}
-        positions.append(position_surface(pos, cps, layout, cfg, pointing, kap))
+        ps = position_surface(pos, cps, layout, cfg, pointing, kap)
+        ps.adjusted_panels, ps.faces = list(pm.get("panels") or []), pm.get("faces")
+        positions.append(ps)
     return SurfaceResult(cfg, layout, positions, {"model": doc.get("model"),
                                                   "fit_dir": str(fit_dir),
                                                   "campaign": doc.get("campaign")})
@@ -817,6 +829,12 @@ def surface_json(result: SurfaceResult) -> dict:
                "points_file": f"points/{_safe(p.position)}.parquet",
                "panels": p.panels.records() if p.panels is not None else [],
                "cycles": cycles, "notes": p.notes}
+        if p.faces is not None:
+            rec["faces"] = p.faces
+        if p.adjusted_panels:
+            # per-panel offsets and tilts predicted by the two-face adjustment (surface random
+            # effect, every point of both faces), with their sigmas
+            rec["panels_adjusted"] = p.adjusted_panels
         positions.append(rec)
     lay = result.layout
     return {

@@ -209,7 +209,9 @@ def _dask_equals_in_process(camp, tmp_path):
     )
     from hartrao_jax._joint import fit_joint, joint_json
 
-    local = fit_campaign(camp, "extended", progress=False)
+    # the joint adjustment starts from per-cycle fits, on the workers as in-process
+    local = fit_campaign(camp, "extended", progress=False, per_cycle=True)
+    two_face = fit_campaign(camp, "extended", progress=False)
     client, cluster = start_client(n_workers=2)
     try:
         # Dask's default MALLOC_TRIM_THRESHOLD_ tripled the workers' CPU time per scan
@@ -217,13 +219,21 @@ def _dask_equals_in_process(camp, tmp_path):
         assert set(envs.values()) == {None}, envs
         res = fit_dask(camp, "extended", client=client, preprocess=False, joint=True,
                        group="campaign", out_dir=tmp_path / "dask")
+        # the default: one task per position, both faces adjusted together
+        pos = fit_dask(camp, "extended", client=client, preprocess=False,
+                       out_dir=tmp_path / "dask2")
     finally:
         close_client(client, cluster)
+    written = json.loads((tmp_path / "dask2" / "fit.json").read_text())
+    written.pop("files", None)  # the manifest of the crash-safe output directory
+    _compare_docs(written, fit_json(two_face))
+    assert all(s.worker.startswith("tcp://") for s in pos.summaries)
     assert res.n_workers == 2
     assert all(s.worker.startswith("tcp://") for s in res.summaries)  # fitted on workers
     _compare_docs(fit_document(camp, local.model_names, res.summaries), fit_json(local))
     jd = joint_json(fit_joint(camp, start=local, group="campaign"))
     on_disk = json.loads((tmp_path / "dask" / "fit.json").read_text())
+    on_disk.pop("files", None)  # the manifest of the crash-safe output directory
     assert on_disk["schema"] == "hartrao-fit/1"
     _compare_docs(on_disk, jd, rtol=1e-9)
     for n in ("x4", "x6", "x7"):

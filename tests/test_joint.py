@@ -45,7 +45,7 @@ def campaign(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def start(campaign):
-    return fit_campaign(campaign, "extended", progress=False)
+    return fit_campaign(campaign, "extended", progress=False, per_cycle=True)
 
 
 def test_batch_equals_loop(campaign, start):

@@ -1,0 +1,240 @@
+"""Calibration of the sigmas: z = (estimate - truth) / sigma over many seeded campaigns.
+
+For every case and seed a campaign is simulated with known truth, fitted per cycle (each face
+alone, white noise: the paper's procedure) and per position (both faces together, the surface
+a random effect: the default of ``fit``), and z is collected for f, the pose and every
+calibration parameter. A sigma is honest when z has a standard deviation near 1 (target 0.8 to
+1.25) and no |z| exceeds 4 in thousands of estimates. Parameters held as not identifiable are
+counted, not scored.
+
+    python benchmarks/uncertainty_calibration.py                    # all cases, 20 seeds
+    python benchmarks/uncertainty_calibration.py --seeds 3 --cases demo,zenith
+    python benchmarks/uncertainty_calibration.py --merge            # tables from parts/*.json
+
+Each (case, seed) result is stored in ``results/uncertainty/parts/`` as soon as it is done, so
+a run can be split over several processes or sessions and merged.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+OUT = HERE / "results"
+PARTS = OUT / "uncertainty" / "parts"
+
+PANELS = {"x4": 1.5e-4, "x6": 3e-5, "x7": -4e-5}
+# name: (positions (name, ha_deg, dec_deg), effects, step_rad)
+CASES = {
+    "demo": ([("r23", -35.0, -64.0)], {**PANELS, "panel_offset": 1.5e-4}, 0.01),
+    "panels-0.1mm": ([("r23", -35.0, -64.0)], {**PANELS, "panel_offset": 1.0e-4}, 0.01),
+    "panels-0.3mm": ([("r23", -35.0, -64.0)], {**PANELS, "panel_offset": 3.0e-4}, 0.01),
+    "zenith": ([("z0", 0.0, -25.9)], {**PANELS, "panel_offset": 1.5e-4}, 0.01),
+    "gravity": ([("g1", -60.0, -30.0), ("g2", 40.0, -70.0), ("g3", 0.0, 10.0),
+                 ("g4", 70.0, -20.0)],
+                {**PANELS, "panel_offset": 1.5e-4, "gravity_deformation": 1.0}, 0.012),
+    "dense": ([("r23", -35.0, -64.0)], {**PANELS, "panel_offset": 1.5e-4}, 0.003),
+}
+PARAMS = ("tx", "ty", "tz", "rx", "ry", "f", "x4", "x6", "x7")
+ANGLES = ("rx", "ry")
+
+
+def _z(name: str, value: float, truth: float, sigma: float) -> float:
+    d = value - truth
+    if name in ANGLES:  # the same rotation, whatever turn the estimate landed on
+        d = (d + math.pi) % (2 * math.pi) - math.pi
+    return d / sigma
+
+
+def run_one(case: str, seed: int, *, preprocess: bool = False) -> dict:
+    from hartrao_jax._campaign import load_campaign
+    from hartrao_jax._fit import fit_campaign
+    from hartrao_jax._simulate import simulate_campaign
+
+    positions, effects, step = CASES[case]
+    tmp = Path(tempfile.mkdtemp(prefix=f"zcal-{case}-{seed}-"))
+    try:
+        t0 = time.time()
+        simulate_campaign(tmp / "c", preset="demo", effects=effects, seed=seed,
+                          positions=positions, step_rad=step)
+        camp = load_campaign(tmp / "c")
+        truth = json.loads((tmp / "c" / "truth.json").read_text())
+        ts = {s["id"]: {**s, **s.get("model_parameters", {})} for s in truth["scans"]}
+        t_sim = time.time() - t0
+        keep = None
+        if preprocess:
+            from hartrao_jax._preprocess import PreprocessConfig, keep_mask_fn
+
+            keep = keep_mask_fn(PreprocessConfig(), campaign=camp)
+        rows = []
+        t0 = time.time()
+        per = fit_campaign(camp, "extended", keep=keep, progress=False, per_cycle=True)
+        t_cycle = time.time() - t0
+        for s in per.scans:
+            tr = ts[s.meta.id]
+            for n, (v, sg) in s.estimates.items():
+                rows.append({"mode": "per-cycle", "unit": s.meta.id, "param": n,
+                             "z": _z(n, v, tr.get(n, 0.0), sg), "sigma": sg, "value": v,
+                             "truth": tr.get(n, 0.0), "elevation_deg": s.elevation_deg})
+        t0 = time.time()
+        two = fit_campaign(camp, "extended", keep=keep, progress=False)
+        t_two = time.time() - t0
+        held = []
+        for p in two.position_fits:
+            tr = ts[p.scans[0].meta.id]
+            el = p.scans[0].elevation_deg
+            for n, v, sg in zip(p.names, p.x, p.sigma):
+                rows.append({"mode": "two-face", "unit": p.position, "param": n,
+                             "z": _z(n, float(v), tr.get(n, 0.0), float(sg)), "sigma": float(sg),
+                             "value": float(v), "truth": tr.get(n, 0.0), "elevation_deg": el})
+            for n, h in p.held.items():
+                held.append({"position": p.position, "param": n, "elevation_deg": el,
+                             "note": h.note})
+            held_names = set(p.held)
+            if p.surface is not None:
+                rows.append({"mode": "two-face", "unit": p.position, "param": "_surface",
+                             "z": 0.0, "sigma": 0.0,
+                             "value": math.sqrt(p.surface.variances["offset_m2"]),
+                             "truth": effects.get("panel_offset", 0.0), "elevation_deg": el,
+                             "held": sorted(held_names)})
+        return {"case": case, "seed": seed, "rows": rows, "held": held,
+                "seconds": {"simulate": t_sim, "per_cycle": t_cycle, "two_face": t_two}}
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _stats(z: np.ndarray) -> dict:
+    return {"n": int(z.size), "mean": float(np.mean(z)), "std": float(np.std(z, ddof=1))
+            if z.size > 1 else float("nan"), "max_abs": float(np.max(np.abs(z)))}
+
+
+def summarize(parts: list[dict]) -> dict:
+    out: dict = {"cases": {}, "overall": {}}
+    allrows = [dict(r, case=p["case"], seed=p["seed"]) for p in parts for r in p["rows"]
+               if r["param"] != "_surface"]
+    for mode in ("per-cycle", "two-face"):
+        rows = [r for r in allrows if r["mode"] == mode]
+        out["overall"][mode] = {
+            prm: _stats(np.array([r["z"] for r in rows if r["param"] == prm]))
+            for prm in PARAMS if any(r["param"] == prm for r in rows)}
+        zs = np.array([r["z"] for r in rows])
+        out["overall"][mode]["_all"] = _stats(zs) if zs.size else {}
+        out["overall"][mode]["_all"]["n_abs_gt_4"] = int(np.sum(np.abs(zs) > 4))
+    for case in dict.fromkeys(p["case"] for p in parts):
+        cparts = [p for p in parts if p["case"] == case]
+        entry = {"seeds": len(cparts), "modes": {}, "held": [h for p in cparts for h in p["held"]],
+                 "seconds": {k: float(np.median([p["seconds"][k] for p in cparts]))
+                             for k in cparts[0]["seconds"]}}
+        surf = [r for p in cparts for r in p["rows"] if r["param"] == "_surface"]
+        if surf:
+            entry["surface_rms_m"] = {"median": float(np.median([r["value"] for r in surf])),
+                                      "truth": surf[0]["truth"]}
+        for mode in ("per-cycle", "two-face"):
+            rows = [r for p in cparts for r in p["rows"] if r["mode"] == mode
+                    and r["param"] != "_surface"]
+            entry["modes"][mode] = {prm: _stats(np.array([r["z"] for r in rows
+                                                          if r["param"] == prm]))
+                                    for prm in PARAMS if any(r["param"] == prm for r in rows)}
+        out["cases"][case] = entry
+    return out
+
+
+def markdown(summary: dict) -> str:
+    lines = ["# Calibration of the sigmas", "",
+             "z = (estimate - truth) / sigma over seeded simulated campaigns (`benchmarks/"
+             "uncertainty_calibration.py`). Per cycle: each face alone, white noise (the paper's "
+             "procedure). Two-face: both faces adjusted together, the surface a random effect "
+             "(panel offsets and tilts, smooth modes), variances estimated (the default of "
+             "`fit`). Target: std(z) 0.8-1.25, no |z| > 4.", ""]
+    for mode in ("per-cycle", "two-face"):
+        o = summary["overall"][mode]
+        lines += [f"## All cases, {mode}", "",
+                  "| parameter | n | mean z | std z | max abs z |", "|---|---|---|---|---|"]
+        for prm in PARAMS:
+            if prm in o:
+                s = o[prm]
+                lines.append(f"| {prm} | {s['n']} | {s['mean']:+.2f} | {s['std']:.2f} | "
+                             f"{s['max_abs']:.1f} |")
+        a = o["_all"]
+        lines += ["", f"{a['n']} estimates, {a['n_abs_gt_4']} with |z| > 4.", ""]
+    lines += ["## Per case", "",
+              "| case | seeds | mode | " + " | ".join(f"std z {p}" for p in PARAMS) +
+              " | max abs z |", "|---|---|---|" + "---|" * (len(PARAMS) + 1)]
+    for case, e in summary["cases"].items():
+        for mode, st in e["modes"].items():
+            cells = [f"{st[p]['std']:.2f}" if p in st else "held" for p in PARAMS]
+            mx = max((st[p]["max_abs"] for p in st), default=float("nan"))
+            lines.append(f"| {case} | {e['seeds']} | {mode} | " + " | ".join(cells) +
+                         f" | {mx:.1f} |")
+    lines += ["", "Not identifiable (held, not scored):", ""]
+    for case, e in summary["cases"].items():
+        held = e["held"]
+        if held:
+            names = sorted({h["param"] for h in held})
+            lines.append(f"- {case}: {len(held)} held ({', '.join(names)}); e.g. "
+                         f"\"{held[0]['note']}\"")
+        else:
+            lines.append(f"- {case}: none")
+    lines += ["", "Estimated surface (panel offset) rms against the simulated one, and time per "
+              "seed (median, s):", ""]
+    for case, e in summary["cases"].items():
+        srf = e.get("surface_rms_m")
+        sec = e["seconds"]
+        lines.append(f"- {case}: surface {srf['median'] * 1e3:.3f} mm (truth "
+                     f"{srf['truth'] * 1e3:.3f} mm); simulate {sec['simulate']:.0f} s, per-cycle "
+                     f"fit {sec['per_cycle']:.0f} s, two-face fit {sec['two_face']:.0f} s"
+                     if srf else f"- {case}")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, default=20)
+    ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--cases", default=",".join(c for c in CASES if c != "dense"))
+    ap.add_argument("--merge", action="store_true", help="only merge the stored parts")
+    args = ap.parse_args(argv)
+    import hartrao_jax  # noqa: F401  (float64)
+
+    PARTS.mkdir(parents=True, exist_ok=True)
+    if not args.merge:
+        for case in args.cases.split(","):
+            if case not in CASES:
+                print(f"error: --cases: unknown case {case!r}, expected one of "
+                      f"{', '.join(CASES)}", file=sys.stderr)
+                return 2
+        for case in args.cases.split(","):
+            for seed in range(args.first_seed, args.first_seed + args.seeds):
+                part = PARTS / f"{case}-{seed}.json"
+                if part.exists():
+                    continue
+                t0 = time.time()
+                res = run_one(case, seed)
+                tmp = part.with_suffix(".tmp")
+                tmp.write_text(json.dumps(res))
+                tmp.replace(part)
+                two = [r for r in res["rows"] if r["mode"] == "two-face" and r["param"] != "_surface"]
+                print(f"{case} seed {seed}: {time.time() - t0:.0f} s, two-face max |z| "
+                      f"{max(abs(r['z']) for r in two):.2f}", flush=True)
+    parts = [json.loads(p.read_text()) for p in sorted(PARTS.glob("*.json"))]
+    if not parts:
+        print("no results", file=sys.stderr)
+        return 1
+    summary = summarize(parts)
+    (OUT / "uncertainty_calibration.json").write_text(json.dumps(summary, indent=2))
+    (OUT / "uncertainty_calibration.md").write_text(markdown(summary))
+    print(markdown(summary))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

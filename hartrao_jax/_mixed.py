@@ -1,0 +1,489 @@
+"""Gauss-Helmert adjustment with the reflector's surface as a random effect.
+
+Why: the reflector's own surface (panel offsets and tilts, smooth deformation; 0.1-1 mm) is
+common to both faces and to every point of a panel. Treated as white noise, it makes every sigma
+shrink as ``1/sqrt(n)`` while the error it causes in f, pose and calibration does not: with
+1e5-1e7 points the estimates sit 10-50 sigma from the truth (``shared/spec/physics.md``,
+Statistics). Here the surface enters the condition as a *random* deviation, whose variances are
+estimated from the data, and the covariance of the unknowns includes it.
+
+Model (one condition per point ``i`` in surface cell ``g(i)``)::
+
+    F(l_i + v_i, x, c_i + dev_i) = 0,     dev_i = D_i . u_g(i)      (normal deviation, m)
+    v ~ N(0, s_e^2 Sigma_l),  u_g ~ N(0, diag(s_1^2 .. s_k^2)),  x_j ~ N(0, s_r^2) for j in R
+
+* ``u_g`` (k per cell): the cell's offset (m) and its tilts (rad) about the cell centre, with
+  ``D_i = (1, xi_radial, xi_tangential)`` the point's local coordinates in the cell (m); the
+  deviation enters the model's condition through its per-point constant ``c[dev_column]``
+  (the "known deviation"), so its derivative ``dF/ddev`` comes from autodiff like ``a`` and ``b``.
+* ``R``: optional "ridge" unknowns of ``x`` (smooth surface modes, e.g. Zernike coefficients)
+  that are random effects as well, with one variance ``s_r^2`` per ridge group.
+* The variance components ``s_e^2`` (a factor on the a priori ``Sigma_l``), ``s_1^2 .. s_k^2``
+  and ``s_r^2`` are estimated by Foerstner's iterative variance-component estimation (the
+  Helmert/REML-type estimator of geodesy): ``s^2 = (quadratic form of its residuals) / (its
+  redundancy)``, with redundancies from the traces of the cofactor matrix, updated at every
+  Gauss-Newton step until both converge.
+
+Per iteration, with ``lambda = s_e^2 / s^2`` per component and the per-cell sums
+``S_g = sum q d d^T``, ``s_g = sum q d a^T``, ``t_g = sum q d w`` (``q = 1/m``,
+``d_i = dF/ddev * D_i``), the cell parameters are eliminated by Schur complement, so the cost is
+linear in points and in cells (one small k x k block per cell)::
+
+    (N - sum_g s_g^T (S_g + Lambda)^-1 s_g + Lambda_R) dx = -(n - sum_g s_g^T (S_g + Lambda)^-1 (t_g + Lambda u_g) + Lambda_R x)
+    du_g = -(S_g + Lambda)^-1 (t_g + Lambda u_g + s_g dx)
+
+``cov(x) = s_e^2 Q_xx`` with ``Q_xx`` the inverse of the reduced matrix: the generalised least
+squares covariance under ``Var = s_e^2 M + B-part of the surface``, i.e. the sigmas include the
+surface's blur. The cells' predictions ``u_g`` (BLUPs) come with their prediction-error
+covariance ``s_e^2 [(S_g + Lambda)^-1 + (S_g + Lambda)^-1 s_g Q_xx s_g^T (S_g + Lambda)^-1]``.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jaxtyping import Array, Bool, Float, Int
+
+from ._kernel import materialize_trig, point_weights
+
+#: Smallest variance a component may take (relative to its start value): a component the data do
+#: not support tends to zero, which the iteration reaches only asymptotically.
+_FLOOR = 1e-8
+
+
+class MixedResult(eqx.Module):
+    """Result of :func:`gauss_helmert_mixed` (SI units; ``k`` components per cell).
+
+    Attributes:
+        x: estimated unknowns (fixed effects and ridge modes), model order.
+        cov: covariance of ``x`` including the surface random effect, ``s_e^2 Q_xx``.
+        Qxx: cofactor matrix of ``x`` (reduced normal matrix inverted).
+        u: predictions (BLUPs) of the cell parameters, shape (g, k): offset (m), tilts (rad).
+        u_cov: their prediction-error covariances, (g, k, k).
+        noise_var: ``s_e^2``, variance factor of the a priori observation sigmas.
+        cell_var: ``s_1^2 .. s_k^2`` (m^2, rad^2).
+        ridge_var: variance of each ridge group's modes (m^2), shape (r,).
+        redundancy_noise, redundancy_cells (k,), redundancy_ridge (r,): the redundancy shares.
+        sigma0: ``sqrt(v^T Sigma^-1 v / (n - u))`` at the solution (the classical figure).
+        v: observation residuals (n, 3); normalized: ``|k_i| sqrt(m_i) / s_e`` per point.
+        dev: the surface deviation ``D_i . u_g(i)`` (m) at every point.
+        omega_point: ``k_i^2 m_i`` per point (its share of ``v^T Sigma^-1 v``).
+        weights: weights used; n_used: their count; iterations; converged.
+    """
+
+    x: Float[Array, " u"]
+    cov: Float[Array, "u u"]
+    Qxx: Float[Array, "u u"]
+    u: Float[Array, "g k"]
+    u_cov: Float[Array, "g k k"]
+    noise_var: Float[Array, ""]
+    cell_var: Float[Array, " k"]
+    ridge_var: Float[Array, " r"]
+    redundancy_noise: Float[Array, ""]
+    redundancy_cells: Float[Array, " k"]
+    redundancy_ridge: Float[Array, " r"]
+    sigma0: Float[Array, ""]
+    v: Float[Array, "n 3"]
+    normalized: Float[Array, " n"]
+    dev: Float[Array, " n"]
+    omega_point: Float[Array, " n"]
+    weights: Float[Array, " n"]
+    n_used: Int[Array, ""]
+    iterations: Int[Array, ""]
+    converged: Bool[Array, ""]
+
+    @property
+    def sigma(self) -> Float[Array, " u"]:
+        return jnp.sqrt(jnp.diagonal(self.cov))
+
+    @property
+    def correlation(self) -> Float[Array, "u u"]:
+        s = self.sigma
+        return self.cov / (s[:, None] * s[None, :])
+
+
+def _linearize(condition, dev_column, on, l0, x, c):
+    """``F``, ``a = dF/dx``, ``b = dF/dl`` and ``e = dF/dc[dev_column]`` of one point; sin/cos
+    of each distinct argument computed once (:func:`._kernel.materialize_trig`)."""
+    cond = materialize_trig(condition, on)
+    F, (a, b, gc) = jax.value_and_grad(lambda xx, ll, cc: cond(ll, xx, cc),
+                                       argnums=(0, 1, 2))(x, l0, c)
+    return F, a, b, gc[dev_column]
+
+
+def _chunks(arrays, chunk):
+    """(n, ...) -> (n_chunks, chunk, ...), the tail padded by repeating the last row."""
+    n = arrays[0].shape[0]
+    nc = max(1, -(-n // chunk))
+    pad = nc * chunk - n
+    out = [jnp.pad(a, [(0, pad)] + [(0, 0)] * (a.ndim - 1), mode="edge").reshape(
+        (nc, chunk) + a.shape[1:]) for a in arrays]
+    return out, pad
+
+
+def _scaled_solve(N, rhs):
+    """``N^-1 rhs`` and ``N^-1`` with Jacobi scaling (symmetric positive definite ``N``)."""
+    d = 1.0 / jnp.sqrt(jnp.where(jnp.diagonal(N) > 0, jnp.diagonal(N), 1.0))
+    Ns = N * d[:, None] * d[None, :]
+    L = jnp.linalg.cholesky(Ns)
+    Li = jax.scipy.linalg.solve_triangular(L, jnp.eye(N.shape[0], dtype=N.dtype), lower=True)
+    Qs = Li.T @ Li
+    return (Qs @ (rhs * d)) * d, Qs * d[:, None] * d[None, :]
+
+
+def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U):
+    """Linearise every point at ``(l + v, x, c + dev)``; accumulate the normal equations and the
+    per-cell sums; keep per point what the residual update needs."""
+    u, k = x.shape[0], U.shape[1]
+    lin = jax.vmap(partial(_linearize, condition, dev_column, on), in_axes=(0, None, 0))
+    # the tail is padded with copies of the last point: weight 0 there (never in any sum)
+    (Lc, Vc, Cc, Wc, S2c, Gc, Dc), pad = _chunks([L, V, C, W, S2, G, DM], chunk)
+    Wc = Wc.reshape(-1).at[Wc.size - pad:].set(0.0).reshape(Wc.shape) if pad else Wc
+
+    def body(carry, ch):
+        N, nv, S, sg, tg, wmw = carry
+        l, v, c, w8, s2, g, dm = ch
+        live = g >= 0
+        gi = jnp.where(live, g, 0)
+        dev = jnp.where(live, jnp.sum(dm * U[gi], axis=-1), 0.0)
+        F, a, b, e = lin(l + v, x, c.at[:, dev_column].add(dev))
+        wm, m, ok, q = point_weights(F, b, v, w8, s2)
+        a = jnp.where(ok[:, None], a, 0.0)
+        wm0 = jnp.where(ok, wm, 0.0)
+        d = jnp.where((ok & live)[:, None], e[:, None] * dm, 0.0)
+        aq = a * q[:, None]
+        dq = d * q[:, None]
+        # the points come sorted by cell (cell-less last): one sorted segment sum of
+        # [d d^T, d a^T, d w] per point (rows of other points are zero, d = 0 there)
+        seg = jnp.where(live, g, n_cells)
+        per = jnp.concatenate([(dq[:, :, None] * d[:, None, :]).reshape(-1, k * k),
+                               (dq[:, :, None] * a[:, None, :]).reshape(-1, k * u),
+                               dq * wm0[:, None]], axis=1)
+        tot = jax.ops.segment_sum(per, seg, n_cells + 1, indices_are_sorted=True)[:n_cells]
+        S = S + tot[:, : k * k].reshape(n_cells, k, k)
+        sg = sg + tot[:, k * k: k * k + k * u].reshape(n_cells, k, u)
+        tg = tg + tot[:, k * k + k * u:]
+        return (N + aq.T @ a, nv + aq.T @ wm0, S, sg, tg, wmw + jnp.sum(q * wm0 * wm0)), (
+            a, b, d, wm, m, dev)
+
+    f = x.dtype
+    init = (jnp.zeros((u, u), f), jnp.zeros((u,), f), jnp.zeros((n_cells, k, k), f),
+            jnp.zeros((n_cells, k, u), f), jnp.zeros((n_cells, k), f), jnp.zeros((), f))
+    sums, per_point = lax.scan(body, init, (Lc, Vc, Cc, Wc, S2c, Gc, Dc))
+    n = L.shape[0]
+    per_point = tuple(p.reshape((-1,) + p.shape[2:])[:n] for p in per_point)
+    return sums, per_point
+
+
+def _reduce(N, nv, S, sg, tg, U, x, lam, ridge_idx, ridge_lam):
+    """Schur complement over the cells, plus the ridge priors: ``(dx, dU, Qxx, Dinv)``."""
+    k = S.shape[1]
+    Dinv = jnp.linalg.inv(S + jnp.diag(lam)[None])
+    rhs_u = tg + lam[None, :] * U
+    Nr = N - jnp.einsum("gki,gkl,glj->ij", sg, Dinv, sg)
+    nr = nv - jnp.einsum("gki,gkl,gl->i", sg, Dinv, rhs_u)
+    if ridge_idx.shape[0]:
+        Nr = Nr.at[ridge_idx, ridge_idx].add(ridge_lam)
+        nr = nr.at[ridge_idx].add(ridge_lam * x[ridge_idx])
+    dx, Qxx = _scaled_solve(Nr, -nr)
+    dU = -jnp.einsum("gkl,gl->gk", Dinv, rhs_u + jnp.einsum("gli,i->gl", sg, dx))
+    del k
+    return dx, dU, Qxx, Dinv
+
+
+def _cell_cofactors(Dinv, sg, Qxx):
+    """Prediction-error cofactors of the cells: ``D^-1 + D^-1 s Q_xx s^T D^-1`` per cell."""
+    T = jnp.einsum("gkl,gli->gki", Dinv, sg)
+    return Dinv + jnp.einsum("gki,ij,glj->gkl", T, Qxx, T)
+
+
+class _Linearization(eqx.Module):
+    """Sums and per-point terms of one linearisation (independent of the variances)."""
+
+    N: Array
+    nv: Array
+    S: Array
+    sg: Array
+    tg: Array
+    wMw: Array
+    a: Array
+    b: Array
+    d: Array
+    wm: Array
+    m: Array
+
+
+class _Update(eqx.Module):
+    """The step and the variance-component statistics at given variances."""
+
+    dx: Array
+    dU: Array
+    Qxx: Array
+    Quu: Array
+    omega: Array
+    r_e: Array
+    r_cells: Array
+    r_ridge: Array
+    var_new: tuple
+
+
+def _update(lin, var, var0, x, U, weights, groups, ridge_idx, ridge_group, ridge_count,
+            n_ridge_groups):
+    """Solve the linearised mixed model at the variances ``var`` and re-estimate them
+    (Foerstner: each component's quadratic form over its redundancy share)."""
+    f = x.dtype
+    se2, cv, rv = var
+    lam = se2 / cv
+    rl = (se2 / rv)[ridge_group] if n_ridge_groups else jnp.zeros((0,), f)
+    dx, dU, Qxx, Dinv = _reduce(lin.N, lin.nv, lin.S, lin.sg, lin.tg, U, x, lam, ridge_idx, rl)
+    # v^T Sigma^-1 v after the step, from the sums (the linearised residual is
+    # -(a.dx + d.du + w) / m per point): no pass over the points
+    omega = (lin.wMw + 2 * lin.nv @ dx + dx @ lin.N @ dx
+             + 2 * jnp.sum(lin.tg * dU) + 2 * jnp.einsum("gk,gki,i->", dU, lin.sg, dx)
+             + jnp.einsum("gk,gkl,gl->", dU, lin.S, dU))
+    omega = jnp.maximum(omega, 0.0)
+    x_new, U_new = x + dx, U + dU
+    Quu = _cell_cofactors(Dinv, lin.sg, Qxx)
+    r_cells = jnp.sum(1.0 - lam[None, :] * jnp.diagonal(Quu, axis1=1, axis2=2), axis=0)
+    uu = jnp.sum(U_new**2, axis=0)
+    if n_ridge_groups:
+        qr = jnp.diagonal(Qxx)[ridge_idx]
+        r_ridge = jax.ops.segment_sum(1.0 - rl * qr, ridge_group, n_ridge_groups)
+        xx = jax.ops.segment_sum(x_new[ridge_idx] ** 2, ridge_group, n_ridge_groups)
+    else:
+        r_ridge = jnp.zeros((0,), f)
+        xx = jnp.zeros((0,), f)
+    n_used = jnp.sum(weights > 0)
+    u = x.shape[0]
+    r_e = n_used - u - jnp.sum(r_cells) + (jnp.sum(ridge_count) - jnp.sum(r_ridge))
+    se2_new = omega / jnp.maximum(r_e, 1.0)
+    cv_new = jnp.where(r_cells > 0.5, uu / jnp.maximum(r_cells, 1e-12), cv)
+    cv_new = jnp.maximum(cv_new, _FLOOR * var0[1])
+    rv_new = jnp.where(r_ridge > 0.25, xx / jnp.maximum(r_ridge, 1e-12), rv)
+    rv_new = jnp.maximum(rv_new, _FLOOR * var0[2])
+    return _Update(dx, dU, Qxx, Quu, omega, r_e, r_cells, r_ridge, (se2_new, cv_new, rv_new))
+
+
+def _point_residuals(lin, up, groups):
+    """``k_i = -(a.dx + d.du_g + w) / m`` of every point after the step."""
+    gi = jnp.where(groups >= 0, groups, 0)
+    du_pt = jnp.where(groups >= 0, jnp.sum(lin.d * up.dU[gi], axis=-1), 0.0)
+    return -(lin.a @ up.dx + du_pt + lin.wm) / jnp.where(lin.m > 0, lin.m, 1.0)
+
+
+def _settled(new, old, var0):
+    """Every component changed by < 0.5 % (0.25 % in its sigma), or sits at its floor."""
+    def ok(a, b, floor):
+        return jnp.all((jnp.abs(jnp.log(a / b)) < 5e-3) | (a <= floor * 1.0001))
+    return (ok(new[0], old[0], 0.0) & ok(new[1], old[1], _FLOOR * var0[1])
+            & ok(new[2], old[2], _FLOOR * var0[2]))
+
+
+@eqx.filter_jit
+def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0, v0,
+           var0, ridge_idx, ridge_group, n_ridge_groups, tol, max_iter, chunk, n_cells,
+           estimate_variances, robust_k, on):
+    f = l.dtype
+    ridge_count = jax.ops.segment_sum(jnp.ones_like(ridge_idx, f), ridge_group, n_ridge_groups)
+    upd = partial(_update, var0=var0, groups=groups, ridge_idx=ridge_idx,
+                  ridge_group=ridge_group, ridge_count=ridge_count,
+                  n_ridge_groups=n_ridge_groups)
+
+    def linearize(x, U, V, weights):
+        (N, nv, S, sg, tg, wmw), (a, b, d, wm, m, _) = _pass(
+            condition, dev_column, on, n_cells, chunk, l, V, consts, weights, s2, groups, design,
+            x, U)
+        return _Linearization(N, nv, S, sg, tg, wmw, a, b, d, wm, m)
+
+    def vce(lin, var, x, U, weights):
+        """The variance components at this linearisation: a fixed point of ``_update`` (cheap:
+        no pass over the condition, only the stored per-point terms)."""
+        if not estimate_variances:
+            return var
+
+        def body(c):
+            v, _, i = c
+            new = upd(lin, v, x=x, U=U, weights=weights).var_new
+            return new, _settled(new, v, var0), i + 1
+
+        v, _, _ = lax.while_loop(lambda c: (~c[1]) & (c[2] < 200), body,
+                                 (var, jnp.array(False), jnp.array(0)))
+        return v
+
+    def step(state):
+        x, U, V, var, it, _, weights = state
+        lin = linearize(x, U, V, weights)
+        var = vce(lin, var, x, U, weights)
+        up = upd(lin, var, x=x, U=U, weights=weights)
+        kk = _point_residuals(lin, up, groups)
+        V_new = s2 * lin.b * kk[:, None]
+        sd = jnp.sqrt(jnp.where(jnp.diagonal(up.Qxx) > 0, jnp.diagonal(up.Qxx), 1.0))
+        step_ok = jnp.max(jnp.abs(up.dx) / sd) < tol
+        # robust rejection inside the iteration: points beyond robust_k noise sigmas (judged
+        # once the surface is taken out, from the second step on) leave for good
+        ok = (weights > 0) & (lin.m > 0)
+        e = jnp.sqrt(jnp.where(ok, kk * kk * lin.m, 0.0) / var[0])
+        bad = (e > robust_k) & (weights > 0) & (it >= 1)
+        weights = jnp.where(bad, 0.0, weights)
+        done = step_ok & ~jnp.any(bad)
+        return (x + up.dx, U + up.dU, V_new, var, it + 1, done, weights)
+
+    def cond(state):
+        return (state[4] < max_iter) & ~state[5]
+
+    state = (x0, U0, v0, var0, jnp.array(0), jnp.array(False), weights)
+    x, U, V, var, it, done, weights = lax.while_loop(cond, step, state)
+    # statistics at the solution: one more linearisation (the step is ~0)
+    lin = linearize(x, U, V, weights)
+    var = vce(lin, var, x, U, weights)
+    up = upd(lin, var, x=x, U=U, weights=weights)
+    kk = _point_residuals(lin, up, groups)
+    V = s2 * lin.b * kk[:, None]
+    x, U = x + up.dx, U + up.dU
+    ok = (weights > 0) & (lin.m > 0)
+    omega_pt = jnp.where(ok, kk * kk * jnp.where(lin.m > 0, lin.m, 1.0), 0.0)
+    se2 = var[0]
+    n_used = jnp.sum(weights > 0)
+    u = x.shape[0]
+    gi = jnp.where(groups >= 0, groups, 0)
+    dev_final = jnp.where(groups >= 0, jnp.sum(design * U[gi], axis=-1), 0.0)
+    sigma0 = jnp.sqrt(jnp.sum(weights * omega_pt) / jnp.maximum(n_used - u, 1))
+    return MixedResult(
+        x=x, cov=se2 * up.Qxx, Qxx=up.Qxx, u=U, u_cov=se2 * up.Quu, noise_var=se2,
+        cell_var=var[1], ridge_var=var[2], redundancy_noise=up.r_e, redundancy_cells=up.r_cells,
+        redundancy_ridge=up.r_ridge, sigma0=sigma0, v=V,
+        normalized=jnp.sqrt(omega_pt) / jnp.sqrt(se2), dev=dev_final, omega_point=omega_pt,
+        weights=weights, n_used=n_used, iterations=it, converged=done)
+
+
+def gauss_helmert_mixed(
+    condition,
+    l: Float[Array, "n 3"],
+    x0: Float[Array, " u"],
+    sigma_l: Float[Array, "3"] | Float[Array, "n 3"],
+    consts: Float[Array, "n c"],
+    weights: Float[Array, " n"],
+    groups: Int[Array, " n"],
+    design: Float[Array, "n k"],
+    n_cells: int,
+    *,
+    dev_column: int = 1,
+    cell_var0: Float[Array, " k"],
+    ridge: dict[str, list[int]] | None = None,
+    ridge_var0: float | Float[Array, " r"] = 1e-8,
+    noise_var0: float = 1.0,
+    v0: Float[Array, "n 3"] | None = None,
+    u0: Float[Array, "g k"] | None = None,
+    estimate_variances: bool = True,
+    robust_k: float | None = None,
+    tol: float = 1e-3,
+    max_iter: int = 60,
+    chunk_size: int = 8192,
+) -> MixedResult:
+    """Gauss-Helmert adjustment of ``condition`` with the surface as a random effect.
+
+    Args:
+        condition: ``(l (3,), x (u,), c) -> F`` whose per-point constant ``c[dev_column]`` is a
+            normal deviation of the surface (m) that the condition subtracts (the models of
+            :mod:`._model` read it as the known deviation).
+        l, x0, sigma_l, consts, weights: as :func:`._ghm.gauss_helmert`.
+        groups: surface cell of each point (0 .. n_cells-1; -1: no cell, e.g. the cone).
+        design: ``D_i`` (n, k): the deviation of point i per unit of its cell's k parameters
+            (1 for the offset, local radial/tangential coordinates in m for the tilts).
+        cell_var0: start values of the cells' variances (m^2, rad^2), shape (k,).
+        ridge: ``{group name: indices into x}``: unknowns that are random effects themselves
+            (smooth modes), one variance per group, start ``ridge_var0`` (m^2).
+        estimate_variances: False holds every variance at its start value.
+        robust_k: reject, during the iteration, points whose residual exceeds ``robust_k``
+            noise sigmas once the surface is taken out (None: no rejection); a rejected point
+            stays rejected.
+        tol: convergence when every step is below ``tol`` times its sigma and every variance
+            component changed by less than 0.5 %.
+    """
+    l = jnp.asarray(l, jnp.float64)
+    n = l.shape[0]
+    f = l.dtype
+    s2 = jnp.broadcast_to(jnp.asarray(sigma_l, f) ** 2, l.shape)
+    k = design.shape[1]
+    ridge = ridge or {}
+    names = list(ridge)
+    ridge_idx = jnp.asarray([i for g in names for i in ridge[g]], jnp.int32)
+    ridge_group = jnp.asarray([j for j, g in enumerate(names) for _ in ridge[g]], jnp.int32)
+    var0 = (jnp.asarray(noise_var0, f), jnp.asarray(cell_var0, f).reshape(k),
+            jnp.broadcast_to(jnp.asarray(ridge_var0, f), (len(names),)))
+    U0 = jnp.zeros((n_cells, k), f) if u0 is None else jnp.asarray(u0, f)
+    V0 = jnp.zeros_like(l) if v0 is None else jnp.asarray(v0, f)
+    chunk = int(min(chunk_size, max(256, 1 << int(np.ceil(np.log2(max(n, 1)))))))
+    # sort the points by cell once (cell-less points last): the per-cell sums of every pass are
+    # then sorted segment sums; results are returned in the caller's order
+    g_np = np.asarray(groups)
+    order = np.argsort(np.where(g_np >= 0, g_np, n_cells), kind="stable")
+    inv = np.empty_like(order)
+    inv[order] = np.arange(n)
+    o = jnp.asarray(order)
+    s2o = s2[o]
+    res = _solve(condition, int(dev_column), l[o], jnp.asarray(x0, f), s2o,
+                 jnp.asarray(consts, f)[o], jnp.asarray(weights, f)[o],
+                 jnp.asarray(g_np[order], jnp.int32), jnp.asarray(design, f)[o], U0, V0[o], var0,
+                 ridge_idx, ridge_group, len(names), float(tol), int(max_iter), chunk,
+                 int(n_cells), bool(estimate_variances),
+                 jnp.asarray(np.inf if robust_k is None else robust_k, f), jnp.ones((), bool))
+    back = jnp.asarray(inv)
+    return eqx.tree_at(lambda r: (r.v, r.normalized, r.dev, r.omega_point, r.weights), res,
+                       (res.v[back], res.normalized[back], res.dev[back],
+                        res.omega_point[back], res.weights[back]))
+
+
+def unidentifiable(
+    cov: np.ndarray, names, candidates, *, threshold: float = 0.99,
+    typical: dict[str, float] | None = None,
+) -> list[tuple[tuple[str, ...], tuple[str, ...], float, str]]:
+    """Parameters the data cannot determine, from the covariance (or cofactor) matrix.
+
+    A candidate (a calibration parameter; object parameters are never held) is not identifiable
+
+    * when its correlation with another unknown exceeds ``threshold`` in absolute value,
+    * when its multiple correlation with all the others does (``1 - 1/VIF > threshold^2``, VIF
+      the diagonal of the inverse correlation matrix: a near rank deficiency shared by three or
+      more unknowns), or
+    * when its sigma exceeds its ``typical`` magnitude (the data say less about it than its
+      plausible size: e.g. x6 and x7 near the zenith, where they act as a rotation about the
+      reflector's axis of symmetry, which no reflector of revolution can show).
+
+    Candidates confounded with each other are returned together. Returns ``[(held names,
+    confounded with, max |correlation|, reason)]`` with reason ``"correlation"`` or ``"sigma"``.
+    """
+    names = list(names)
+    typical = typical or {}
+    C = np.asarray(cov, float)
+    s = np.sqrt(np.clip(np.diag(C), 1e-300, None))
+    R = C / np.outer(s, s)
+    np.fill_diagonal(R, 0.0)
+    try:
+        vif = np.diag(np.linalg.inv(R + np.eye(len(s))))
+        multiple = 1.0 - 1.0 / np.clip(vif, 1.0, None)
+    except np.linalg.LinAlgError:
+        multiple = np.ones(len(names))
+    corr_bad = {i for i, n in enumerate(names) if n in set(candidates)
+                and (np.max(np.abs(R[i])) > threshold or multiple[i] > threshold**2)}
+    sigma_bad = {i for i, n in enumerate(names) if n in set(candidates) and n in typical
+                 and s[i] > typical[n]}
+    bad = sorted(corr_bad | sigma_bad)
+    out, seen = [], set()
+    for i in sorted(bad, key=lambda i: -multiple[i]):
+        if i in seen:
+            continue
+        group = [i] + [j for j in bad if j != i and j not in seen and abs(R[i, j]) > 0.9]
+        seen.update(group)
+        partners = [j for j in range(len(names)) if j not in group
+                    and max(abs(R[g, j]) for g in group) > 0.9]
+        corr = float(max(np.max(np.abs(R[g])) for g in group))
+        reason = "correlation" if any(g in corr_bad for g in group) else "sigma"
+        out.append((tuple(names[g] for g in group), tuple(names[j] for j in partners),
+                    max(corr, float(np.sqrt(max(multiple[i], 0.0)))), reason))
+    return out

@@ -1,0 +1,115 @@
+"""The surface as a random effect: honest sigmas judged by z-scores over seeds, variance
+components, identifiability."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hartrao_jax._geometry import cartesian_to_raw, panel_cells, scanner_to_telescope
+from hartrao_jax._ghm import gauss_helmert
+from hartrao_jax._mixed import gauss_helmert_mixed, unidentifiable
+from hartrao_jax._model import make_model
+
+from helpers import F_TRUE, POSE, SIGMA, paraboloid_points
+
+EDGES = (1.6, 3.2, 4.8, 6.4, 8.0, 9.6, 11.2, 12.95)
+COUNTS = (15, 24, 30, 36, 42, 48, 60)
+TAU = 1.5e-4  # panel offsets, m
+
+
+def two_face_scan(seed: int, n: int = 12000, tau: float = TAU, noise: bool = True):
+    """Both faces of one set-up looking at a paraboloid whose panels are offset by N(0, tau^2)
+    along the normal: raw observations (2n, 3), telescope-frame points, the truth."""
+    rng = np.random.default_rng(seed)
+    X = paraboloid_points(2 * n, F_TRUE, seed)
+    cell, _, n_cells, _ = panel_cells(X, EDGES, COUNTS)
+    offsets = rng.normal(0.0, tau, n_cells)
+    rho = np.hypot(X[:, 0], X[:, 1])
+    normal = np.column_stack([-X[:, 0] / (2 * F_TRUE), -X[:, 1] / (2 * F_TRUE),
+                              np.ones(len(X))]) / np.sqrt(1 + (rho / (2 * F_TRUE)) ** 2)[:, None]
+    Xd = X + np.where(cell >= 0, offsets[np.clip(cell, 0, None)], 0.0)[:, None] * normal
+    R = np.asarray(scanner_to_telescope(POSE["rx"], POSE["ry"]))
+    t = np.array([POSE["tx"], POSE["ty"], POSE["tz"]])
+    xs = (Xd - t) @ R
+    parts = []
+    for face, sl in ((1, slice(0, n)), (2, slice(n, 2 * n))):
+        r, phi, th = cartesian_to_raw(xs[sl], face)
+        parts.append(np.stack([r, phi, th], 1))
+    lobs = np.concatenate(parts)
+    if noise:
+        lobs = lobs + np.random.default_rng(seed + 7).normal(size=lobs.shape) * SIGMA
+    return lobs, X
+
+
+def _fit_mixed(lobs, X, names=("tx", "ty", "tz", "rx", "ry", "f")):
+    model = make_model(list(names))
+    x_true = np.array([{**POSE, "f": F_TRUE}[k] for k in model.free])
+    cell, local, n_cells, _ = panel_cells(X, EDGES, COUNTS)
+    design = np.column_stack([np.ones(len(X)), local]) * (cell >= 0)[:, None]
+    c = np.zeros((len(lobs), 2))
+    res = gauss_helmert_mixed(model, lobs, x_true, SIGMA, c, np.ones(len(lobs)), cell, design,
+                              n_cells, cell_var0=np.array([1e-8, 1e-8, 1e-8]))
+    return res, x_true, model
+
+
+def test_mixed_sigmas_are_honest_over_seeds():
+    """z = (estimate - truth) / sigma over 12 seeds of a panelled reflector: std near 1 with the
+    random effect; the white-noise adjustment of the same data is overconfident."""
+    z_mixed, z_white, tau_hat = [], [], []
+    for seed in range(12):
+        lobs, X = two_face_scan(seed)
+        res, x_true, model = _fit_mixed(lobs, X)
+        assert bool(res.converged)
+        z_mixed.append((np.asarray(res.x) - x_true) / np.asarray(res.sigma))
+        tau_hat.append(float(np.sqrt(res.cell_var[0])))
+        white = gauss_helmert(model, lobs, x_true, SIGMA, np.zeros((len(lobs), 2)))
+        z_white.append((np.asarray(white.x) - x_true) / np.asarray(white.sigma))
+    z_mixed, z_white = np.concatenate(z_mixed), np.concatenate(z_white)
+    assert 0.7 < np.std(z_mixed) < 1.35, np.std(z_mixed)
+    assert np.max(np.abs(z_mixed)) < 4.5
+    assert np.std(z_white) > 2.0  # the panel pattern seen as white noise
+    assert np.median(tau_hat) == pytest.approx(TAU, rel=0.15)
+
+
+def test_mixed_without_surface_is_white_noise_adjustment():
+    """No panel pattern: the offsets' variance goes to ~0, sigma0 ~ 1 and the estimates equal
+    the white-noise Gauss-Helmert ones."""
+    lobs, X = two_face_scan(3, tau=0.0)
+    res, x_true, model = _fit_mixed(lobs, X)
+    white = gauss_helmert(model, lobs, x_true, SIGMA, np.zeros((len(lobs), 2)))
+    assert float(res.noise_var) == pytest.approx(1.0, abs=0.05)
+    assert float(np.sqrt(res.cell_var[0])) < 8e-5  # half the panel rms of the other tests
+    d = np.abs(np.asarray(res.x) - np.asarray(white.x)) / np.asarray(res.sigma)
+    assert np.all(d < 1.5), d  # tau is estimated: a few 1e-5 m of noise-driven spread
+    assert np.all(np.asarray(res.sigma) >= 0.99 * np.asarray(white.sigma))
+
+
+def test_mixed_blups_predict_panel_offsets():
+    """The cells' predictions follow the simulated offsets within their prediction sigmas."""
+    seed = 5
+    lobs, X = two_face_scan(seed, n=20000)
+    res, *_ = _fit_mixed(lobs, X)
+    rng = np.random.default_rng(seed)
+    cell, _, n_cells, _ = panel_cells(X, EDGES, COUNTS)
+    truth = rng.normal(0.0, TAU, n_cells)
+    u = np.asarray(res.u)[:, 0]
+    su = np.sqrt(np.asarray(res.u_cov)[:, 0, 0])
+    # the panel offsets are known up to what the pose/f absorb (a global paraboloid change);
+    # remove the mean before comparing
+    d = (u - truth) - np.mean(u - truth)
+    z = d / su
+    assert np.std(z) < 1.6
+    assert np.corrcoef(u, truth)[0, 1] > 0.8  # ~160 points of 0.8 mm noise per panel
+
+
+def test_unidentifiable_by_correlation_and_by_sigma():
+    names = ["f", "x6", "x7", "x4"]
+    C = np.diag([1e-10, 1e-12, 1e-12, 1e-14])
+    C[1, 2] = C[2, 1] = 0.995e-12  # x6, x7 confounded
+    bad = unidentifiable(C, names, ["x6", "x7", "x4"])
+    assert len(bad) == 1 and set(bad[0][0]) == {"x6", "x7"} and bad[0][3] == "correlation"
+    C = np.diag([1e-10, (1e-3) ** 2, 1e-14, 1e-14])  # x6 sigma 1e-3 rad >> typical 5e-5
+    bad = unidentifiable(C, names, ["x6", "x7", "x4"], typical={"x6": 5e-5, "x7": 5e-5})
+    assert [b[0] for b in bad] == [("x6",)] and bad[0][3] == "sigma"
+    assert unidentifiable(np.diag([1e-10, 1e-12, 1e-12, 1e-14]), names, ["x6", "x7"]) == []

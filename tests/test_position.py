@@ -1,0 +1,79 @@
+"""Two-face position adjustment: fit.json's positions, one-face positions, the zenith."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from hartrao_jax._campaign import load_campaign
+from hartrao_jax._fit import fit_campaign, fit_json
+from hartrao_jax._simulate import simulate_campaign
+
+EFFECTS = {"x4": 1.5e-4, "x6": 3e-5, "x7": -4e-5, "panel_offset": 1.5e-4}
+STEP = 0.02  # coarse: ~3e4 points per cycle
+
+
+@pytest.fixture(scope="module")
+def positions(tmp_path_factory):
+    """A tilted two-face position, a zenith two-face position; and a one-cycle campaign."""
+    root = tmp_path_factory.mktemp("pos")
+    two = simulate_campaign(root / "two", preset="demo", effects=EFFECTS, seed=3, step_rad=STEP,
+                            positions=[("r23", -35.0, -64.0), ("z0", 0.0, -25.9)])
+    one = simulate_campaign(root / "one", preset="demo", effects=EFFECTS, seed=4, step_rad=STEP,
+                            positions=[("r23", -35.0, -64.0)], cycles=(1,))
+    return (fit_campaign(load_campaign(two.root), "extended", progress=False),
+            fit_campaign(load_campaign(one.root), "extended", progress=False))
+
+
+def test_fit_json_positions_carry_the_shared_estimates(positions):
+    cf, _ = positions
+    doc = json.loads(json.dumps(fit_json(cf), allow_nan=False))  # strict JSON
+    assert doc["adjustment"].startswith("two-face")
+    p = next(q for q in doc["positions"] if q["position"] == "r23")
+    assert p["faces"] == 2 and p["kind"] == "two-face adjustment"
+    for n in ("tx", "ty", "tz", "rx", "ry", "f", "x4", "x6", "x7"):
+        assert p[n]["sigma"] > 0, n
+    vc = p["variance_components"]
+    assert 0.8 < vc["noise"] < 1.25
+    assert 0.5e-4 < vc["surface_m"] < 3e-4  # simulated 0.15 mm rms panels
+    assert len(p["panels"]) > 200 and all(r["offset_sigma_m"] > 0 for r in p["panels"])
+    scans = [s for s in doc["scans"] if s["position"] == "r23"]
+    assert [s["cycle"] for s in scans] == [1, 2]
+    for s in scans:  # the scans repeat the position's estimates, keep their own statistics
+        assert s["estimates"]["f"]["value"] == p["f"]["value"]
+        assert 0.8 < s["sigma0"] < 1.25 and s["converged"]
+
+
+def test_zenith_x6_x7_are_marked_not_identifiable(positions):
+    cf, _ = positions
+    pf = next(p for p in cf.position_fits if p.position == "z0")
+    assert pf.scans[0].elevation_deg > 85
+    assert {"x6", "x7"} <= set(pf.held)
+    assert "near zenith" in pf.held["x6"].note
+    rec = next(q for q in fit_json(cf)["positions"] if q["position"] == "z0")
+    assert rec["x6"] == {**rec["x6"], "value": 0.0, "sigma": None, "identifiable": False}
+    assert rec["x4"]["sigma"] > 0  # x4 stays determined at the zenith
+
+
+def test_one_cycle_position_is_labelled_and_holds_two_face_parameters(positions):
+    _, cf = positions
+    (pf,) = cf.position_fits
+    assert pf.faces == 1
+    assert {"x4", "x6", "x7"} <= set(pf.held)
+    assert "one-face" in pf.held["x4"].note
+    rec = fit_json(cf)["positions"][0]
+    assert rec["faces"] == 1 and rec["kind"] == "one face"
+    assert rec["x4"]["identifiable"] is False and rec["x4"]["sigma"] is None
+    assert np.isfinite(rec["f"]["value"]) and rec["f"]["sigma"] > 0
+
+
+def test_cli_prints_not_identifiable_in_one_line(positions, capsys):
+    from hartrao_jax.cli import print_fit_table
+
+    cf, _ = positions
+    print_fit_table(cf, title="t")
+    out = capsys.readouterr().out
+    lines = [ln for ln in out.splitlines() if ln.startswith("not identifiable:")]
+    assert len(lines) == 1 and "z0" in lines[0] and "x6 and x7" in lines[0]

@@ -50,7 +50,7 @@ def _rot(rx: float, ry: float) -> np.ndarray:
 
 def _cartesian_to_raw(xs: np.ndarray):
     try:  # the package's face rule when available (it is the spec's)
-        from hartrao_jax._geometry import cartesian_to_raw
+        from hartrao_jax.geometry._geometry import cartesian_to_raw
 
         return cartesian_to_raw(xs, cycle=1)
     except Exception:  # pragma: no cover - fallback identical to the spec's face rule, cycle 1

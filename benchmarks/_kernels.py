@@ -2,7 +2,7 @@
 chosen against (forward mode, hand-derived derivatives).
 
 The production pieces -- ``sincos``, :func:`materialize_trig`, :func:`linearize_rev`,
-:func:`gh_one_pass` -- live in :mod:`hartrao_jax._kernel` and are re-exported here.
+:func:`gh_one_pass` -- live in :mod:`hartrao_jax.solver._kernel` and are re-exported here.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from hartrao_jax._kernel import (  # noqa: F401
+from hartrao_jax.solver._kernel import (  # noqa: F401
     _materialize,
     _solve,
     _window,

@@ -73,16 +73,16 @@ def _run_stage(args: list[str], timeout: float = 7200) -> dict:
 
 
 def stage_simulate(a) -> None:
-    from hartrao_jax._simulate import simulate_campaign
+    from hartrao_jax.simulate._simulate import simulate_campaign
 
     t0 = time.perf_counter()
     kw = {}
     if a.positions:
-        from hartrao_jax._schedule import plan_positions
+        from hartrao_jax.campaign._schedule import plan_positions
 
         kw["positions"] = plan_positions(["red"])[: a.positions]
     camp = simulate_campaign(a.camp, preset="campaign", step_rad=a.step, seed=0, **kw)
-    from hartrao_jax._campaign import read_scan
+    from hartrao_jax.campaign._campaign import read_scan
 
     n = [len(read_scan(camp, m)) for m in camp.scans[:4]]
     _emit({"seconds": time.perf_counter() - t0, "scans": len(camp.scans),
@@ -95,11 +95,11 @@ def _keep(camp, preprocess: bool):
     to drop JAX's in-memory compilation caches now and then (176 scans of 176 sizes compile
     some thousand programs: without this the process runs out of memory maps, see
     ``_distributed.release_compiled``)."""
-    from hartrao_jax._distributed import release_compiled
+    from hartrao_jax.fit._distributed import release_compiled
 
     k = None
     if preprocess:
-        from hartrao_jax._preprocess import PreprocessConfig, keep_mask_fn
+        from hartrao_jax.preprocess._preprocess import PreprocessConfig, keep_mask_fn
 
         k = keep_mask_fn(PreprocessConfig(), camp)
 
@@ -111,9 +111,9 @@ def _keep(camp, preprocess: bool):
 
 
 def stage_fit_local(a) -> None:
-    from hartrao_jax._campaign import load_campaign
+    from hartrao_jax.campaign._campaign import load_campaign
     from hartrao_jax._config import enable_compilation_cache
-    from hartrao_jax._fit import fit_campaign, write_fit
+    from hartrao_jax.fit._fit import fit_campaign, write_fit
 
     enable_compilation_cache()
     camp = load_campaign(a.camp)
@@ -133,7 +133,7 @@ def stage_fit_local(a) -> None:
            "converged": sum(s.converged for s in cf.scans),
            "sigma0_median": float(sorted(s.sigma0 for s in cf.scans)[len(cf.scans) // 2])}
     if a.joint:
-        from hartrao_jax._joint import fit_joint, write_joint_fit
+        from hartrao_jax.fit._joint import fit_joint, write_joint_fit
 
         t1 = time.perf_counter()
         jf = fit_joint(camp, start=cf, group="night")
@@ -147,7 +147,7 @@ def stage_fit_local(a) -> None:
                         "gain": {n: {gr: d["gain"] for gr, d in g["shared"][n].items()}
                                  for n in g["shared"]},
                         "f_gain_median": g["f"]["gain_median"], "corr": c}
-        from hartrao_jax._gravity import write_gravity
+        from hartrao_jax.surface._gravity import write_gravity
 
         t1 = time.perf_counter()
         temps = all(m.temperature_c is not None for m in camp.scans)
@@ -160,7 +160,7 @@ def stage_fit_local(a) -> None:
                           "variance_factor": gm.focal.scale,
                           "corrected_modes": list(gm.corrected_modes)}
         # the old regression of f alone (the modes' take-up by f not corrected), for comparison
-        from hartrao_jax._gravity import gravity_model
+        from hartrao_jax.surface._gravity import gravity_model
 
         raw = gravity_model(out / "joint", temperature=temps, correct_leakage=False)
         res["gravity_raw"] = {"names": list(raw.focal.names), "beta": raw.focal.beta.tolist(),
@@ -178,9 +178,9 @@ def stage_fit_local(a) -> None:
 
 
 def stage_fit_dask(a) -> None:
-    from hartrao_jax._campaign import load_campaign
+    from hartrao_jax.campaign._campaign import load_campaign
     from hartrao_jax._config import enable_compilation_cache
-    from hartrao_jax._distributed import close_client, fit_dask, start_client
+    from hartrao_jax.fit._distributed import close_client, fit_dask, start_client
 
     enable_compilation_cache()
     camp = load_campaign(a.camp)
@@ -200,7 +200,7 @@ def stage_fit_dask(a) -> None:
 
 
 def stage_simulate_full(a) -> None:
-    from hartrao_jax._simulate import simulate_campaign
+    from hartrao_jax.simulate._simulate import simulate_campaign
 
     t0 = time.perf_counter()
     camp = simulate_campaign(a.camp, preset="paper", step_rad=a.step, seed=0, cycles=(1,))
@@ -212,9 +212,9 @@ def stage_simulate_full(a) -> None:
 
 
 def stage_stream(a) -> None:
-    from hartrao_jax._campaign import load_campaign
+    from hartrao_jax.campaign._campaign import load_campaign
     from hartrao_jax._config import enable_compilation_cache
-    from hartrao_jax._stream import stream_fit_scan
+    from hartrao_jax.fit._stream import stream_fit_scan
 
     enable_compilation_cache()
     camp = load_campaign(a.camp)

@@ -34,7 +34,7 @@ def _child(camp: str, cache: str) -> None:
     os.environ["HARTRAO_JAX_CACHE"] = cache
     import hartrao_jax  # noqa: F401
     from hartrao_jax._config import enable_compilation_cache
-    from hartrao_jax._diagnose import diagnose
+    from hartrao_jax.diagnose._diagnose import diagnose
 
     enable_compilation_cache()
     t = time.perf_counter()
@@ -61,7 +61,7 @@ def main(argv=None) -> int:
     from _common import machine_info, md_table, write_results
 
     import hartrao_jax  # noqa: F401
-    from hartrao_jax._simulate import simulate_campaign
+    from hartrao_jax.simulate._simulate import simulate_campaign
 
     steps = [0.01] if args.quick else [float(s) for s in args.steps.split(",")]
     rows = []

@@ -2,7 +2,7 @@
 
 Times the work of ONE iteration over all points, for
 
-* ``pkg two-pass``: what ``hartrao_jax._ghm`` does now (``_pass_normals`` + ``_pass_residuals``,
+* ``pkg two-pass``: what ``hartrao_jax.solver._ghm`` does now (``_pass_normals`` + ``_pass_residuals``,
   i.e. two linearisations per point and iteration);
 * ``one-pass``: the fused pass of ``_kernels.make_pass`` (residual update of iteration k-1 from
   the stored ``a, b, w, m`` + ONE linearisation + normal equations + in-place store), with

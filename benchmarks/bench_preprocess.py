@@ -2,7 +2,7 @@
 
 One simulated scan (demo scene: reflector, cone, quadrupod, background, mixed pixels, multipath)
 per size, cached as ``.npz``. Every method runs the *same* pipeline
-(:func:`hartrao_jax._preprocess.preprocess_scan`: initial values, range and geometry windows,
+(:func:`hartrao_jax.preprocess._preprocess.preprocess_scan`: initial values, range and geometry windows,
 angular patches) and differs only in the plane stage, swapped in for
 ``_preprocess.fit_planes``:
 
@@ -68,7 +68,7 @@ def make_scan(n_rows: float) -> Path:
     if p.exists():
         return p
     import hartrao_jax  # noqa: F401
-    from hartrao_jax._simulate import simulate_scan
+    from hartrao_jax.simulate._simulate import simulate_scan
 
     CACHE.mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()
@@ -81,7 +81,7 @@ def make_scan(n_rows: float) -> Path:
 
 
 def load_scan(n_rows: float):
-    from hartrao_jax._campaign import ScanData
+    from hartrao_jax.campaign._campaign import ScanData
 
     z = np.load(scan_file(n_rows))
     data = ScanData(z["range_m"], z["phi_rad"], z["theta_rad"], z["intensity"], z["time_s"],
@@ -108,7 +108,7 @@ def _three_distinct_np(u, n):
 def numpy_fit_planes(pts, n, eps, *, seed=0, ransac_iterations=64, refine_iterations=2,
                      ransac_float32=True, score_points=256, memory_mb=64.0, ids=None, **_):
     """The package's algorithm in NumPy, chunk by chunk of padded patches."""
-    from hartrao_jax._preprocess import ransac_uniforms
+    from hartrao_jax.preprocess._preprocess import ransac_uniforms
 
     pts = np.asarray(pts)
     n_p, P = pts.shape[:2]
@@ -242,9 +242,9 @@ def gh_comparison(n_rows: float, n_patches: int) -> dict:
 
     import hartrao_jax  # noqa: F401
     from hartrao_jax import _preprocess as pp
-    from hartrao_jax._campaign import ScanMeta, default_campaign
-    from hartrao_jax._geometry import polar_to_cartesian
-    from hartrao_jax._ghm import gauss_helmert_batch
+    from hartrao_jax.campaign._campaign import ScanMeta, default_campaign
+    from hartrao_jax.geometry._geometry import polar_to_cartesian
+    from hartrao_jax.solver._ghm import gauss_helmert_batch
 
     class PlaneC(eqx.Module):
         def __call__(self, l, x, c):
@@ -314,7 +314,7 @@ def worker(method: str, n_rows: float, calls: int = 3, xla_cache: str | None = N
 
     import hartrao_jax  # noqa: F401
     from hartrao_jax import _preprocess as pp
-    from hartrao_jax._campaign import ScanMeta, default_campaign
+    from hartrao_jax.campaign._campaign import ScanMeta, default_campaign
 
     data, cls, step = load_scan(n_rows)
     import dataclasses

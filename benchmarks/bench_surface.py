@@ -6,7 +6,7 @@ spots displaced by 3 mm (what two cycles of one position look like after the adj
 shuffled, with the two-face error of opposite sign. 1.3e7 points per cycle is the paper's
 0.63 mrad grid (6.3 mm at 10 m) over the reflector.
 
-Timed stages of :mod:`hartrao_jax._surface` (each size in its own subprocess, so that peak memory
+Timed stages of :mod:`hartrao_jax.surface._surface` (each size in its own subprocess, so that peak memory
 is its own):
 
 * ``panel_mask``: panel ids and the 2 cm edge masks of both cycles;
@@ -77,7 +77,7 @@ class PeakRSS:
 
 def make_cycles(n: int, seed: int = 0, block: int = 1 << 21):
     """Two cycles of ``n`` points: (X1, d1, X2, d2), built in blocks (few temporaries)."""
-    from hartrao_jax._surface import PanelLayout
+    from hartrao_jax.surface._surface import PanelLayout
 
     lay = PanelLayout.default()
     rng = np.random.default_rng(seed)
@@ -91,7 +91,7 @@ def make_cycles(n: int, seed: int = 0, block: int = 1 << 21):
         X1[s:s + m, 0] = rho * np.cos(psi)
         X1[s:s + m, 1] = rho * np.sin(psi)
         X1[s:s + m, 2] = rho * rho / (4 * 10.9816)
-        from hartrao_jax._geometry import panel_ids
+        from hartrao_jax.geometry._geometry import panel_ids
 
         pid = panel_ids(rho, psi, lay.ring_edges_m, lay.panels_per_ring)
         d1[s:s + m] = offsets[pid] + rng.normal(scale=8e-4, size=m)
@@ -111,7 +111,7 @@ def make_cycles(n: int, seed: int = 0, block: int = 1 << 21):
 
 
 def _truth(X: np.ndarray, offsets: np.ndarray, lay) -> np.ndarray:
-    from hartrao_jax._geometry import panel_ids
+    from hartrao_jax.geometry._geometry import panel_ids
 
     rho = np.hypot(X[:, 0], X[:, 1])
     psi = np.mod(np.arctan2(X[:, 1], X[:, 0]), 2 * np.pi)
@@ -122,7 +122,7 @@ def run_one(n: int, baseline: bool) -> dict:
     """One size, in this process: the stages' times and memory."""
     import tracemalloc
 
-    from hartrao_jax._surface import (
+    from hartrao_jax.surface._surface import (
         PanelLayout, SurfaceConfig, cycle_average, panel_mask, panel_statistics,
     )
 

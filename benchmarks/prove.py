@@ -3,7 +3,7 @@
 
     python benchmarks/prove.py [--out DIR] [--seeds N] [--cases a,b] [--step RAD]
 
-For every case of :data:`hartrao_jax._prove.CASES` (one effect class concealed below the noise,
+For every case of :data:`hartrao_jax.prove._prove.CASES` (one effect class concealed below the noise,
 absorbed by the model, masked by panel deviations or confined to a small part of one scan; plus
 clean controls) it simulates ``--seeds`` campaigns, diagnoses them blind and scores the findings
 against the truth. Prints the table and writes ``DIR/prove.json``, ``prove.md``, ``prove.png``.
@@ -35,7 +35,7 @@ def main(argv=None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     logging.getLogger("hartrao_jax").setLevel(logging.INFO)
     import hartrao_jax  # noqa: F401
-    from hartrao_jax._prove import detectability, merge_results, print_table, run_prove
+    from hartrao_jax.prove._prove import detectability, merge_results, print_table, run_prove
 
     if args.merge:
         res = merge_results(args.out, args.merge.split(","))

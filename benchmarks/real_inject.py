@@ -11,7 +11,7 @@ Two levels, both reported:
 * **search** (every placement): the start fit of the unmodified recording gives each point's
   residual along the normal; the injected bump adds ``a g`` to it (first order: one local bump
   hardly moves a pose and focal length fitted to 3e4-5e4 points), and
-  :func:`hartrao_jax._locate.search` runs blind on the sum. Detected = the search's best
+  :func:`hartrao_jax.diagnose._locate.search` runs blind on the sum. Detected = the search's best
   candidate is significant (p < 1e-3 against the reflector's own peaks) and lies within
   ``max(w, 0.5 m)`` of the true centre. Placements without a bump give the false-alarm rate.
 * **end to end** (a subset): the displaced points are written as an XYZ export, imported with
@@ -44,8 +44,8 @@ FILES = {"scan10": "scan10_random_sample.csv", "bump1": "bump1_high_sample.csv"}
 def _normals_and_residuals(camp):
     """Start fit of the recording: per point the residual along the normal (m), its aperture
     position (m), the unit normal towards the focus in the file frame, used mask."""
-    from hartrao_jax._diagnose import _Context, _evaluate, _Spec, _start_scans, DiagnoseConfig
-    from hartrao_jax._geometry import rot_z, scanner_to_telescope
+    from hartrao_jax.diagnose._diagnose import _Context, _evaluate, _Spec, _start_scans, DiagnoseConfig
+    from hartrao_jax.geometry._geometry import rot_z, scanner_to_telescope
 
     ctx = _Context(camp, DiagnoseConfig())
     sc = _start_scans(ctx, ("tx", "ty", "tz", "rx", "ry", "f"), None, None)[0]
@@ -80,8 +80,8 @@ def _placements(xy, used, rng, k, w):
 
 
 def run(quick: bool, placements: int, end_to_end: int, seed: int = 0) -> dict:
-    from hartrao_jax._import import import_file
-    from hartrao_jax._locate import search
+    from hartrao_jax.campaign._import import import_file
+    from hartrao_jax.diagnose._locate import search
 
     amps = [1e-3, 2e-3, -2e-3] if quick else [1e-4, 2e-4, 5e-4, -5e-4, 1e-3, -1e-3, 2e-3, -2e-3]
     widths = [1.0] if quick else [0.3, 0.5, 1.0, 2.0, 3.0]
@@ -150,8 +150,8 @@ def _header_rows(path) -> int:
 
 
 def _end_to_end(rec, xyz, sc, n_file, cxy, a, w, out):
-    from hartrao_jax._diagnose import DiagnoseConfig, diagnose
-    from hartrao_jax._import import import_file
+    from hartrao_jax.diagnose._diagnose import DiagnoseConfig, diagnose
+    from hartrao_jax.campaign._import import import_file
 
     # the imported rows keep the file's order: row -> point (only imported rows are moved)
     rows = np.asarray(sc.data.row)

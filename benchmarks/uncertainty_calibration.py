@@ -56,9 +56,9 @@ def _z(name: str, value: float, truth: float, sigma: float) -> float:
 
 
 def run_one(case: str, seed: int, *, preprocess: bool = False) -> dict:
-    from hartrao_jax._campaign import load_campaign
-    from hartrao_jax._fit import fit_campaign
-    from hartrao_jax._simulate import simulate_campaign
+    from hartrao_jax.campaign._campaign import load_campaign
+    from hartrao_jax.fit._fit import fit_campaign
+    from hartrao_jax.simulate._simulate import simulate_campaign
 
     positions, effects, step = CASES[case]
     tmp = Path(tempfile.mkdtemp(prefix=f"zcal-{case}-{seed}-"))
@@ -72,7 +72,7 @@ def run_one(case: str, seed: int, *, preprocess: bool = False) -> dict:
         t_sim = time.time() - t0
         keep = None
         if preprocess:
-            from hartrao_jax._preprocess import PreprocessConfig, keep_mask_fn
+            from hartrao_jax.preprocess._preprocess import PreprocessConfig, keep_mask_fn
 
             keep = keep_mask_fn(PreprocessConfig(), campaign=camp)
         rows = []

@@ -16,7 +16,7 @@ from ._config import enable_x64 as _enable_x64
 
 _enable_x64()
 
-from ._campaign import (  # noqa: E402
+from .campaign._campaign import (  # noqa: E402
     Campaign,
     CampaignError,
     ScanData,
@@ -25,11 +25,11 @@ from ._campaign import (  # noqa: E402
     read_scan,
     write_campaign,
 )
-from ._fit import CampaignFit, ScanFit, fit_campaign, fit_json, fit_scan, write_fit  # noqa: E402
-from ._ghm import GHResult, gauss_helmert, gauss_helmert_batch, robust_gauss_helmert  # noqa: E402
-from ._model import ModelError, ParaboloidModel, make_model, parse_model  # noqa: E402
-from ._physics import EFFECTS, EXTENDED, INSTRUMENT, SIMPLIFIED  # noqa: E402
-from ._simulate import CLASSES, PRESETS, parse_effects, simulate_campaign, simulate_scan  # noqa: E402
+from .fit._fit import CampaignFit, ScanFit, fit_campaign, fit_json, fit_scan, write_fit  # noqa: E402
+from .solver._ghm import GHResult, gauss_helmert, gauss_helmert_batch, robust_gauss_helmert  # noqa: E402
+from .model._model import ModelError, ParaboloidModel, make_model, parse_model  # noqa: E402
+from .physics._catalog import EFFECTS, EXTENDED, INSTRUMENT, SIMPLIFIED  # noqa: E402
+from .simulate._simulate import CLASSES, PRESETS, parse_effects, simulate_campaign, simulate_scan  # noqa: E402
 
 simulate = simulate_campaign
 

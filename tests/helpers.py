@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from hartrao_jax._config import real_data_dir, real_data_missing
-from hartrao_jax._geometry import cartesian_to_raw, scanner_to_telescope
+from hartrao_jax.geometry._geometry import cartesian_to_raw, scanner_to_telescope
 
 F_TRUE = 10.9816
 POSE = {"tx": 0.01, "ty": -0.02, "tz": 9.3, "rx": 0.3, "ry": np.pi - 0.5}
@@ -52,7 +52,7 @@ def synthetic_scan(n=20000, *, cycle=1, seed=0, noise=True, pose=None, f=F_TRUE,
     r, phi, th = cartesian_to_raw(xs, cycle)
     l = np.stack([r, phi, th], 1)
     if params:
-        from hartrao_jax._physics import instrument_corrections
+        from hartrao_jax.physics._catalog import instrument_corrections
 
         target = l.copy()
         for _ in range(20):  # raw + correction(raw) = target

@@ -15,7 +15,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from hartrao_jax._campaign import (
+from hartrao_jax.campaign._campaign import (
     FORMAT,
     Campaign,
     CampaignError,
@@ -30,7 +30,7 @@ from hartrao_jax._campaign import (
     write_scan_e57,
     write_scan_parquet,
 )
-from hartrao_jax._e57 import cartesian_to_e57, e57_to_raw, raw_to_e57
+from hartrao_jax.campaign._e57 import cartesian_to_e57, e57_to_raw, raw_to_e57
 
 PI = math.pi
 COLS = ("range_m", "phi_rad", "theta_rad", "intensity", "time_s", "row")

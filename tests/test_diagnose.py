@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from hartrao_jax._config import enable_compilation_cache
-from hartrao_jax._diagnose import (
+from hartrao_jax.diagnose._diagnose import (
     DIAGNOSIS_SCHEMA,
     DiagnoseConfig,
     _box_search,
@@ -24,14 +24,14 @@ from hartrao_jax._diagnose import (
     diagnose,
     write_json,
 )
-from hartrao_jax._prove import (
+from hartrao_jax.prove._prove import (
     MULTI_POSITIONS,
     PANELS,
     Case,
     _intensity_range_error,
     score,
 )
-from hartrao_jax._simulate import simulate_campaign
+from hartrao_jax.simulate._simulate import simulate_campaign
 
 STEP = 0.02
 
@@ -242,7 +242,7 @@ def _fake_scans(n_pos, df_dT, seed=0, sigma_f=5e-5):
 def test_thermal_from_the_focal_lengths_across_positions():
     """f against temperature with the gravity terms estimated: found with its estimate on 23
     positions, nothing without it, and confounded with gravity on a few positions."""
-    from hartrao_jax._diagnose import DiagnoseConfig, _Context, _thermal
+    from hartrao_jax.diagnose._diagnose import DiagnoseConfig, _Context, _thermal
 
     ctx = _Context.__new__(_Context)
     ctx.config = DiagnoseConfig()
@@ -300,8 +300,8 @@ def test_local_deformation_is_one_function_for_simulator_and_model():
     """The catalog's bump: the simulator's surface and the model's deviation agree."""
     import jax.numpy as jnp
 
-    from hartrao_jax._model import make_model
-    from hartrao_jax._physics import EFFECTS, local_deformation
+    from hartrao_jax.model._model import make_model
+    from hartrao_jax.physics._catalog import EFFECTS, local_deformation
 
     assert EFFECTS["local_deformation"].family == "reflector"
     v = float(local_deformation(1.0, 2.0, 1.0, 2.0, 1e-3, 0.5))

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hartrao_jax._diagnose import DiagnoseConfig, diagnose
-from hartrao_jax._import import import_file
-from hartrao_jax._recording import two_face_parameters
+from hartrao_jax.diagnose._diagnose import DiagnoseConfig, diagnose
+from hartrao_jax.campaign._import import import_file
+from hartrao_jax.diagnose._recording import two_face_parameters
 
 REAL = Path(os.environ.get("HARTRAO_REAL_DATA",
                            Path(__file__).resolve().parents[2] / "shared" / "real")) / "gbt-lassi"

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 import hartrao_jax  # noqa: F401  (float64)
-from hartrao_jax._campaign import read_scan
+from hartrao_jax.campaign._campaign import read_scan
 from hartrao_jax._config import enable_compilation_cache
-from hartrao_jax._fit import fit_campaign, fit_json, fit_scan, prepare_scan
-from hartrao_jax._schedule import find_position
-from hartrao_jax._simulate import simulate_campaign
-from hartrao_jax._stream import peak_rss_gib, stream_fit_scan
+from hartrao_jax.fit._fit import fit_campaign, fit_json, fit_scan, prepare_scan
+from hartrao_jax.campaign._schedule import find_position
+from hartrao_jax.simulate._simulate import simulate_campaign
+from hartrao_jax.fit._stream import peak_rss_gib, stream_fit_scan
 
 enable_compilation_cache()
 
@@ -88,9 +88,9 @@ def test_stream_stalled_round_checks_rejections_early(scatter_campaign, tmp_path
     stalls at the float64 floor) is checked for rejections at once instead of running to
     max_iter; the last round, with nothing left to reject, still runs to max_iter. Same
     rejections and estimates as the in-memory robust fit, in fewer iterations."""
-    from hartrao_jax._fit import _x0, scan_arrays, sigma_vector
-    from hartrao_jax._ghm import gauss_helmert
-    from hartrao_jax._model import make_model
+    from hartrao_jax.fit._fit import _x0, scan_arrays, sigma_vector
+    from hartrao_jax.solver._ghm import gauss_helmert
+    from hartrao_jax.model._model import make_model
 
     camp = scatter_campaign
     meta = camp.scan("r23c1")
@@ -130,7 +130,7 @@ def test_stream_with_its_own_initial_values(scatter_campaign, tmp_path):
 def test_padded_fit_equals_fit_scan(scatter_campaign):
     """The padded fit (rows padded to a bucket size: one compiled program per campaign, not
     per scan) gives the unpadded results, rejected points included, on the scan's own rows."""
-    from hartrao_jax._joint import bucket_size
+    from hartrao_jax.fit._joint import bucket_size
 
     camp = scatter_campaign
     meta = camp.scan("r23c1")
@@ -200,14 +200,14 @@ def test_dask_with_the_zenith_equals_in_process(zenith_campaign, tmp_path):
 
 def _dask_equals_in_process(camp, tmp_path):
     pytest.importorskip("distributed")
-    from hartrao_jax._distributed import (
+    from hartrao_jax.fit._distributed import (
         MALLOC_VAR,
         close_client,
         fit_dask,
         fit_document,
         start_client,
     )
-    from hartrao_jax._joint import fit_joint, joint_json
+    from hartrao_jax.fit._joint import fit_joint, joint_json
 
     # the joint adjustment starts from per-cycle fits, on the workers as in-process
     local = fit_campaign(camp, "extended", progress=False, per_cycle=True)
@@ -246,7 +246,7 @@ def _dask_equals_in_process(camp, tmp_path):
 def test_cli_fit_stream(scatter_campaign, tmp_path):
     from click.testing import CliRunner
 
-    import hartrao_jax._cli_campaign  # noqa: F401  (registers the commands)
+    import hartrao_jax.cli._campaign  # noqa: F401  (registers the commands)
     from hartrao_jax.cli import main
 
     r = CliRunner().invoke(main, ["fit-stream", str(scatter_campaign.root), "--scan", "r23c1",
@@ -263,8 +263,8 @@ def test_stream_campaign_in_process_and_on_dask(scatter_campaign, tmp_path):
     """Every scan streamed (the full-resolution campaign path): in-process one after the other
     and one task per scan on a 2-worker LocalCluster give the single-scan results."""
     pytest.importorskip("distributed")
-    from hartrao_jax._distributed import close_client, start_client
-    from hartrao_jax._stream import stream_document, stream_fit_campaign, stream_fit_scan
+    from hartrao_jax.fit._distributed import close_client, start_client
+    from hartrao_jax.fit._stream import stream_document, stream_fit_campaign, stream_fit_scan
 
     camp = scatter_campaign
     ids = [m.id for m in camp.scans]
@@ -296,7 +296,7 @@ def test_stream_campaign_in_process_and_on_dask(scatter_campaign, tmp_path):
 def test_cli_fit_stream_every_scan(scatter_campaign, tmp_path):
     from click.testing import CliRunner
 
-    import hartrao_jax._cli_campaign  # noqa: F401  (registers the commands)
+    import hartrao_jax.cli._campaign  # noqa: F401  (registers the commands)
     from hartrao_jax.cli import main
 
     r = CliRunner().invoke(main, ["fit-stream", str(scatter_campaign.root), "--rows-per-chunk",

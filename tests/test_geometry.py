@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from hartrao_jax._geometry import (
+from hartrao_jax.geometry._geometry import (
     cartesian_to_raw,
     decompose_zyx,
     elevation_of,

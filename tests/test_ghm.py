@@ -7,7 +7,7 @@ import pytest
 from helpers import SIGMA, finite_difference, synthetic_scan, truth_vector
 
 from hartrao_jax import gauss_helmert, gauss_helmert_batch, make_model, robust_gauss_helmert
-from hartrao_jax._ghm import _linearize
+from hartrao_jax.solver._ghm import _linearize
 
 
 def _start(x):

@@ -11,8 +11,8 @@ import pytest
 
 import hartrao_jax  # noqa: F401  (float64)
 from hartrao_jax._config import enable_compilation_cache
-from hartrao_jax._geometry import gravity_in_telescope, telescope_axes_hadec, zernike
-from hartrao_jax._gravity import (
+from hartrao_jax.geometry._geometry import gravity_in_telescope, telescope_axes_hadec, zernike
+from hartrao_jax.surface._gravity import (
     ScanSample,
     gravity_grid,
     gravity_model,
@@ -22,8 +22,8 @@ from hartrao_jax._gravity import (
     zernike_np,
     zernike_projection,
 )
-from hartrao_jax._physics import DEFAULT_ZERNIKE_MODES
-from hartrao_jax._schedule import (
+from hartrao_jax.physics._catalog import DEFAULT_ZERNIKE_MODES
+from hartrao_jax.campaign._schedule import (
     LATITUDE_DEG,
     TOURS,
     campaign_plan,
@@ -75,7 +75,7 @@ def test_plan_follows_the_paper():
 
 
 def test_elevation_formula_matches_the_geometry():
-    from hartrao_jax._geometry import elevation_of
+    from hartrao_jax.geometry._geometry import elevation_of
 
     for h, d in ((0, LATITUDE_DEG), (35, -25.8897), (-35, -64), (80, -10), (0, 45), (60, -89)):
         F = telescope_axes_hadec(math.radians(h), math.radians(d), math.radians(LATITUDE_DEG))
@@ -84,7 +84,7 @@ def test_elevation_formula_matches_the_geometry():
 
 
 def test_presets_use_the_plan(tmp_path):
-    from hartrao_jax._simulate import PRESETS, simulate_campaign
+    from hartrao_jax.simulate._simulate import PRESETS, simulate_campaign
 
     assert len(PRESETS["campaign"].positions) == 88
     assert len(PRESETS["tour-red"].positions) == 23
@@ -189,9 +189,9 @@ NAMES = ("r1", "r5", "r10", "r23", "g5", "b9", "m5")
 
 @pytest.fixture(scope="module")
 def gravity_fit(tmp_path_factory):
-    from hartrao_jax._fit import fit_campaign
-    from hartrao_jax._joint import fit_joint, write_joint_fit
-    from hartrao_jax._simulate import simulate_campaign
+    from hartrao_jax.fit._fit import fit_campaign
+    from hartrao_jax.fit._joint import fit_joint, write_joint_fit
+    from hartrao_jax.simulate._simulate import simulate_campaign
 
     out = tmp_path_factory.mktemp("gravity")
     pos = []
@@ -277,7 +277,7 @@ def test_gravity_json_and_figures(gravity_fit):
 def test_cli_schedule_and_gravity(gravity_fit, tmp_path):
     from click.testing import CliRunner
 
-    import hartrao_jax._cli_campaign  # noqa: F401  (registers the commands)
+    import hartrao_jax.cli._campaign  # noqa: F401  (registers the commands)
     from hartrao_jax.cli import main
 
     r = CliRunner().invoke(main, ["schedule", "--json", str(tmp_path / "plan.json")])

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from helpers import real_gbt_file
 
-from hartrao_jax._campaign import CampaignError, load_campaign, read_scan
-from hartrao_jax._import import (
+from hartrao_jax.campaign._campaign import CampaignError, load_campaign, read_scan
+from hartrao_jax.campaign._import import (
     DEFAULT_INTENSITY,
     LEICA_EXPORT_SCANNER,
     ImportedScan,
@@ -320,7 +320,7 @@ def test_presets(tmp_path):
 
 @pytest.mark.parametrize("el, az", [(90.0, 0.0), (40.0, 100.0), (15.0, 200.0), (70.0, 330.0)])
 def test_altaz_to_hadec_same_boresight(el, az):
-    from hartrao_jax._geometry import telescope_axes_altaz, telescope_axes_hadec
+    from hartrao_jax.geometry._geometry import telescope_axes_altaz, telescope_axes_hadec
 
     lat = -25.8897
     ha, dec = _altaz_to_hadec(el, az, lat)
@@ -379,7 +379,7 @@ def test_import_pointing_defaults(tmp_path):
 
 def test_import_e57(tmp_path):
     pytest.importorskip("pye57")
-    from hartrao_jax._campaign import write_scan_e57
+    from hartrao_jax.campaign._campaign import write_scan_e57
 
     rng = np.random.default_rng(1)
     xyz = rng.normal(size=(200, 3)) * 5

@@ -5,15 +5,15 @@ import pytest
 from helpers import SIGMA, paraboloid_points
 
 from hartrao_jax import gauss_helmert, make_model
-from hartrao_jax._align import kappa_from_heading, mount_heading, north_alignment
-from hartrao_jax._geometry import (
+from hartrao_jax.fit._align import kappa_from_heading, mount_heading, north_alignment
+from hartrao_jax.geometry._geometry import (
     cartesian_to_raw,
     decompose_zyx,
     gravity_in_telescope,
     rot_z,
     telescope_axes_hadec,
 )
-from hartrao_jax._init import gimbal_rotation, initial_values
+from hartrao_jax.preprocess._initial import gimbal_rotation, initial_values
 
 LAT = np.radians(-25.8897)
 F = 10.9816
@@ -50,7 +50,7 @@ def test_initial_values_converge_across_working_range(ha, dec):
     m = make_model("extended")
     x0 = np.array([iv.x.get(k, 0.0) for k in m.free])
     # geometry window as the fit pipeline does it
-    from hartrao_jax._init import initial_distance
+    from hartrao_jax.preprocess._initial import initial_distance
 
     w = (np.abs(initial_distance(l[:, 0], l[:, 1], l[:, 2], iv.x)) < 0.1).astype(float)
     res = gauss_helmert(m, l, x0, SIGMA, np.zeros((len(l), 2)), w)
@@ -76,7 +76,7 @@ def test_kappa_from_gravity_away_from_zenith():
 def test_kappa_at_zenith_from_quadrupod_shadows():
     l, g, kappa, R = _scan(0, -25.8897, heading=0.7, scatter=0.0, legs=True, n=60000)
     _, ry, rx = decompose_zyx(R)
-    from hartrao_jax._geometry import polar_to_cartesian, rot_x, rot_y
+    from hartrao_jax.geometry._geometry import polar_to_cartesian, rot_x, rot_y
 
     X_fit = np.asarray(polar_to_cartesian(l[:, 0], l[:, 1], l[:, 2])) @ np.asarray(
         rot_y(ry) @ rot_x(rx)).T + np.asarray(rot_z(-kappa)) @ T_TEL
@@ -93,7 +93,7 @@ def test_kappa_at_zenith_from_quadrupod_shadows():
 def test_geometry_window_leaves_out_the_scanners_pole():
     """Points within 1e-3 rad of the pole (x6/sin(theta), x7/tan(theta) singular) are not
     adjusted, on both faces; all others inside the window are."""
-    from hartrao_jax._init import POLE_EXCLUSION_RAD, geometry_window, initial_distance
+    from hartrao_jax.preprocess._initial import POLE_EXCLUSION_RAD, geometry_window, initial_distance
 
     x = {"tx": 0.0, "ty": 0.0, "tz": 0.0, "rx": 0.0, "ry": 0.0, "f": 10.9816}
     theta = np.array([2e-4, 9e-4, 1.1e-3, 0.5, np.pi - 5e-4, np.pi + 5e-4, 2 * np.pi - 2e-4,

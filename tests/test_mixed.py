@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hartrao_jax._geometry import cartesian_to_raw, panel_cells, scanner_to_telescope
-from hartrao_jax._ghm import gauss_helmert
-from hartrao_jax._mixed import gauss_helmert_mixed, unidentifiable
-from hartrao_jax._model import make_model
+from hartrao_jax.geometry._geometry import cartesian_to_raw, panel_cells, scanner_to_telescope
+from hartrao_jax.solver._ghm import gauss_helmert
+from hartrao_jax.solver._mixed import gauss_helmert_mixed, unidentifiable
+from hartrao_jax.model._model import make_model
 
 from helpers import F_TRUE, POSE, SIGMA, paraboloid_points
 

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from hartrao_jax import ModelError, make_model
-from hartrao_jax._geometry import polar_to_cartesian
-from hartrao_jax._physics import (
+from hartrao_jax.geometry._geometry import polar_to_cartesian
+from hartrao_jax.physics._catalog import (
     EFFECTS,
     INSTRUMENT,
     correct_observations,

@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from hartrao_jax._campaign import load_campaign
-from hartrao_jax._fit import fit_campaign, fit_json
-from hartrao_jax._simulate import simulate_campaign
+from hartrao_jax.campaign._campaign import load_campaign
+from hartrao_jax.fit._fit import fit_campaign, fit_json
+from hartrao_jax.simulate._simulate import simulate_campaign
 
 EFFECTS = {"x4": 1.5e-4, "x6": 3e-5, "x7": -4e-5, "panel_offset": 1.5e-4}
 STEP = 0.02  # coarse: ~3e4 points per cycle

@@ -10,10 +10,10 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from hartrao_jax._campaign import ScanData, ScanMeta, default_campaign
-from hartrao_jax._geometry import cartesian_to_raw, face_of, polar_to_cartesian
-from hartrao_jax._ghm import gauss_helmert
-from hartrao_jax._preprocess import (
+from hartrao_jax.campaign._campaign import ScanData, ScanMeta, default_campaign
+from hartrao_jax.geometry._geometry import cartesian_to_raw, face_of, polar_to_cartesian
+from hartrao_jax.solver._ghm import gauss_helmert
+from hartrao_jax.preprocess._preprocess import (
     PREPROCESS_SCHEMA,
     REASONS,
     PlaneCondition,
@@ -24,7 +24,7 @@ from hartrao_jax._preprocess import (
     preprocess_campaign,
     preprocess_scan,
 )
-from hartrao_jax._simulate import CLASSES, SimConfig, simulate_campaign, simulate_scan
+from hartrao_jax.simulate._simulate import CLASSES, SimConfig, simulate_campaign, simulate_scan
 
 STEP = 0.015  # rad: coarse, fast
 SCATTER = ("cone", "quadrupod", "background", "mixed")

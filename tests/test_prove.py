@@ -2,7 +2,7 @@
 
 import json
 
-from hartrao_jax._prove import CASES, Score, _write, merge_results, score
+from hartrao_jax.prove._prove import CASES, Score, _write, merge_results, score
 
 
 def _case(name):

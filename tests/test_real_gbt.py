@@ -7,11 +7,11 @@ from helpers import needs_real_gbt as needs_real
 from helpers import paraboloid_points, real_gbt_file
 
 from hartrao_jax import gauss_helmert, make_model
-from hartrao_jax._fit import fit_scan
-from hartrao_jax._geometry import cartesian_to_raw, rot_x, rot_y, rot_z
-from hartrao_jax._import import import_file
-from hartrao_jax._init import patch_initial_values, quadric_initial_values
-from hartrao_jax._local import find_local_deformations
+from hartrao_jax.fit._fit import fit_scan
+from hartrao_jax.geometry._geometry import cartesian_to_raw, rot_x, rot_y, rot_z
+from hartrao_jax.campaign._import import import_file
+from hartrao_jax.preprocess._initial import patch_initial_values, quadric_initial_values
+from hartrao_jax.surface._local import find_local_deformations
 
 
 def _offset_section(n, f=60.0, seed=0):
@@ -37,7 +37,7 @@ def test_offset_paraboloid_from_arbitrary_pose_without_initial_values():
     iv = quadric_initial_values(l[:, 0], l[:, 1], l[:, 2])
     assert abs(iv.x["f"] - 60.0) < 1.0
     m = make_model("simplified")
-    from hartrao_jax._init import initial_distance
+    from hartrao_jax.preprocess._initial import initial_distance
 
     w = (np.abs(initial_distance(l[:, 0], l[:, 1], l[:, 2], iv.x)) < 0.1).astype(float)
     res = gauss_helmert(m, l, np.array([iv.x[k] for k in m.free]), sig, np.zeros((len(l), 2)), w)

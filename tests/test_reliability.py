@@ -28,7 +28,7 @@ from click.testing import CliRunner
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from hartrao_jax._campaign import (
+from hartrao_jax.campaign._campaign import (
     COLUMNS,
     MAX_RANGE_M,
     CampaignError,
@@ -43,7 +43,7 @@ from hartrao_jax._campaign import (
     write_campaign,
     write_scan_e57,
 )
-from hartrao_jax._safeio import (
+from hartrao_jax.campaign._safeio import (
     OutputDir,
     check_output_path,
     dumps_strict,
@@ -72,7 +72,7 @@ def _scan(cycle: int, n: int = 600, seed: int = 0) -> ScanData:
 
 
 def _meta(sid, cycle, position="r23"):
-    from hartrao_jax._campaign import ScanMeta
+    from hartrao_jax.campaign._campaign import ScanMeta
 
     return ScanMeta(id=sid, position=position, cycle=cycle, file="", ha_deg=-35.0, dec_deg=-64.0)
 
@@ -212,7 +212,7 @@ def case_ten_point_scans_fit_all(tmp, camp):
 def case_ten_point_scan_in_campaign(tmp, camp):
     """One small scan among good ones: refused by name until the fitting core excludes it
     from the averages with a note (``_cli_checks.REFUSE_SMALL_SCANS_IN_CAMPAIGN``)."""
-    from hartrao_jax import _cli_checks
+    from hartrao_jax.cli import _checks as _cli_checks
 
     if not _cli_checks.REFUSE_SMALL_SCANS_IN_CAMPAIGN:
         pytest.skip("the fitting core excludes small scans with a note")
@@ -583,7 +583,7 @@ def test_max_range_from_the_campaign(camp):
     assert c.scanner.max_range_m == 10.0
     d = read_scan(c, "r23c1")
     assert d.range_m.max() <= 10.0 and d.dropped["range_above_max"] > 0
-    from hartrao_jax._campaign import campaign_to_toml
+    from hartrao_jax.campaign._campaign import campaign_to_toml
 
     assert "max_range_m = 10.0" in campaign_to_toml(c)
 
@@ -597,7 +597,7 @@ def test_minimum_points_rule():
 
 
 def test_import_exit_status_two(tmp_path):
-    from hartrao_jax._import import import_command
+    from hartrao_jax.campaign._import import import_command
 
     r = CliRunner().invoke(import_command, [str(tmp_path / "x.ptx"), "--out", str(tmp_path / "c")])
     assert r.exit_code == 2 and r.stderr.startswith("error: ") and "Error:" not in r.output
@@ -697,7 +697,7 @@ def test_check_output_path(tmp_path):
 
 def test_simulate_writes_campaign_toml_last(tmp_path, monkeypatch):
     """An interrupted simulation never leaves a campaign.toml beside missing scans."""
-    from hartrao_jax import _campaign
+    from hartrao_jax.campaign import _campaign as _campaign
 
     calls = []
     real = _campaign.write_scan_parquet
@@ -785,7 +785,7 @@ def test_parquet_reader_never_tracebacks(tmp_path, table, cycle, chunk):
         if chunk is None:
             d = read_scan_parquet(path, cycle)
         else:
-            from hartrao_jax._campaign import _concat, _iter_chunks
+            from hartrao_jax.campaign._campaign import _concat, _iter_chunks
 
             d = _concat(list(_iter_chunks(path, cycle, chunk)))
     except CampaignError as e:
@@ -845,7 +845,7 @@ def test_toml_reader_never_tracebacks(base, tmp_path, key, value):
     """campaign.toml with one value replaced by anything: CampaignError or a valid campaign."""
     import re
 
-    from hartrao_jax._campaign import _toml_value
+    from hartrao_jax.campaign._campaign import _toml_value
 
     root = tmp_path / "c"
     if root.exists():
@@ -890,8 +890,8 @@ def test_kill_during_fit_leaves_old_or_new_result(tmp_path):
     ``HARTRAO_JAX_SAFEIO_PAUSE_S`` slows every step of the write (0.4 s) so that the kills land
     inside each phase: before any file, while the residual tables go to temporary names,
     during the commit's renames, and not at all."""
-    from hartrao_jax._safeio import PAUSE_ENV
-    from hartrao_jax._simulate import simulate_campaign
+    from hartrao_jax.campaign._safeio import PAUSE_ENV
+    from hartrao_jax.simulate._simulate import simulate_campaign
 
     camp = tmp_path / "camp"
     simulate_campaign(camp, preset="clean", step_rad=0.05)

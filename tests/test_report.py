@@ -10,9 +10,9 @@ import re
 import numpy as np
 import pytest
 
-from hartrao_jax._fit import fit_campaign, write_fit
-from hartrao_jax._geometry import face_of
-from hartrao_jax._report import (
+from hartrao_jax.fit._fit import fit_campaign, write_fit
+from hartrao_jax.geometry._geometry import face_of
+from hartrao_jax.report._report import (
     face_boundary,
     fig_average_map,
     fig_cycle_maps,
@@ -23,8 +23,8 @@ from hartrao_jax._report import (
     png_bytes,
     write_report,
 )
-from hartrao_jax._simulate import simulate_campaign
-from hartrao_jax._surface import surface_from_fit, write_surface
+from hartrao_jax.simulate._simulate import simulate_campaign
+from hartrao_jax.surface._surface import surface_from_fit, write_surface
 
 MIN_STD = 0.03  # grey-level standard deviation of a figure with content (blank: 0)
 
@@ -97,7 +97,7 @@ def test_figures_not_blank(demo):
     }
     for name, fig in figs.items():
         assert pixel_std(png_bytes(fig)) > MIN_STD, name
-    from hartrao_jax._report import _figure
+    from hartrao_jax.report._report import _figure
 
     assert pixel_std(png_bytes(_figure(2, 2))) == 0  # a blank figure fails the check
 
@@ -124,7 +124,7 @@ def test_face_boundary_separates_the_faces(demo):
 def test_report_cli(demo, tmp_path):
     from click.testing import CliRunner
 
-    import hartrao_jax._cli_surface  # noqa: F401  (registers the commands)
+    import hartrao_jax.cli._surface  # noqa: F401  (registers the commands)
     from hartrao_jax.cli import main
 
     out, camp, _ = demo

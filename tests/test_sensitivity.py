@@ -11,11 +11,11 @@ import pytest
 
 import hartrao_jax  # noqa: F401  (float64)
 from hartrao_jax._config import enable_compilation_cache
-from hartrao_jax._fit import fit_campaign, scan_arrays
-from hartrao_jax._geometry import panel_ids, paraboloid_deviation
-from hartrao_jax._model import make_model
-from hartrao_jax._schedule import find_position
-from hartrao_jax._sensitivity import (
+from hartrao_jax.fit._fit import fit_campaign, scan_arrays
+from hartrao_jax.geometry._geometry import panel_ids, paraboloid_deviation
+from hartrao_jax.model._model import make_model
+from hartrao_jax.campaign._schedule import find_position
+from hartrao_jax.sensitivity._sensitivity import (
     ARCSEC,
     finite_difference,
     refit_with,
@@ -24,7 +24,7 @@ from hartrao_jax._sensitivity import (
     solve_columns,
     write_sensitivity,
 )
-from hartrao_jax._simulate import simulate_campaign
+from hartrao_jax.simulate._simulate import simulate_campaign
 
 enable_compilation_cache()
 PARAMS = ("x4", "x6", "x7")

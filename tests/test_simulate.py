@@ -12,9 +12,9 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from hartrao_jax._campaign import ScanMeta, load_campaign, read_scan
-from hartrao_jax._geometry import panel_ids, rot_x, rot_y, rot_z
-from hartrao_jax._simulate import (
+from hartrao_jax.campaign._campaign import ScanMeta, load_campaign, read_scan
+from hartrao_jax.geometry._geometry import panel_ids, rot_x, rot_y, rot_z
+from hartrao_jax.simulate._simulate import (
     CLASSES,
     TRUTH_SCHEMA,
     EffectError,
@@ -123,8 +123,8 @@ def test_extra_deviation_enters_the_truth():
 
 def test_fit_recovers_truth(demo_c1):
     """The fitter's extended model on the simulator's output: unbiased to a few sigma."""
-    from hartrao_jax._ghm import gauss_helmert
-    from hartrao_jax._model import make_model
+    from hartrao_jax.solver._ghm import gauss_helmert
+    from hartrao_jax.model._model import make_model
 
     data, lab, truth = demo_c1
     refl = lab["cls"] == 0

@@ -11,11 +11,11 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from hartrao_jax._campaign import load_campaign
-from hartrao_jax._fit import fit_campaign, write_fit
-from hartrao_jax._geometry import panel_ids
-from hartrao_jax._simulate import SimConfig, simulate_campaign
-from hartrao_jax._surface import (
+from hartrao_jax.campaign._campaign import load_campaign
+from hartrao_jax.fit._fit import fit_campaign, write_fit
+from hartrao_jax.geometry._geometry import panel_ids
+from hartrao_jax.simulate._simulate import SimConfig, simulate_campaign
+from hartrao_jax.surface._surface import (
     SURFACE_SCHEMA,
     PanelLayout,
     SurfaceConfig,
@@ -264,7 +264,7 @@ def test_surface_from_fit_dir_matches_fit(panels):
 def test_surface_cli(panels, tmp_path):
     from click.testing import CliRunner
 
-    import hartrao_jax._cli_surface  # noqa: F401  (registers the commands)
+    import hartrao_jax.cli._surface  # noqa: F401  (registers the commands)
     from hartrao_jax.cli import main
 
     camp, _, d = panels

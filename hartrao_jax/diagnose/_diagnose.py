@@ -1,0 +1,2704 @@
+"""Discrepancy engine: compare recordings with the model, locate the mismatch, explain it with the
+catalog, model it and show the fit improve (``hartrao-jax diagnose``).
+
+The model is the simulator: with the fitted parameters, the condition ``F(l, x, c)`` of a
+recorded point is the mismatch between the recording and the simulation of that point (zero for
+a perfect simulation). It is reported in observation space (range-equivalent, ``F / (dF/dr)``)
+and as surface deviation (``-F / sqrt(1 + rho^2/4f^2)``, m along the normal, positive towards
+the focus).
+
+One step of the loop (``physics.md``, "Statistics"):
+
+1. *Locate.* Per scan, the mismatch is reduced to time bins (the scan's phi clock) by the
+   derivatives of the condition with respect to a small scanner translation and rotation: a box
+   search over windows (change points: impulsive shift) and a periodogram (oscillation) follow;
+   binned structure along theta, range, incidence angle, intensity, dish radius, azimuth and time
+   (per face) and within-panel structure on the dish (after panel planes) are measured.
+2. *Explain.* One augmented model per scan holds every catalog parameter not yet in the model,
+   free at value 0 (instrument parameters, the shift with the window found, the oscillation with
+   the period found, drift, Zernike modes); :func:`~hartrao_jax._ghm.normal_equations` gives its
+   normal equations at the current solution, with one offset per panel (common to all scans)
+   as nuisance. The scans' equations are summed into one joint system (separate object
+   parameters per scan, instrument parameters shared by all scans, motion per scan, Zernike
+   coefficients linear in gravity across positions) and the panel offsets are eliminated
+   (Schur complement). For every candidate the score statistic, its one-step estimate, the
+   predicted improvement in metres and its multiple correlation with the model follow from the
+   partitioned system; candidates inseparable from the model are reported as ``confounded``.
+3. *Decide.* Among the candidates that are significant (Bonferroni over the candidates and
+   the windows/periods searched), large enough (``min_effect_m``, the predicted rms change of
+   the fit, debiased by the degrees of freedom) and show their family's signature (instrument:
+   one value explains every scan; motion: not the same deviation in the other cycle unless the
+   same motion is there too), the one with the smallest adjusted p-value is accepted. Catalog
+   explanations come first; unexplained structure (within-panel cells after one plane per
+   panel, covariate bins after the panel planes) is taken before them only when it is far
+   stronger.
+4. *Model.* It is added to the functional model (instrument parameter shared by all scans;
+   motion parameters of a scan with their window or period; panel offsets from the group
+   elimination and an empirical map as known deviation ``c[1]``; Zernike coefficients linear in
+   gravity; a cut of the affected time range), the panel offsets and shared parameters follow
+   the joint step, and the scans are refitted. A finding must survive the refit: if sigma0
+   does not drop, the state is restored and the candidate refused.
+
+Units: metres, radians, seconds; ``_deg`` keys are degrees.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+import math
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy import stats
+
+from ..campaign._campaign import Campaign, ScanData, ScanMeta, load_campaign
+from ..geometry._geometry import face_of, panel_geometry, panel_ids, paraboloid_normal_scale
+from ..solver._ghm import gauss_helmert, normal_equations, robust_gauss_helmert
+from ..model._model import (BUMP, DRIFT, OSC_FREQUENCY, OSCILLATION, SHIFT, ZERNIKE_PREFIX, bump_names,
+                     make_model, parse_model)
+from ..physics._catalog import EFFECTS, INSTRUMENT, inseparable_pairs
+from ._recording import capabilities, skipped_searches, two_face_parameters
+from ..campaign._campaign import read_scan, require_points
+from ..campaign._safeio import write_json_atomic
+from ..fit._align import mount_heading
+from ..fit._fit import finish_scan_fit, prepare_scan, scan_arrays
+from ..geometry._geometry import pointing_gravity, rot_z
+from ..model._model import parameter_unit
+from ..report._report import diagnosis_local_figures
+from ..solver._ghm import GHResult
+from ._covariates import compare
+from ._local import local_step
+
+log = logging.getLogger("hartrao_jax")
+
+DIAGNOSIS_SCHEMA = "hartrao-diagnosis/1"
+
+MOTION: dict[str, tuple[str, ...]] = {
+    # a steady rotation of the scanner about x or y moves the far points like a translation:
+    # within one scan the drift rotations are inseparable from the drift translations
+    "impulsive_shift": SHIFT, "oscillation": OSCILLATION, "drift": DRIFT[:3],
+}
+ZERNIKE_TESTED: tuple[int, ...] = (5, 6, 7, 8, 9, 10, 11)  # Noll; defocus (4) is the focal length
+PROBE = ("shift_x", "shift_y", "shift_z", "osc_cx", "osc_cy")  # translation (3), rotation x, y
+COVARIATES = ("theta", "range", "incidence_angle", "intensity", "rho", "psi", "time")
+GRID_CELL_M = 2.0  # cell of the stated regular grid of telescopes without a panel layout
+
+
+@dataclass(frozen=True)
+class DiagnoseConfig:
+    """Decision thresholds and search settings of :func:`diagnose`.
+
+    Attributes:
+        alpha: family-wise false-alarm probability of one step; divided among the candidates
+            (and the windows and periods searched for motion) by Bonferroni.
+        min_effect_m: practical effect size: the predicted rms change of the fit (m) a finding
+            must reach, however significant.
+        confounded_correlation: multiple correlation with the model above which a parameter is
+            inseparable (reported under ``confounded``, never tested).
+        max_steps: at most this many findings are accepted.
+        robust_k: rejection threshold of the refits (a-posteriori sigmas; None: off).
+        max_time_bins / min_points_per_bin: time bins of the motion search.
+        max_window_fraction: longest impulsive-shift window searched (fraction of the scan).
+        covariate_bins: quantile bins per covariate and face.
+        panel_cells: sub-cells per panel (radial, azimuthal) of the within-panel search.
+        scan_consistency: a shared (instrument) candidate is refused when freeing it per scan
+            improves the fit by more than this fraction of its own statistic (and
+            significantly): its structure then belongs to one scan, not to the instrument.
+        common_slope: a motion candidate is refused when the other cycle shows the same
+            deviation in the same dish cells (regression slope above this and significant).
+        effects: effect ids to test (None: all of the catalog).
+    """
+
+    alpha: float = 1e-6
+    min_effect_m: float = 1.0e-5
+    confounded_correlation: float = 0.9995
+    max_steps: int = 10
+    robust_k: float | None = 4.0
+    max_time_bins: int = 1024
+    min_points_per_bin: int = 120
+    max_window_fraction: float = 0.3
+    covariate_bins: int = 16
+    panel_cells: tuple[int, int] = (3, 3)
+    scan_consistency: float = 0.3
+    common_slope: float = 0.5
+    effects: tuple[str, ...] | None = None
+
+
+# ============================================================================================
+# per-scan state
+# ============================================================================================
+
+
+@dataclass
+class _Scan:
+    """One scan under diagnosis: fixed geometry from the start fit and the current solution."""
+
+    meta: ScanMeta
+    data: ScanData
+    g: np.ndarray
+    init_x: dict[str, float]
+    window: np.ndarray  # points inside the geometry window (and the preprocessing mask)
+    l: np.ndarray
+    kappa: float
+    elevation_deg: float
+    X_tel: np.ndarray
+    rho: np.ndarray
+    psi: np.ndarray
+    panel: np.ndarray  # panel id (-1: none), from the start fit
+    s_rho: np.ndarray  # sqrt(1 + rho^2/4f^2): d condition / d normal offset
+    face: np.ndarray
+    incidence: np.ndarray
+    known: np.ndarray  # modelled normal deviation (m): panels and empirical maps
+    extra_known: np.ndarray  # the empirical (unexplained) part of it
+    cut: np.ndarray  # points cut from the adjustment (bool)
+    # current solution
+    names: tuple[str, ...] = ()
+    x: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    sigma0: float = float("nan")
+    omega: float = 0.0
+    redundancy: int = 0
+    v: np.ndarray | None = None
+    used: np.ndarray | None = None
+    F: np.ndarray | None = None  # misclosure at the observations (m, condition units)
+    m: np.ndarray | None = None  # b Sigma b^T
+    b0: np.ndarray | None = None  # dF/dr
+    probe: np.ndarray | None = None  # dF/d(translation x y z, rotation x y), (n, 5)
+    converged: bool = True
+    window_s: tuple[float, float] | None = None  # shift window found by the search (s)
+    window_stat: float = 0.0
+    period_s: float | None = None  # oscillation period found by the periodogram (s)
+    period_stat: float = 0.0
+    search: dict = field(default_factory=dict)  # curves of the searches (for figures)
+
+    @property
+    def id(self) -> str:
+        return self.meta.id
+
+    def value(self, name: str) -> float:
+        return float(self.x[self.names.index(name)])
+
+    @property
+    def mismatch_m(self) -> np.ndarray:
+        """Recording minus simulation as normal surface deviation (m, towards the focus)."""
+        return -self.F / self.s_rho
+
+    @property
+    def mismatch_range_m(self) -> np.ndarray:
+        """Recording minus simulation in observation space: the range error (m)."""
+        b0 = np.where(np.abs(self.b0) > 1e-12, self.b0, 1e-12)
+        return self.F / b0
+
+    def consts(self) -> np.ndarray:
+        return np.column_stack([self.data.time_s, self.known, self.s_rho])
+
+
+@dataclass
+class _Spec:
+    """The functional model being grown (what is common to all scans and what is per scan)."""
+
+    start: tuple[str, ...]
+    shared: dict[str, float] = field(default_factory=dict)  # accepted instrument parameters
+    shared_sigma: dict[str, float] = field(default_factory=dict)
+    zern_C: np.ndarray | None = None  # (K, 3) gravity Zernike coefficients, modes ZERNIKE_TESTED
+    motion: dict[str, dict] = field(default_factory=dict)  # scan id -> names, window_s, period_s
+    panels: dict[str, np.ndarray] | None = None  # offset, tilt_r, tilt_t per panel
+    accepted: list[str] = field(default_factory=list)
+    skip: set[str] = field(default_factory=set)  # found confounded: not tested again
+    modelled: set[str] = field(default_factory=set)  # covariates modelled by a map
+    times: bool = True  # recorded scan times (else no motion search)
+    no_covariates: set[str] = field(default_factory=set)  # covariates the recording lacks
+    # modelled local deformations: {"names": bump_* names, "values": {name: value},
+    # "scans": ids of the scans where they are free (the others hold them fixed)}
+    bumps: list[dict] = field(default_factory=list)
+
+    def names(self) -> list[str]:
+        out = list(self.start) + list(self.shared)
+        for m in self.motion.values():
+            out += [n for n in m["names"] if n not in out]
+        if self.zern_C is not None:
+            out += [f"{ZERNIKE_PREFIX}{j}" for j in ZERNIKE_TESTED]
+        if self.panels is not None:
+            out.append("panel_offset")
+        for a in self.accepted:
+            if a.startswith("unexplained") and "unexplained" not in out:
+                out.append("unexplained")
+        for b in self.bumps:
+            out += list(b["names"])
+        return out
+
+
+def _fixed(sc: _Scan, spec: _Spec) -> dict[str, float]:
+    fixed = dict(spec.shared)
+    for b in spec.bumps:
+        fixed.update(b["values"])
+    if spec.zern_C is not None:
+        for k, j in enumerate(ZERNIKE_TESTED):
+            fixed[f"{ZERNIKE_PREFIX}{j}"] = float(spec.zern_C[k] @ sc.g)
+    return fixed
+
+
+def _scan_model(sc: _Scan, spec: _Spec, aperture: float, extra: Sequence[str] = (),
+                window_s=None, period_s=None):
+    mot = spec.motion.get(sc.id, {})
+    names = list(spec.start) + [n for n in mot.get("names", ()) if n not in spec.start]
+    for b in spec.bumps:
+        if sc.id in b["scans"]:
+            names += list(b["names"])
+    names += [n for n in extra if n not in names]
+    window = mot.get("window_s") or window_s or (0.0, 0.0)
+    period = mot.get("period_s") or period_s or 1.0
+    fixed = {k: v for k, v in _fixed(sc, spec).items() if k not in names}  # free wins here
+    return make_model(names, fixed, shift_window_s=window, osc_period_s=period,
+                      kappa_rad=sc.kappa, aperture_radius_m=aperture, check_separable=False)
+
+
+@eqx.filter_jit
+def _pointwise(model, probe, l, x, xp, c, s2):
+    """Per point: ``m = b Sigma b^T``, ``dF/dr`` and the probe derivatives (translation,
+    rotation)."""
+    k = len(PROBE)
+
+    def one(args):
+        ll, cc = args
+        b = jax.grad(lambda l0: model(l0, x, cc))(ll)
+        m = jnp.sum(b * b * s2)
+        ap = jax.jacfwd(lambda p: probe(ll, jnp.concatenate([xp, p]), cc))(jnp.zeros(k, ll.dtype))
+        return m, b[0], ap
+
+    return jax.lax.map(one, (l, c), batch_size=8192)
+
+
+_misclosure = eqx.filter_jit(
+    lambda model, l, x, c: jax.lax.map(lambda a: model(a[0], x, a[1]), (l, c), batch_size=8192)
+)
+
+
+class _Context:
+    """Campaign-level constants of one diagnosis."""
+
+    def __init__(self, campaign: Campaign, config: DiagnoseConfig):
+        self.campaign = campaign
+        self.config = config
+        tel = campaign.telescope
+        self.aperture = tel.diameter_m / 2
+        s = campaign.scanner
+        self.sigma = np.array([s.sigma_range_m, s.sigma_angle_rad, s.sigma_angle_rad])
+        self.has_layout = bool(tel.ring_edges_m and tel.panels_per_ring)
+        if self.has_layout:
+            self.edges, self.counts = list(tel.ring_edges_m), list(tel.panels_per_ring)
+            self.layout_note = f"panels of the {tel.name} layout"
+        else:
+            # no panel layout (e.g. the GBT): a stated regular grid of cells of about
+            # GRID_CELL_M in the aperture plane (rings of that width, arcs of that length),
+            # over the radii the reflector spans (an offset reflector: offset +- D/2)
+            off = float(getattr(tel, "offset_m", 0.0) or 0.0)
+            r0 = max(float(tel.cone_radius_m or 0.0), off - self.aperture)
+            r1 = off + self.aperture
+            nr = max(1, round((r1 - r0) / GRID_CELL_M))
+            self.edges = list(np.linspace(r0, r1, nr + 1))
+            self.counts = [max(6, round(2 * np.pi * 0.5 * (a + b) / GRID_CELL_M))
+                           for a, b in zip(self.edges[:-1], self.edges[1:])]
+            self.layout_note = (f"{tel.name} has no panel layout: grid cells of about "
+                                f"{GRID_CELL_M:g} m x {GRID_CELL_M:g} m in the aperture plane "
+                                f"(rings of {GRID_CELL_M:g} m, arcs of {GRID_CELL_M:g} m), "
+                                "ids are grid cells, not panels")
+        self.geo = panel_geometry(self.edges, self.counts)
+        self.n_panels = int(sum(self.counts))
+
+
+# --------------------------------------------------------------------------------------------
+# fitting
+# --------------------------------------------------------------------------------------------
+
+_BUCKET = 1 << 15  # point arrays are padded to a multiple: scans of similar size share programs
+
+
+def _npad(n: int) -> int:
+    return max(_BUCKET, -(-n // _BUCKET) * _BUCKET)
+
+
+def _pad(a: np.ndarray, npad: int, fill=None) -> np.ndarray:
+    """Rows padded to ``npad``: repeating the last row (``fill=None``) or with ``fill``."""
+    a = np.asarray(a)
+    n = a.shape[0]
+    if n == npad:
+        return a
+    tail = (np.repeat(a[-1:], npad - n, 0) if fill is None
+            else np.full((npad - n,) + a.shape[1:], fill, a.dtype))
+    return np.concatenate([a, tail])
+
+
+def _adjust(ctx: _Context, model, l, x0, c, w, v0=None):
+    """Robust GH on padded arrays; returns the result cut back to the points."""
+
+    n = len(l)
+    npad = _npad(n)
+    lp, cp, wp = _pad(l, npad), _pad(c, npad), _pad(w, npad, 0.0)
+    k = ctx.config.robust_k
+    if k is None:
+        res = gauss_helmert(model, lp, x0, ctx.sigma, cp, wp)
+    else:
+        res = robust_gauss_helmert(model, lp, x0, ctx.sigma, cp, wp, k=k)
+    return GHResult(x=res.x, cov=res.cov, N=res.N, sigma0=res.sigma0, v=res.v[:n],
+                    misclosure=res.misclosure[:n], normalized=res.normalized[:n],
+                    weights=res.weights[:n], redundancy=res.redundancy, iterations=res.iterations,
+                    converged=res.converged)
+
+
+def _start_scans(ctx: _Context, start: tuple[str, ...], keep,
+                 scans: Sequence[str] | None) -> list[_Scan]:
+    """Fit every scan with the start model (as ``fit`` does) and freeze its geometry."""
+
+    camp = ctx.campaign
+    metas = [camp.scan(s) for s in scans] if scans else list(camp.scans)
+    tel, site = camp.telescope, camp.site
+    tilt = {m.id: np.arccos(np.clip(-pointing_gravity(m, tel, site)[2], -1, 1)) for m in metas}
+    fits, headings = {}, []
+    for meta in sorted(metas, key=lambda m: -tilt[m.id]):
+        data = read_scan(camp, meta)
+        require_points(len(data), len(parse_model(start)), file=camp.root / meta.file,
+                       scan_id=meta.id, what="the start model")  # refused by name
+        k = np.asarray(keep(meta, data), bool) if keep is not None else None
+        data, g, init, window = prepare_scan(camp, meta, data, keep=k)
+        mdl = make_model(start, aperture_radius_m=ctx.aperture, check_separable=False)
+        l, c = scan_arrays(data)
+        x0 = np.array([init.x.get(n, 0.0) for n in mdl.free])
+        res = _adjust(ctx, mdl, l, x0, c, window.astype(float))
+        hint = float(np.angle(np.mean(np.exp(1j * np.array(headings))))) if headings else None
+        f = finish_scan_fit(camp, meta, mdl, data, res, g, init, window, heading_hint_rad=hint)
+        if f.alignment.source == "gravity":
+            headings.append(mount_heading(f.alignment.kappa_rad, f.value("rx"), f.value("ry"),
+                                          f.gravity))
+        fits[meta.id] = (f, window)
+        log.info("start fit %s: sigma0 %.3f, %d points", meta.id, f.sigma0, f.n_points)
+
+    out = []
+    for meta in metas:  # campaign order
+        f, window = fits[meta.id]
+        X = f.X_tel
+        rho = np.hypot(X[:, 0], X[:, 1])
+        psi = np.mod(np.arctan2(X[:, 1], X[:, 0]), 2 * np.pi)
+        pid = panel_ids(rho, psi, ctx.edges, ctx.counts)
+        fval = f.value("f")
+        s_rho = np.asarray(paraboloid_normal_scale(rho, fval))
+        # incidence angle: beam (from the scanner origin, fitted frame) against the normal
+
+        t = np.array([f.value("tx"), f.value("ty"), f.value("tz")]) @ np.asarray(
+            rot_z(f.alignment.kappa_rad)).T
+        d = X - t
+        nrm = np.column_stack([-X[:, 0] / (2 * fval), -X[:, 1] / (2 * fval), np.ones(len(X))])
+        cosi = np.abs(np.sum(d * nrm, 1)) / (np.linalg.norm(d, axis=1) * np.linalg.norm(nrm, axis=1)
+                                             + 1e-300)
+        window = window | f.used
+        n = len(f.data)
+        sc = _Scan(
+            meta=f.meta, data=f.data, g=np.asarray(f.gravity), init_x=dict(f.init.x),
+            window=window, l=np.column_stack([f.data.range_m, f.data.phi_rad,
+                                                      f.data.theta_rad]),
+            kappa=float(f.alignment.kappa_rad), elevation_deg=float(f.elevation_deg), X_tel=X,
+            rho=rho, psi=psi, panel=pid, s_rho=s_rho, face=face_of(f.data.theta_rad),
+            incidence=np.arccos(np.clip(cosi, 0, 1)), known=np.zeros(n), extra_known=np.zeros(n),
+            cut=np.zeros(n, bool),
+        )
+        sc.names, sc.x, sc.cov, sc.sigma0 = f.names, f.x, f.cov, f.sigma0
+        sc.v, sc.used, sc.converged = f.v, f.used, f.converged
+        out.append(sc)
+    return out
+
+
+def _refit(ctx: _Context, sc: _Scan, spec: _Spec, x_hint: dict[str, float] | None = None,
+           from_used: bool = False) -> None:
+    """Adjust one scan with the current model (rigorous GH with robust rejection).
+
+    Rejection starts from the whole window (points rejected because of an effect that is now
+    modelled come back), or from the points used so far (``from_used``: global, small changes).
+    """
+    model = _scan_model(sc, spec, ctx.aperture)
+    prev = dict(zip(sc.names, sc.x))
+    hint = x_hint or {}
+    x0 = np.array([hint.get(n, prev.get(n, sc.init_x.get(n, 0.0))) for n in model.free])
+    w = ((sc.used if from_used and sc.used is not None else sc.window) & ~sc.cut).astype(float)
+    res = _adjust(ctx, model, sc.l, x0, sc.consts(), w)
+    sc.names = model.free
+    sc.x, sc.cov, sc.sigma0 = np.asarray(res.x), np.asarray(res.cov), float(res.sigma0)
+    sc.v, sc.used = np.asarray(res.v), np.asarray(res.weights) > 0
+    sc.converged = bool(res.converged)
+    _evaluate(ctx, sc, spec, model)
+
+
+def _evaluate(ctx: _Context, sc: _Scan, spec: _Spec, model=None) -> None:
+    """Misclosures, ``m``, ``dF/dr`` and probe derivatives at the current solution."""
+    model = model or _scan_model(sc, spec, ctx.aperture)
+    n = len(sc.l)
+    npad = _npad(n)
+    c = _pad(sc.consts(), npad)
+    lp = jnp.asarray(_pad(sc.l, npad))
+    x = jnp.asarray(sc.x)
+    sc.F = np.asarray(_misclosure(model, lp, x, jnp.asarray(c)))[:n]
+    base = [n for n in model.free if n not in SHIFT + OSCILLATION]
+    fixed = {k: v for k, v in _fixed(sc, spec).items() if k not in base}
+    probe = make_model(base + list(PROBE), fixed, shift_window_s=(-1e9, 1e18),
+                       osc_period_s=1e18, kappa_rad=sc.kappa, aperture_radius_m=ctx.aperture,
+                       check_separable=False)
+    xp = np.array([sc.value(n) for n in probe.free[: len(probe.free) - len(PROBE)]])
+    m, b0, ap = _pointwise(model, probe, lp, x, jnp.asarray(xp), jnp.asarray(c),
+                           jnp.asarray(ctx.sigma**2))
+    sc.m, sc.b0, sc.probe = np.asarray(m)[:n], np.asarray(b0)[:n], np.asarray(ap)[:n]
+    u = sc.used
+    sc.omega = float(np.sum(sc.F[u] ** 2 / sc.m[u]))
+    sc.redundancy = int(u.sum() - len(sc.x))
+
+
+def _global_sigma0(scans: Sequence[_Scan]) -> float:
+    return math.sqrt(sum(s.omega for s in scans) / max(1, sum(s.redundancy for s in scans)))
+
+
+def _rms(scans: Sequence[_Scan]) -> float:
+    v = np.concatenate([s.mismatch_m[s.used] for s in scans])
+    return float(np.sqrt(np.mean(v**2)))
+
+
+# ============================================================================================
+# locate: time (change points, periodogram), covariates, dish
+# ============================================================================================
+
+
+def _time_bins(sc: _Scan, cfg: DiagnoseConfig):
+    u = sc.used & (sc.m > 0)
+    t = sc.data.time_s
+    nb = int(np.clip(u.sum() // cfg.min_points_per_bin, 16, cfg.max_time_bins))
+    t0, t1 = float(t[u].min()), float(t[u].max())
+    edges = np.linspace(t0, t1 + 1e-9 * max(1.0, abs(t1)), nb + 1)
+    b = np.clip(np.searchsorted(edges, t, side="right") - 1, 0, nb - 1)
+    q = np.where(u, 1.0 / np.where(sc.m > 0, sc.m, 1.0), 0.0)
+    a = sc.probe
+    Nb = np.zeros((nb, 5, 5))
+    nbv = np.zeros((nb, 5))
+    qa = a * q[:, None]
+    for i in range(5):
+        nbv[:, i] = np.bincount(b, qa[:, i] * sc.F, minlength=nb)
+        for j in range(i, 5):
+            Nb[:, i, j] = Nb[:, j, i] = np.bincount(b, qa[:, i] * a[:, j], minlength=nb)
+    return edges, b, Nb, nbv
+
+
+def _box_search(edges, Nb, nbv, cfg: DiagnoseConfig):
+    """Best window of a translation (impulsive shift) over the time bins: ``(i, j, T, profile)``.
+
+    ``T = n_W^T S_W^-1 n_W`` with ``S_W = N_W - N_W N^-1 N_W`` (the constant translation is
+    the object parameters'). Windows up to ``max_window_fraction`` of the scan.
+    """
+    B = len(nbv)
+    Nt, nt = Nb[:, :3, :3], nbv[:, :3]
+    CN = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(Nt, 0)])
+    Cn = np.concatenate([np.zeros((1, 3)), np.cumsum(nt, 0)])
+    Ntot = CN[-1]
+    Ninv = np.linalg.pinv(Ntot)
+    best = (0, 1, 0.0)
+    Lmax = max(1, int(cfg.max_window_fraction * B))
+    profile = np.zeros(B)
+    eye = 1e-9 * np.trace(Ntot) / 3 * np.eye(3)
+    for L in range(1, Lmax + 1):
+        NW = CN[L:] - CN[:-L]
+        nW = Cn[L:] - Cn[:-L]
+        S = NW - NW @ Ninv @ NW + eye
+        ok = np.trace(NW, axis1=1, axis2=2) > 0
+        T = np.zeros(len(nW))
+        if ok.any():
+            sol = np.linalg.solve(S[ok], nW[ok][..., None])[..., 0]
+            T[ok] = np.sum(nW[ok] * sol, 1)
+        k = int(np.argmax(T))
+        if T[k] > best[2]:
+            best = (k, k + L, float(T[k]))
+        np.maximum.at(profile, np.arange(len(T)), T)
+    return best[0], best[1], best[2], profile, Lmax
+
+
+def _refine_window(sc: _Scan, edges, i: int, j: int, Ntot, T0: float, n_cand: int = 48):
+    """Window edges at the resolution of the points' times (within one bin of the coarse
+    edges), by the same statistic on cumulative sums over the time-sorted points."""
+    u = sc.used & (sc.m > 0)
+    t = sc.data.time_s[u]
+    order = np.argsort(t, kind="stable")
+    t = t[order]
+    a = sc.probe[u][order, :3]
+    q = 1.0 / sc.m[u][order]
+    F = sc.F[u][order]
+    qa = a * q[:, None]
+    CN = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(qa[:, :, None] * a[:, None, :], 0)])
+    Cn = np.concatenate([np.zeros((1, 3)), np.cumsum(qa * F[:, None], 0)])
+    Ninv = np.linalg.pinv(Ntot)
+
+    def cands(k):
+        lo, hi = edges[max(k - 1, 0)], edges[min(k + 1, len(edges) - 1)]
+        idx = np.arange(np.searchsorted(t, lo), np.searchsorted(t, hi, side="right") + 1)
+        idx = np.clip(idx, 0, len(t))
+        if len(idx) > n_cand:
+            idx = idx[np.linspace(0, len(idx) - 1, n_cand).astype(int)]
+        return np.unique(idx)
+
+    s_idx, e_idx = cands(i), cands(j)
+    S0, E0 = np.meshgrid(s_idx, e_idx, indexing="ij")
+    ok = E0 > S0
+    if not ok.any():
+        return (float(edges[i]), float(edges[j] - edges[i])), T0
+    S0, E0 = S0[ok], E0[ok]
+    NW = CN[E0] - CN[S0]
+    nW = Cn[E0] - Cn[S0]
+    Sm = NW - NW @ Ninv @ NW + 1e-9 * np.trace(Ntot) / 3 * np.eye(3)
+    T = np.sum(nW * np.linalg.solve(Sm, nW[..., None])[..., 0], 1)
+    k = int(np.argmax(T))
+    if T[k] <= T0:
+        return (float(edges[i]), float(edges[j] - edges[i])), T0
+    s0, e0 = int(S0[k]), int(E0[k])
+    start = 0.5 * (t[s0 - 1] + t[s0]) if s0 > 0 else t[0] - 1e-9
+    end = 0.5 * (t[e0 - 1] + t[e0]) if e0 < len(t) else t[-1] + 1e-9
+    return (float(start), float(end - start)), float(T[k])
+
+
+def _periodogram(edges, Nb, nbv, cfg: DiagnoseConfig):
+    """Score statistic of a rotation ``a sin(wt) + b cos(wt)`` about scanner x and y vs period.
+
+    Returns ``(periods, T)``; the constant rotation (object parameters) is eliminated.
+    """
+    B = len(nbv)
+    tb = 0.5 * (edges[:-1] + edges[1:])
+    span = edges[-1] - edges[0]
+    Nr, nr = Nb[:, 3:, 3:], nbv[:, 3:]
+    live = np.trace(Nr, axis1=1, axis2=2) > 0
+    tb, Nr, nr = tb[live], Nr[live], nr[live]
+    fmin = 2.0 / span
+    fmax = 0.25 * B / span  # half the bins' Nyquist frequency
+    if fmax <= fmin:
+        return np.zeros(0), np.zeros(0)
+    nf = int(min(4000, max(50, 4 * (fmax - fmin) * span)))
+    freqs = np.linspace(fmin, fmax, nf)
+    Ntot = Nr.sum(0)
+    Ntot_inv = np.linalg.pinv(Ntot)
+    T = np.zeros(nf)
+    for lo in range(0, nf, 256):
+        f = freqs[lo: lo + 256]
+        ph = 2 * np.pi * f[:, None] * tb[None, :]
+        H = np.stack([np.sin(ph), np.cos(ph)], -1)  # (F, B, 2)
+        M = np.einsum("fbp,fbq,bij->fpiqj", H, H, Nr).reshape(len(f), 4, 4)
+        K = np.einsum("fbp,bij->fpij", H, Nr).reshape(len(f), 4, 2)
+        u = np.einsum("fbp,bi->fpi", H, nr).reshape(len(f), 4)
+        S = M - K @ Ntot_inv @ np.swapaxes(K, 1, 2)
+        S = S + 1e-12 * np.trace(S, axis1=1, axis2=2)[:, None, None] * np.eye(4)
+        sol = np.linalg.solve(S, u[..., None])[..., 0]
+        T[lo: lo + 256] = np.sum(u * sol, 1)
+    return 1.0 / freqs, T
+
+
+def _periodogram_points(sc: _Scan, freqs: np.ndarray, F: np.ndarray | None = None) -> np.ndarray:
+    """The periodogram statistic at a few frequencies from the points' own times (exact);
+    ``F``: misclosures to use instead of the scan's."""
+    u = sc.used & (sc.m > 0)
+    t = sc.data.time_s[u]
+    a = sc.probe[u][:, 3:]
+    q = 1.0 / sc.m[u]
+    F = (sc.F if F is None else F)[u]
+    qa = a * q[:, None]
+    N0 = qa.T @ a
+    N0i = np.linalg.pinv(N0)
+    out = np.zeros(len(freqs))
+    for k, f in enumerate(freqs):
+        ph = 2 * np.pi * f * t
+        h = np.stack([np.sin(ph), np.cos(ph)], 1)
+        C = (h[:, :, None] * a[:, None, :]).reshape(len(t), 4)  # (sin, cos) x (x, y)
+        qC = C * q[:, None]
+        M = qC.T @ C
+        K = qC.T @ a
+        uu = qC.T @ F
+        S = M - K @ N0i @ K.T
+        out[k] = float(uu @ np.linalg.solve(S + 1e-12 * np.trace(S) * np.eye(4), uu))
+    return out
+
+
+def _locate_time(sc: _Scan, cfg: DiagnoseConfig) -> None:
+    """Window of the strongest box (change points) and the strongest period of one scan."""
+    edges, b, Nb, nbv = _time_bins(sc, cfg)
+    i, j, T, profile, Lmax = _box_search(edges, Nb, nbv, cfg)
+    sc.window_s, sc.window_stat = _refine_window(sc, edges, i, j, Nb[:, :3, :3].sum(0), T)
+    periods, P = _periodogram(edges, Nb, nbv, cfg)
+    if len(P):
+        k = int(np.argmax(P))
+        # zoom on the peak with the points' own times
+        f0 = 1.0 / periods[k]
+        df = abs(1.0 / periods[min(k + 1, len(P) - 1)] - 1.0 / periods[max(k - 1, 0)]) / 2
+        fz = f0 + np.linspace(-1.5, 1.5, 31) * df
+        Pz = _periodogram_points(sc, fz)
+        j = int(np.argmax(Pz))
+        fbest = fz[j]
+        if 0 < j < len(Pz) - 1:  # parabolic refinement in frequency
+            den = Pz[j - 1] - 2 * Pz[j] + Pz[j + 1]
+            if den < 0:
+                fbest = fz[j] + 0.5 * (Pz[j - 1] - Pz[j + 1]) / den * (fz[1] - fz[0])
+        sc.period_s, sc.period_stat = float(1.0 / fbest), float(max(Pz[j], P[k]))
+    B = len(nbv)
+    sc.search = {
+        "edges": edges, "box_profile": profile, "n_windows": B * Lmax,
+        "periods": periods, "periodogram": P, "n_periods": max(1, len(P)),
+        "translation": _bin_solutions(Nb[:, :3, :3], nbv[:, :3]),
+    }
+
+
+def _bin_solutions(N, n):
+    """Per-bin least-squares estimates (regularised), for plots."""
+    tr = np.trace(N, axis1=1, axis2=2)[:, None, None]
+    reg = 1e-6 * np.where(tr > 0, tr, 1.0) * np.eye(N.shape[-1])
+    return -np.linalg.solve(N + reg, n[..., None])[..., 0]
+
+
+def _covariate_values(sc: _Scan) -> dict[str, np.ndarray]:
+    th = np.mod(sc.data.theta_rad, 2 * np.pi)
+    return {
+        "theta": np.where(th > np.pi, 2 * np.pi - th, th),
+        "range": sc.data.range_m,
+        "incidence_angle": sc.incidence,
+        "intensity": sc.data.intensity.astype(float),
+        "rho": sc.rho,
+        "psi": sc.psi,
+        "time": sc.data.time_s,
+        "phi": sc.data.phi_rad,
+    }
+
+
+def _covariate_tests(ctx: _Context, scans: Sequence[_Scan], sigma0: float, names=COVARIATES,
+                     skip=frozenset()):
+    """Binned structure of the range-equivalent mismatch along each covariate, all scans jointly.
+
+    The alternative is a range error per (scan, face, quantile bin of the covariate). One plane
+    per panel (offset and two tilts, common to all scans) is eliminated, so panel-level
+    reflector deviations do not show as covariate structure. Returns ``{covariate: dict(T, dof,
+    ids (per scan), est (range error per bin, m), se (m), per_scan)}``; the object parameters
+    are not eliminated (conservative).
+    """
+    cfg = ctx.config
+    nb = cfg.covariate_bins
+    G = ctx.n_panels
+    per_scan = 2 * nb
+    out = {}
+    base = []
+    Mgg = np.zeros((G, 3, 3))
+    ug = np.zeros((G, 3))
+    for sc in scans:
+        u = sc.used & (sc.m > 0)
+        q = np.where(u, 1.0 / np.where(sc.m > 0, sc.m, 1.0), 0.0)
+        pp = u & (sc.panel >= 0)
+        D = _panel_columns(ctx, sc) * sc.s_rho[:, None]  # d condition / d plane parameters
+        base.append((sc, u, q, pp, D, _covariate_values(sc)))
+        for a in range(3):
+            ug[:, a] += np.bincount(sc.panel[pp], (q * D[:, a] * sc.F)[pp], minlength=G)
+            for b in range(3):
+                Mgg[:, a, b] += np.bincount(sc.panel[pp], (q * D[:, a] * D[:, b])[pp],
+                                            minlength=G)
+    Mi = np.linalg.pinv(Mgg, rcond=1e-10)
+    for name in names:
+        if name in skip:
+            continue
+        B = per_scan * len(scans)
+        Mbb = np.zeros(B)
+        ub = np.zeros(B)
+        Mbg = np.zeros((B * G, 3))
+        ids_all = []
+        for k, (sc, u, q, pp, D, vals) in enumerate(base):
+            v = vals[name]
+            ids = np.full(len(v), -1)
+            for fc in (1, 2):
+                sel = u & (sc.face == fc)
+                if sel.sum() < 4 * nb:
+                    continue
+                qs = np.quantile(v[sel], np.linspace(0, 1, nb + 1)[1:-1])
+                ids[sel] = (fc - 1) * nb + np.searchsorted(qs, v[sel], side="right")
+            ids_all.append(ids)
+            ok = ids >= 0
+            gid = k * per_scan + ids[ok]
+            Mbb += np.bincount(gid, (q * sc.b0**2)[ok], minlength=B)
+            ub += np.bincount(gid, (q * sc.b0 * sc.F)[ok], minlength=B)
+            okp = ok & pp
+            cell = (k * per_scan + ids[okp]) * G + sc.panel[okp]
+            for a in range(3):
+                Mbg[:, a] += np.bincount(cell, (q * sc.b0 * D[:, a])[okp], minlength=B * G)
+        live = Mbb > 0
+        if live.sum() < 2:
+            continue
+        Mbg = Mbg.reshape(B, G, 3)
+        W = np.einsum("bgi,gij->bgj", Mbg, Mi)
+        Sm = np.diag(Mbb) - np.einsum("bgj,cgj->bc", W, Mbg)
+        m = ub - np.einsum("bgj,gj->b", W, ug)
+        Sm, m = Sm[np.ix_(live, live)], m[live]
+        w, V = np.linalg.eigh(0.5 * (Sm + Sm.T))
+        # the near-null directions are a common range offset of the bins against the panel
+        # planes (x10 against the surface): confounded, left out
+        keep = w > 1e-6 * w.max()
+        proj = V[:, keep].T @ m
+        T = float(np.sum(proj**2 / w[keep])) / sigma0**2
+        est = np.zeros(B)
+        est[live] = V[:, keep] @ (proj / w[keep])
+        planes = np.einsum("gij,gj->gi", Mi, ug - np.einsum("bgi,b->gi", Mbg, est))
+        raw = est.copy()
+        # a common range offset of all bins is absorbed by the surface (x10 is confounded):
+        # report the bins' contrast, per scan and face, with the information of each bin
+        for k in range(len(scans)):
+            for fc in range(2):
+                sl = slice(k * per_scan + fc * nb, k * per_scan + (fc + 1) * nb)
+                wl = Mbb[sl]
+                if wl.sum() > 0:
+                    est[sl] -= np.sum(wl * est[sl]) / wl.sum()
+        se = np.where(live, sigma0 / np.sqrt(np.where(live, Mbb, 1.0)), 0.0)
+        out[name] = {"T": T, "dof": int(keep.sum()), "ids": ids_all, "est": est, "se": se,
+                     "per_scan": per_scan, "raw": raw, "planes": planes}
+    return out
+
+
+def _covariate_cv(S: Sequence[_Scan], spec: _Spec, only=None) -> dict:
+    """Cross-validated comparison of the covariates (:func:`._covariates.compare`) on the
+    range-equivalent mismatch of the points in use, all scans together."""
+
+    names = [n for n in ("range", "incidence_angle", "intensity", "time", "theta", "phi", "rho",
+                         "psi") if n not in spec.no_covariates and (only is None or n in only
+                                                                     or n == "phi")]
+    vals = {n: [] for n in names}
+    res = []
+    for sc in S:
+        u = sc.used & (sc.m > 0)
+        cv = _covariate_values(sc)
+        for n in names:
+            vals[n].append(np.asarray(cv[n], float)[u])
+        res.append(sc.mismatch_range_m[u])
+    if not res:
+        return {}
+    return compare({n: np.concatenate(v) for n, v in vals.items()}, np.concatenate(res))
+
+
+def _panel_cells(ctx: _Context, sc: _Scan) -> np.ndarray:
+    """Sub-cell of each point within its panel (``panel * nr * na + cell``; -1: none)."""
+    nr, na = ctx.config.panel_cells
+    p = sc.panel
+    ok = p >= 0
+    k = np.where(ok, p, 0)
+    g = ctx.geo
+    fr = np.clip((sc.rho - g["rho_in"][k]) / (g["rho_out"][k] - g["rho_in"][k]), 0, 0.999999)
+    dpsi = np.mod(sc.psi - g["psi_start"][k], 2 * np.pi)
+    fa = np.clip(dpsi / (g["psi_end"][k] - g["psi_start"][k]), 0, 0.999999)
+    cell = (fr * nr).astype(int) * na + (fa * na).astype(int)
+    return np.where(ok, k * nr * na + cell, -1)
+
+
+def _panel_columns(ctx: _Context, sc: _Scan) -> np.ndarray:
+    """Normal-deviation columns of a panel plane (offset, radial tilt, tangential tilt)."""
+    k = np.where(sc.panel >= 0, sc.panel, 0)
+    g = ctx.geo
+    dpsi = np.mod(sc.psi - g["psi_c"][k] + np.pi, 2 * np.pi) - np.pi
+    return np.column_stack([np.ones_like(sc.rho), sc.rho - g["rho_c"][k], g["rho_c"][k] * dpsi])
+
+
+def _dish_test(ctx: _Context, scans: Sequence[_Scan], sigma0: float):
+    """Within-panel structure common to all scans: cell offsets after one plane per panel.
+
+    Returns per panel ``(T, dof)``, the per-cell deviation estimates (m) and the cell ids.
+    """
+    nr, na = ctx.config.panel_cells
+    C = nr * na
+    G = ctx.n_panels
+    # normal-deviation regression: condition change = s * dev, so dev column = -s (F = ... + dev s)
+    Mcc = np.zeros(G * C)
+    Mcp = np.zeros((G * C, 3))
+    Mpp = np.zeros((G, 3, 3))
+    uc = np.zeros(G * C)
+    up = np.zeros((G, 3))
+    cells = []
+    for sc in scans:
+        u = sc.used & (sc.m > 0) & (sc.panel >= 0)
+        q = np.where(u, 1.0 / np.where(sc.m > 0, sc.m, 1.0), 0.0)
+        cell = _panel_cells(ctx, sc)
+        cells.append(cell)
+        P = _panel_columns(ctx, sc)
+        s = sc.s_rho
+        r = -sc.F / s  # mismatch along the normal
+        w = q * s * s
+        ci, pi_ = cell[u], sc.panel[u]
+        Mcc += np.bincount(ci, w[u], minlength=G * C)
+        uc += np.bincount(ci, (w * r)[u], minlength=G * C)
+        for a in range(3):
+            Mcp[:, a] += np.bincount(ci, (w * P[:, a])[u], minlength=G * C)
+            up[:, a] += np.bincount(pi_, (w * r * P[:, a])[u], minlength=G)
+            for b in range(3):
+                Mpp[:, a, b] += np.bincount(pi_, (w * P[:, a] * P[:, b])[u], minlength=G)
+    Tg = np.zeros(G)
+    dof = np.zeros(G, int)
+    est = np.zeros(G * C)
+    for g in range(G):
+        sl = slice(g * C, (g + 1) * C)
+        live = Mcc[sl] > 0
+        if live.sum() <= 3:
+            continue
+        mcc = Mcc[sl][live]
+        mcp = Mcp[sl][live]
+        ucg = uc[sl][live]
+        # cells (indicators) reduced by the plane: S = diag(mcc) - mcp Mpp^-1 mcp^T
+        Pinv = np.linalg.pinv(Mpp[g])
+        S = np.diag(mcc) - mcp @ Pinv @ mcp.T
+        m = ucg - mcp @ Pinv @ up[g]
+        w_, V = np.linalg.eigh(S)
+        keep = w_ > 1e-6 * w_.max()
+        proj = V[:, keep].T @ m
+        Tg[g] = float(np.sum(proj**2 / w_[keep])) / sigma0**2
+        dof[g] = int(keep.sum())
+        sol = V[:, keep] @ (proj / w_[keep])
+        e = np.zeros(C)
+        e[live] = sol
+        est[sl] = e
+    return Tg, dof, est, cells
+
+
+# ============================================================================================
+# explain: augmented normal equations, joint system, tests
+# ============================================================================================
+
+
+@dataclass
+class _Candidate:
+    """A catalog effect (or a group of parameters) to test, in joint indices."""
+
+    effect: str
+    family: str
+    idx: np.ndarray  # joint indices of its (local) parameters
+    H: np.ndarray  # (len(idx), q): the tested parameters -> local columns
+    names: list[str]  # names of the tested parameters
+    scans: list[str]
+    penalty: float = 1.0  # Bonferroni factor of searches (windows, periods)
+    info: dict = field(default_factory=dict)
+    per_scan: np.ndarray | None = None  # H of the per-scan alternative (shared candidates)
+
+
+@dataclass
+class _Test:
+    cand: _Candidate
+    T: float
+    dof: int
+    p: float
+    z: float
+    effect_m: float
+    estimate: np.ndarray
+    sigma: np.ndarray
+    correlation: float
+    with_: list[str]
+    corr_with: list[float]
+    confounded: bool
+    T_diff: float = 0.0
+    dof_diff: int = 0
+    notes: list[str] = field(default_factory=list)
+    S: np.ndarray | None = None  # Schur complement of the tested parameters (x, panels out)
+    Draw: np.ndarray | None = None  # their normal matrix alone
+    cov: np.ndarray | None = None  # covariance of the one-step estimate
+
+
+def _z_of(T: float, dof: int) -> float:
+    """Equivalent standard-normal score of a chi-square value (Wilson-Hilferty)."""
+    if dof <= 0:
+        return 0.0
+    k = float(dof)
+    return ((max(T, 0.0) / k) ** (1 / 3) - (1 - 2 / (9 * k))) / math.sqrt(2 / (9 * k))
+
+
+def _p_of(T: float, dof: int) -> float:
+    return float(stats.chi2.sf(max(T, 0.0), max(dof, 1)))
+
+
+class _Joint:
+    """The scans' normal equations summed into one system, panel offsets eliminated."""
+
+    def __init__(self, ctx: _Context, scans: Sequence[_Scan], spec: _Spec, candidates_local):
+        self.ctx = ctx
+        self.scans = scans
+        cfg = ctx.config
+        G = ctx.n_panels
+        # ---- joint layout: x blocks per scan, accepted shared, then per-scan candidate slots
+        self.labels: list[str] = []
+        self.xidx: dict[str, np.ndarray] = {}
+        maps = []
+        self.local_names = {}
+        for sc in scans:
+            model = _scan_model(sc, spec, ctx.aperture)
+            x_names = list(model.free)
+            self.xidx[sc.id] = np.arange(len(self.labels), len(self.labels) + len(x_names))
+            self.labels += [f"{n}@{sc.id}" for n in x_names]
+            maps.append(x_names)
+        # accepted shared parameters (instrument; Zernike through gravity)
+        self.shared_names = list(spec.shared)
+        zern_acc = spec.zern_C is not None
+        self.sidx = np.arange(len(self.labels), len(self.labels) + len(self.shared_names)
+                              + (3 * len(ZERNIKE_TESTED) if zern_acc else 0))
+        self.labels += self.shared_names
+        if zern_acc:
+            self.labels += [f"C{j}{a}" for j in ZERNIKE_TESTED for a in "xyz"]
+        # candidate slots: per scan
+        self.cidx: dict[tuple[str, str], int] = {}
+        for sc in scans:
+            for n in candidates_local[sc.id]:
+                self.cidx[(sc.id, n)] = len(self.labels)
+                self.labels.append(f"{n}@{sc.id}")
+        D = len(self.labels)
+        self.D = D
+        N = np.zeros((D, D))
+        n = np.zeros(D)
+        wMw = 0.0
+        S = np.zeros(G)
+        sg = np.zeros((G, D))
+        tg = np.zeros(G)
+        self.n_used = 0
+        self.sum_q = 0.0
+        t0 = time.time()
+        for sc, x_names in zip(scans, maps):
+            cands = candidates_local[sc.id]
+            extra = list(self.shared_names) + (
+                [f"{ZERNIKE_PREFIX}{j}" for j in ZERNIKE_TESTED] if zern_acc else [])
+            extra += [c for c in cands if c not in extra]
+            mot = spec.motion.get(sc.id, {})
+            model = _scan_model(sc, spec, ctx.aperture, extra=extra,
+                                window_s=None if mot.get("window_s") else sc.window_s,
+                                period_s=None if mot.get("period_s") else sc.period_s)
+            fixed = _fixed(sc, spec)
+            prev = dict(zip(sc.names, sc.x))
+            x = np.array([prev.get(k, fixed.get(k, 0.0)) for k in model.free])
+            P = np.zeros((len(model.free), D))
+            for i, name in enumerate(model.free):
+                if name in x_names:
+                    P[i, self.xidx[sc.id][x_names.index(name)]] = 1.0
+                elif name in self.shared_names:
+                    P[i, self.sidx[self.shared_names.index(name)]] = 1.0
+                elif zern_acc and name.startswith(ZERNIKE_PREFIX) and int(
+                        name[len(ZERNIKE_PREFIX):]) in ZERNIKE_TESTED:
+                    k = ZERNIKE_TESTED.index(int(name[len(ZERNIKE_PREFIX):]))
+                    base = self.sidx[len(self.shared_names) + 3 * k]
+                    P[i, base: base + 3] = sc.g
+                else:
+                    P[i, self.cidx[(sc.id, name)]] = 1.0
+            w = (sc.used & (sc.m > 0)).astype(float)
+            npad = _npad(len(w))
+            ne = normal_equations(model, _pad(sc.l, npad), x, ctx.sigma,
+                                  _pad(sc.consts(), npad), _pad(w, npad, 0.0), _pad(sc.v, npad),
+                                  groups=_pad(np.where(sc.panel >= 0, sc.panel, -1), npad, -1),
+                                  n_groups=G, offset_column=2)
+            Ns, ns = np.asarray(ne.N), np.asarray(ne.n)
+            N += P.T @ Ns @ P
+            n += P.T @ ns
+            wMw += float(ne.wMw)
+            S += np.asarray(ne.S)
+            sg += np.asarray(ne.s) @ P
+            tg += np.asarray(ne.t)
+            self.n_used += int(w.sum())
+            self.sum_q += float(np.sum(w / np.where(sc.m > 0, sc.m, 1.0)))
+        log.debug("joint normal equations: %d unknowns, %.1f s", D, time.time() - t0)
+        self.N_raw, self.n_raw, self.wMw_raw = N, n, wMw
+        live = S > 0
+        Si = np.where(live, 1.0 / np.where(live, S, 1.0), 0.0)
+        self.G_live = int(live.sum())
+        self.N = N - (sg.T * Si) @ sg
+        self.n = n - sg.T @ (Si * tg)
+        self.wMw = wMw - float(np.sum(Si * tg**2))
+        self.group = (S, sg, tg)
+        self.group_count = np.zeros(G)
+        for sc in scans:
+            ok = sc.used & (sc.panel >= 0)
+            self.group_count += np.bincount(sc.panel[ok], minlength=G)
+        # ---- null system: x blocks and accepted shared
+        self.I0 = np.concatenate([*self.xidx.values(), self.sidx]).astype(int)
+        K = self.N[np.ix_(self.I0, self.I0)]
+        self.K_scale = 1.0 / np.sqrt(np.where(np.diag(K) > 0, np.diag(K), 1.0))
+        Ks = K * self.K_scale[:, None] * self.K_scale[None, :]
+        self.K_inv = np.linalg.pinv(Ks, rcond=1e-13) * self.K_scale[:, None] * self.K_scale[None, :]
+        n0 = self.n[self.I0]
+        self.omega0 = self.wMw - float(n0 @ self.K_inv @ n0)
+        self.dof0 = self.n_used - len(self.I0) - self.G_live
+        self.sigma0 = math.sqrt(max(self.omega0, 1e-300) / max(self.dof0, 1))
+        # null without panel elimination (for the panel test)
+        Kr = self.N_raw[np.ix_(self.I0, self.I0)]
+        Kr_s = Kr * self.K_scale[:, None] * self.K_scale[None, :]
+        Kr_inv = np.linalg.pinv(Kr_s, rcond=1e-13) * self.K_scale[:, None] * self.K_scale[None, :]
+        n0r = self.n_raw[self.I0]
+        self.omega0_raw = self.wMw_raw - float(n0r @ Kr_inv @ n0r)
+        self.cfg = cfg
+
+    # ----------------------------------------------------------------------------------
+    def null_step(self) -> np.ndarray:
+        """Increment of all null unknowns (x blocks, accepted shared) with panels eliminated."""
+        d = np.zeros(self.D)
+        d[self.I0] = -self.K_inv @ self.n[self.I0]
+        return d
+
+    def panel_step(self, dz: np.ndarray) -> np.ndarray:
+        """Panel offsets (m, normal) of the joint solution given the other increments ``dz``."""
+        S, sg, tg = self.group
+        live = S > 0
+        return np.where(live, -(tg + sg @ dz) / np.where(live, S, 1.0), 0.0)
+
+    def test(self, cand: _Candidate, sigma0: float | None = None) -> _Test:
+        """Score statistic, one-step estimate, effect size and correlation of a candidate."""
+        cfg = self.cfg
+        s0 = sigma0 or self.sigma0
+        H = cand.H
+        J = cand.idx
+        B = self.N[np.ix_(self.I0, J)] @ H
+        Z = self.K_inv @ B
+        S = H.T @ self.N[np.ix_(J, J)] @ H - B.T @ Z
+        m = H.T @ self.n[J] - Z.T @ self.n[self.I0]
+        Draw = H.T @ self.N_raw[np.ix_(J, J)] @ H
+        S = 0.5 * (S + S.T)
+        # canonical directions: S v = lam Draw v; lam = 1 - rho^2
+        d = np.sqrt(np.where(np.diag(Draw) > 0, np.diag(Draw), 1.0))
+        Dn = Draw / np.outer(d, d)
+        Sn = S / np.outer(d, d)
+        L = np.linalg.cholesky(Dn + 1e-14 * np.eye(len(Dn)))
+        Li = np.linalg.inv(L)
+        lam, V = np.linalg.eigh(Li @ Sn @ Li.T)
+        U = (Li.T @ V) / d[:, None]  # directions in parameter space with U^T Draw U = I
+        lam = np.clip(lam, 0.0, 1.0)
+        thr = 1.0 - cfg.confounded_correlation**2
+        # one parameter: confounded beyond the threshold is not tested; several (motion,
+        # gravity): every numerically identifiable direction is kept (large variances show the
+        # weak ones), so estimates and covariances stay comparable with any truth
+        keep = lam > (thr if len(lam) == 1 else 1e-10)
+        rho = float(math.sqrt(max(0.0, 1.0 - lam.min()))) if len(lam) else 0.0
+        proj = U[:, keep].T @ m
+        T = float(np.sum(proj**2 / lam[keep])) / s0**2 if keep.any() else 0.0
+        dof = int(keep.sum())
+        delta = -U[:, keep] @ (proj / lam[keep]) if keep.any() else np.zeros(len(m))
+        cov = ((U[:, keep] / lam[keep]) @ U[:, keep].T * s0**2 if keep.any()
+               else np.zeros((len(m),) * 2))
+        sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        effect = math.sqrt(max(T - dof, 0.0) * s0**2 / max(self.sum_q, 1e-300))
+        # correlation of each tested parameter with the null unknowns (for "with")
+        with_, cw = [], []
+        if len(m) == 1:
+            # corr(e, x_i) = -Z_i / sqrt(S (K^-1)_ii + Z_i^2)  (inverse of the bordered matrix)
+            kd = np.maximum(np.diag(self.K_inv), 0.0)
+            Sv = max(float(S[0, 0]), 0.0)
+            corr = -Z[:, 0] / np.sqrt(Sv * kd + Z[:, 0] ** 2 + 1e-300)
+            order = np.argsort(-np.abs(corr))
+            for i in order:
+                name = self.labels[self.I0[i]].split("@")[0]
+                if name in with_:
+                    continue
+                if (abs(corr[i]) >= 0.5 and len(with_) < 3) or not with_:
+                    with_.append(name)
+                    cw.append(float(corr[i]))
+        p = _p_of(T, dof)
+        return _Test(cand, T, dof, p, _z_of(T, dof), effect, delta, sig, rho, with_, cw,
+                     confounded=dof < len(m) if len(m) == 1 else dof == 0, S=S, Draw=Draw,
+                     cov=cov)
+
+    def scan_difference(self, cand: _Candidate, test: _Test) -> tuple[float, int]:
+        """``T`` of freeing a shared candidate per scan, beyond the shared value."""
+        if cand.per_scan is None or cand.per_scan.shape[1] <= cand.H.shape[1]:
+            return 0.0, 0
+        alt = _Candidate(cand.effect, cand.family, cand.idx, cand.per_scan, cand.names, cand.scans)
+        t = self.test(alt, test_sigma0 := self.sigma0)
+        del test_sigma0
+        return max(0.0, t.T - test.T), t.dof - test.dof
+
+
+@functools.lru_cache(maxsize=1)
+def _inseparable_table() -> dict[frozenset, float]:
+    """Every pair of instrument parameters with the same correction shape (computed once)."""
+    return {frozenset((a, b)): c for a, b, c in inseparable_pairs(list(INSTRUMENT))}
+
+
+def _inseparable(names: tuple[str, ...]) -> tuple:
+    """The inseparable pairs among ``names`` (as :func:`inseparable_pairs`)."""
+    tab = _inseparable_table()
+    inst = [n for n in names if n in INSTRUMENT]
+    return tuple((a, b, tab[frozenset((a, b))]) for i, a in enumerate(inst) for b in inst[i + 1:]
+                 if frozenset((a, b)) in tab)
+
+
+def _local_candidates(ctx: _Context, scans: Sequence[_Scan], spec: _Spec) -> dict[str, list[str]]:
+    """Per scan: the catalog parameters not in the model, free at value 0 in the test."""
+    cfg = ctx.config
+    wanted = set(cfg.effects) if cfg.effects else None
+    in_model = set(spec.start) | set(spec.shared)
+    inst = []
+    for k in INSTRUMENT:
+        if k in in_model or (wanted is not None and k not in wanted) or k in spec.skip:
+            continue
+        if _inseparable(tuple(sorted(in_model)) + (k,)):
+            continue  # same shape as a model parameter: reported as confounded elsewhere
+        inst.append(k)
+    positions = {sc.meta.position for sc in scans}
+    gs = np.array([sc.g for sc in scans])
+    grav = (len(positions) >= 2 and spec.zern_C is None and np.linalg.matrix_rank(
+        gs - gs.mean(0), tol=1e-3) >= 1 and (wanted is None or "gravity_deformation" in wanted))
+    out = {}
+    for sc in scans:
+        mot = spec.motion.get(sc.id, {})
+        names = list(inst)
+        if grav:
+            names += [f"{ZERNIKE_PREFIX}{j}" for j in ZERNIKE_TESTED]
+        if spec.times:  # motion lives in time: no recorded times, no motion candidates
+            if "window_s" not in mot and sc.window_s and _want(wanted, "impulsive_shift"):
+                names += list(SHIFT)
+            if "period_s" not in mot and sc.period_s and _want(wanted, "oscillation"):
+                names += list(OSCILLATION)
+            if not any(n in DRIFT for n in mot.get("names", ())) and _want(wanted, "drift"):
+                names += list(MOTION["drift"])
+        out[sc.id] = names
+    return out
+
+
+def _want(wanted, eid):
+    return wanted is None or eid in wanted
+
+
+def _candidates(joint: _Joint, scans: Sequence[_Scan], local: dict[str, list[str]]):
+    """The candidates of the joint system: shared instrument, per-scan motion, gravity."""
+    out: list[_Candidate] = []
+    ids = [sc.id for sc in scans]
+    first = local[ids[0]]
+    for k in INSTRUMENT:
+        if k not in first:
+            continue
+        idx = np.array([joint.cidx[(s, k)] for s in ids])
+        out.append(_Candidate(k, "instrument", idx, np.ones((len(ids), 1)), [k], ids,
+                              per_scan=np.eye(len(ids))))
+    for sc in scans:
+        for eff, pnames in MOTION.items():
+            present = [n for n in pnames if n in local[sc.id]]
+            if not present:
+                continue
+            idx = np.array([joint.cidx[(sc.id, n)] for n in present])
+            penalty = 1.0
+            info = {}
+            if eff == "impulsive_shift":
+                penalty = float(sc.search.get("n_windows", 1))
+                info = {"window_s": sc.window_s, "search_T": sc.window_stat}
+            elif eff == "oscillation":
+                penalty = float(sc.search.get("n_periods", 1))
+                info = {"period_s": sc.period_s, "search_T": sc.period_stat}
+            out.append(_Candidate(eff, "motion", idx, np.eye(len(idx)), present, [sc.id],
+                                  penalty=penalty, info=info))
+    zern = [f"{ZERNIKE_PREFIX}{j}" for j in ZERNIKE_TESTED]
+    if all(z in first for z in zern):
+        idx, rows = [], []
+        for sc in scans:
+            for z in zern:
+                idx.append(joint.cidx[(sc.id, z)])
+                k = zern.index(z)
+                row = np.zeros(3 * len(zern))
+                row[3 * k: 3 * k + 3] = sc.g
+                rows.append(row)
+        out.append(_Candidate("gravity_deformation", "reflector", np.array(idx), np.array(rows),
+                              [f"C{j}{a}" for j in ZERNIKE_TESTED for a in "xyz"], ids))
+    return out
+
+
+# ============================================================================================
+# results
+# ============================================================================================
+
+
+@dataclass
+class Finding:
+    """One accepted effect (a ``findings[]`` entry of ``hartrao-diagnosis/1``)."""
+
+    effect: str
+    family: str
+    scans: list[str]
+    where: dict[str, Any]
+    estimate: dict[str, dict[str, float]]
+    statistic: float
+    dof: int
+    p_value: float
+    sigma0_before: float
+    sigma0_after: float
+    rms_before_m: float
+    rms_after_m: float
+    explanation: str
+    effect_size_m: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        d = {
+            "effect": self.effect, "family": self.family, "scans": self.scans,
+            "where": self.where, "estimate": self.estimate,
+            "statistic": _num(self.statistic), "dof": int(self.dof),
+            "p_value": _num(self.p_value),
+            "sigma0_before": _num(self.sigma0_before), "sigma0_after": _num(self.sigma0_after),
+            "rms_before_m": _num(self.rms_before_m), "rms_after_m": _num(self.rms_after_m),
+            "explanation": self.explanation, "effect_size_m": _num(self.effect_size_m),
+        }
+        d.update(self.extra)
+        return d
+
+
+@dataclass
+class Diagnosis:
+    """Result of :func:`diagnose`; ``to_json()`` gives the ``hartrao-diagnosis/1`` document."""
+
+    campaign: str
+    start_model: list[str]
+    final_model: list[str]
+    sigma0_start: float
+    sigma0_final: float
+    rms_start_m: float
+    rms_final_m: float
+    findings: list[Finding]
+    confounded: list[dict]
+    comparison: list[dict]
+    candidates: list[dict]
+    timing_s: dict[str, float]
+    notes: list[str] = field(default_factory=list)
+    scans_final: dict[str, dict] = field(default_factory=dict)
+    history: list[dict] = field(default_factory=list)
+    detectability: list[dict] = field(default_factory=list)
+    skipped: list[dict] = field(default_factory=list)  # searches the recording cannot support
+    not_identifiable: list[dict] = field(default_factory=list)
+    local_search: list[dict] = field(default_factory=list)  # local-deformation searches
+    layout: str = ""  # panels of the telescope's layout, or the stated grid
+    covariates: dict = field(default_factory=dict)  # cross-validated covariate comparison
+    extents: dict = field(default_factory=dict)  # scan id -> map extent (m), for figures
+
+    def to_json(self) -> dict:
+        return {
+            "schema": DIAGNOSIS_SCHEMA,
+            "campaign": self.campaign,
+            "start_model": self.start_model,
+            "final_model": self.final_model,
+            "sigma0_start": _num(self.sigma0_start),
+            "sigma0_final": _num(self.sigma0_final),
+            "rms_start_m": _num(self.rms_start_m),
+            "rms_final_m": _num(self.rms_final_m),
+            "findings": [f.to_json() for f in self.findings],
+            "confounded": self.confounded,
+            "comparison": self.comparison,
+            "last_candidates": self.candidates,
+            "scans": self.scans_final,
+            "detectability": self.detectability,
+            "timing_s": self.timing_s,
+            "notes": self.notes,
+            "skipped": self.skipped,
+            "not_identifiable": self.not_identifiable,
+            "local_deformation_search": [
+                {k: v for k, v in d.items() if not k.startswith("_")} for d in self.local_search],
+            "layout": self.layout,
+            "covariate_comparison": self.covariates,
+        }
+
+    def effects(self) -> list[str]:
+        return [f.effect for f in self.findings]
+
+
+def _num(v):
+    if v is None:
+        return None
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+# ============================================================================================
+# statistics helpers
+# ============================================================================================
+
+
+def _log_sf(T: float, dof: int) -> float:
+    """Natural log of the chi-square survival function, accurate far in the tail."""
+    from scipy import special
+
+    T = max(float(T), 0.0)
+    k = max(int(dof), 1)
+    p = float(special.gammaincc(k / 2.0, T / 2.0))
+    if p > 1e-300:
+        return math.log(p)
+    a, x = k / 2.0, T / 2.0  # asymptotic upper incomplete gamma: x^(a-1) e^-x / Gamma(a)
+    return (a - 1) * math.log(x) - x - special.gammaln(a) + math.log1p((a - 1) / x)
+
+
+# ============================================================================================
+# modelling helpers
+# ============================================================================================
+
+
+def _panel_known(ctx: _Context, sc: _Scan, panels: dict[str, np.ndarray] | None) -> np.ndarray:
+    if panels is None:
+        return np.zeros(len(sc.rho))
+    k = np.where(sc.panel >= 0, sc.panel, 0)
+    return np.where(sc.panel >= 0, panels["offset"][k], 0.0)
+
+
+def _estimate_panels(ctx: _Context, scans: Sequence[_Scan], spec: _Spec) -> dict[str, np.ndarray]:
+    """Panel planes (offset m, radial and tangential tilt rad) common to all scans, by weighted
+    least squares of the mismatch plus the currently modelled panel deviation."""
+    G = ctx.n_panels
+    M = np.zeros((G, 3, 3))
+    u = np.zeros((G, 3))
+    cnt = np.zeros(G)
+    for sc in scans:
+        ok = sc.used & (sc.m > 0) & (sc.panel >= 0)
+        q = np.where(ok, 1.0 / np.where(sc.m > 0, sc.m, 1.0), 0.0) * sc.s_rho**2
+        r = sc.mismatch_m + _panel_known(ctx, sc, spec.panels)  # the whole panel deviation
+        P = _panel_columns(ctx, sc)
+        pid = sc.panel[ok]
+        cnt += np.bincount(pid, minlength=G)
+        for a in range(3):
+            u[:, a] += np.bincount(pid, (q * r * P[:, a])[ok], minlength=G)
+            for b in range(3):
+                M[:, a, b] += np.bincount(pid, (q * P[:, a] * P[:, b])[ok], minlength=G)
+    sol = np.zeros((G, 3))
+    for g in range(G):
+        if cnt[g] >= 12:
+            sol[g] = np.linalg.lstsq(M[g], u[g], rcond=1e-10)[0]
+        elif cnt[g] > 0:
+            sol[g, 0] = u[g, 0] / M[g, 0, 0]
+    return {"offset": sol[:, 0], "tilt_r": sol[:, 1], "tilt_t": sol[:, 2], "n_points": cnt}
+
+
+def _set_known(ctx: _Context, sc: _Scan, spec: _Spec) -> None:
+    sc.known = _panel_known(ctx, sc, spec.panels) + sc.extra_known
+
+
+@eqx.filter_jit
+def _columns(model, l, x, c, idx):
+    """Per point derivatives of the condition w.r.t. the free parameters ``idx``."""
+
+    def one(args):
+        ll, cc = args
+        return jax.grad(lambda xx: model(ll, xx, cc))(x)[idx]
+
+    return jax.lax.map(one, (l, c), batch_size=8192)
+
+
+def _signature(ctx: _Context, sc: _Scan, spec: _Spec, names: Sequence[str], values: np.ndarray,
+               window_s=None, period_s=None) -> np.ndarray:
+    """Predicted change of the condition of every point (m) by ``names = values``."""
+    model = _scan_model(sc, spec, ctx.aperture, extra=list(names), window_s=window_s,
+                        period_s=period_s)
+    fixed = _fixed(sc, spec)
+    prev = dict(zip(sc.names, sc.x))
+    x = np.array([prev.get(k, fixed.get(k, 0.0)) for k in model.free])
+    idx = np.array([model.free.index(n) for n in names])
+    npad = _npad(len(sc.l))
+    A = np.asarray(_columns(model, jnp.asarray(_pad(sc.l, npad)), jnp.asarray(x),
+                            jnp.asarray(_pad(sc.consts(), npad)), jnp.asarray(idx)))[: len(sc.l)]
+    return A @ np.asarray(values, float)
+
+
+def _where_of_signature(ctx: _Context, sc: _Scan, sig: np.ndarray, motion: bool) -> dict:
+    """Where a predicted signature lives: faces, phi range, panels, the covariate it follows."""
+    u = sc.used
+    dev = -sig / sc.s_rho
+    out: dict[str, Any] = {}
+    rms_face = {fc: float(np.sqrt(np.mean(dev[u & (sc.face == fc)] ** 2)))
+                if np.any(u & (sc.face == fc)) else 0.0 for fc in (1, 2)}
+    big = max(rms_face.values())
+    faces = [fc for fc in (1, 2) if rms_face[fc] > 0.25 * big]
+    if len(faces) == 1:
+        out["face"] = faces[0]
+    if motion:
+        out["cycle"] = sc.meta.cycle
+        amax = np.max(np.abs(dev[u])) if u.any() else 0.0
+        hit = u & (np.abs(dev) > 0.3 * amax)
+        if hit.any():
+            ph = np.degrees(sc.data.phi_rad[hit])
+            out["phi_deg"] = [float(ph.min()), float(ph.max())]
+            pn, cnt = np.unique(sc.panel[hit & (sc.panel >= 0)], return_counts=True)
+            out["panels"] = [int(p) for p in pn[np.argsort(-cnt)][:40]]
+    # covariate: the one whose binned means (per face) explain most of the signature variance
+    # left after the face means (the face flip of two-face effects is reported as face_split)
+    vals = _covariate_values(sc)
+    best, frac = None, -1.0
+    fc = sc.face[u]
+    d = dev[u].copy()
+    tot0 = float(np.sum(d**2)) or 1.0
+    for f in (1, 2):
+        if np.any(fc == f):
+            d[fc == f] -= d[fc == f].mean()
+    out["face_split"] = float(1.0 - np.sum(d**2) / tot0)
+    tot = float(np.sum(d**2)) or 1.0
+    for name in COVARIATES:
+        v = vals[name][u]
+        expl = 0.0
+        for f in (1, 2):
+            s = fc == f
+            if s.sum() < 64:
+                continue
+            qs = np.quantile(v[s], np.linspace(0, 1, 33)[1:-1])
+            ids = np.searchsorted(qs, v[s], side="right")
+            sums = np.bincount(ids, d[s], minlength=32)
+            cnt = np.bincount(ids, minlength=32)
+            expl += float(np.sum(sums[cnt > 0] ** 2 / cnt[cnt > 0]))
+        if expl / tot > frac:
+            best, frac = name, expl / tot
+    if best is not None:
+        out["covariate"] = best
+    return out
+
+
+def _extent(sc: _Scan) -> list[float]:
+    """Square ``[x0, x1, y0, y1]`` (m, telescope frame) around the scan's points in the window."""
+    w = sc.window & np.all(np.isfinite(sc.X_tel[:, :2]), 1)
+    if not w.any():
+        return [-1.0, 1.0, -1.0, 1.0]
+    lo, hi = sc.X_tel[w, :2].min(0), sc.X_tel[w, :2].max(0)
+    c, h = 0.5 * (lo + hi), 0.5 * float(np.max(hi - lo)) * 1.02 + 1e-3
+    return [float(c[0] - h), float(c[0] + h), float(c[1] - h), float(c[1] + h)]
+
+
+def _cells_not_panels(ctx: _Context, f: Finding) -> None:
+    """Grid cells instead of panel ids for a telescope without a panel layout: centres (m)."""
+    g = ctx.geo
+    if "panels" in f.where:
+        ids = f.where.pop("panels")
+        f.where["cells"] = [{"cell": int(k), "x_m": float(g["rho_c"][k] * np.cos(g["psi_c"][k])),
+                             "y_m": float(g["rho_c"][k] * np.sin(g["psi_c"][k]))} for k in ids]
+        f.where["grid"] = ctx.layout_note
+    if f.effect == "panel_offset":
+        f.explanation = f.explanation.replace(" panels, offsets", " grid cells (no panel layout), "
+                                              "offsets")
+    for k in [k for k in f.estimate if k.startswith("panel_") and k.endswith("_offset_m")]:
+        f.estimate[k.replace("panel_", "cell_", 1)] = f.estimate.pop(k)
+
+
+def _dish_map(sc: _Scan, values: np.ndarray, n: int = 96):
+    """Binned mean of ``values`` on an ``n x n`` grid of telescope X, Y over the scan's extent
+    (for figures)."""
+    u = sc.used & np.all(np.isfinite(sc.X_tel[:, :2]), 1)
+    x0, x1, y0, y1 = _extent(sc)
+    X, Y = sc.X_tel[u, 0], sc.X_tel[u, 1]
+    i = np.clip(((X - x0) / (x1 - x0) * n).astype(int), 0, n - 1)
+    j = np.clip(((Y - y0) / (y1 - y0) * n).astype(int), 0, n - 1)
+    k = i * n + j
+    s = np.bincount(k, values[u], minlength=n * n)
+    c = np.bincount(k, minlength=n * n)
+    out = np.full(n * n, np.nan)
+    out[c > 0] = s[c > 0] / c[c > 0]
+    return out.reshape(n, n)
+
+
+def _snapshot(scans: Sequence[_Scan]) -> dict[str, np.ndarray]:
+    return {sc.id: _dish_map(sc, sc.mismatch_m).astype(np.float32) for sc in scans}
+
+
+def _compare(sc: _Scan) -> dict:
+    """Recording minus simulation of one scan, summarised (m)."""
+    u = sc.used
+    d = sc.mismatch_m
+    rr = sc.mismatch_range_m
+    row = {"scan": sc.id, "position": sc.meta.position, "cycle": sc.meta.cycle,
+           "n_points": int(u.sum()), "sigma0": _num(sc.sigma0),
+           "rms_deviation_m": _num(np.sqrt(np.mean(d[u] ** 2))),
+           "rms_range_m": _num(np.sqrt(np.mean(rr[u] ** 2))), "faces": {}}
+    for fc in (1, 2):
+        s = u & (sc.face == fc)
+        if s.any():
+            row["faces"][str(fc)] = {"n_points": int(s.sum()),
+                                     "mean_deviation_m": _num(np.mean(d[s])),
+                                     "rms_deviation_m": _num(np.sqrt(np.mean(d[s] ** 2)))}
+    return row
+
+
+# ============================================================================================
+# the loop
+# ============================================================================================
+
+
+@dataclass
+class _Option:
+    """An eligible explanation of one step (catalog test or unexplained structure)."""
+
+    kind: str  # "catalog" | "panel" | "dish" | "covariate"
+    effect: str
+    family: str
+    log_p: float  # log of the Bonferroni-adjusted p-value
+    T: float
+    dof: int
+    effect_m: float
+    payload: Any
+    eligible: bool = True
+    reason: str = ""
+    rms_drop_m: float | None = None  # practical effect of unexplained structure (footprint)
+    rms_drop_fraction: float | None = None
+
+    def row(self) -> dict:
+        return {"kind": self.kind, "effect": self.effect, "family": self.family,
+                "statistic": _num(self.T), "dof": self.dof,
+                "log10_p_adjusted": _num(self.log_p / math.log(10)),
+                "effect_size_m": _num(self.effect_m), "eligible": self.eligible,
+                **({"rms_drop_m": _num(self.rms_drop_m),
+                    "rms_drop_fraction": _num(self.rms_drop_fraction)}
+                   if self.rms_drop_m is not None else {}),
+                "reason": self.reason,
+                "scans": getattr(self.payload, "cand", None) and self.payload.cand.scans,
+                **({"covariate": self.payload["covariate"]} if self.kind == "covariate" else {})}
+
+
+def _static_confounded(start: Sequence[str], wanted) -> list[dict]:
+    """Catalog parameters with the same shape as a model parameter (no test possible)."""
+    out = []
+    for k in INSTRUMENT:
+        if k in start or (wanted is not None and k not in wanted):
+            continue
+        pairs = _inseparable(tuple(start) + (k,))
+        if pairs:
+            a, b, c = pairs[0]
+            other = b if a == k else a
+            out.append({"effect": k, "with": [other], "correlation": float(abs(c)),
+                        "reason": "same correction shape (physics catalog)"})
+    return out
+
+
+def diagnose(
+    campaign: Campaign | str | Path,
+    start: str | Iterable[str] = "extended",
+    *,
+    config: DiagnoseConfig | None = None,
+    scans: Sequence[str] | None = None,
+    keep: Callable[[ScanMeta, ScanData], np.ndarray] | None = None,
+    report_dir: str | Path | None = None,
+) -> Diagnosis:
+    """Find, explain and model the mismatch between the recordings and the model.
+
+    Args:
+        campaign: a campaign (or its directory).
+        start: start model: ``"simplified"``, ``"extended"`` or parameter names.
+        config: thresholds and search settings (:class:`DiagnoseConfig`).
+        scans: scan ids to diagnose (default all: they are tested jointly).
+        keep: optional ``keep(meta, data) -> bool mask`` of points to consider (preprocessing).
+        report_dir: write figures and an HTML summary there.
+
+    Returns:
+        a :class:`Diagnosis` (``to_json()``: schema ``hartrao-diagnosis/1``).
+    """
+    t_all = time.time()
+    camp = campaign if isinstance(campaign, Campaign) else load_campaign(campaign)
+    cfg = config or DiagnoseConfig()
+    ctx = _Context(camp, cfg)
+    start_names = parse_model(start)
+    timing: dict[str, float] = {}
+    wanted = set(cfg.effects) if cfg.effects else None
+    notes: list[str] = []
+    not_identifiable: list[dict] = []
+    metas = [camp.scan(s) for s in scans] if scans else list(camp.scans)
+    if any(m.cycle not in (1, 2) for m in metas):
+        # one face: the two-face-sensitive calibration parameters are not identifiable
+        tf = two_face_parameters()
+        drop = [n for n in start_names if n in tf]
+        if drop:
+            start_names = tuple(n for n in start_names if n not in drop)
+            notes.append(f"one-face recording: {', '.join(drop)} dropped from the start model "
+                         "(two-face-sensitive calibration parameters are not identifiable from "
+                         "one face)")
+        not_identifiable = [
+            {"parameter": k, "identifiable": False, "value": None, "sigma": None,
+             "note": "two-face-sensitive calibration parameter: a one-face recording cannot "
+                     "separate it from the pose and the reflector (it needs the second face)"}
+            for k in tf if wanted is None or k in wanted]
+    t0 = time.time()
+    S = _start_scans(ctx, start_names, keep, scans)
+    spec = _Spec(start=start_names)
+    cap = capabilities([sc.meta for sc in S], [sc.data for sc in S])
+    spec.times = cap.times
+    spec.no_covariates = ({"time"} if not cap.times else set()) | (
+        {"intensity"} if not cap.intensity else set())
+    if not cap.two_faces:
+        spec.skip |= set(two_face_parameters())
+    skipped = skipped_searches(cap, wanted)
+    if not ctx.has_layout:
+        skipped.append({"search": "within-panel structure", "why": ctx.layout_note})
+    if not ctx.has_layout:
+        notes.append(ctx.layout_note)
+    for sc in S:
+        _evaluate(ctx, sc, spec)
+    timing["start_fit"] = time.time() - t0
+    sigma0_start, rms_start = _global_sigma0(S), _rms(S)
+    comparison = [_compare(sc) for sc in S]
+    confounded: dict[str, dict] = {c["effect"]: c for c in _static_confounded(start_names, wanted)}
+    findings: list[Finding] = []
+    history: list[dict] = [{"step": 0, "label": "start", "maps": _snapshot(S)}]
+    last_rows: list[dict] = []
+    local_search: list[dict] = []
+    if _want(wanted, "local_deformation"):
+        t_l = time.time()
+        for f in local_step(ctx, S, spec, local_search, notes):
+            findings.append(f)
+            spec.accepted.append(f.effect)
+            history.append({"step": len(history), "label": f.effect, "maps": _snapshot(S),
+                            "scans": f.scans})
+        timing["local_search"] = time.time() - t_l
+    # which covariate carries the structure left after the start model (and any local
+    # deformation), compared on held-out points: recorded whatever the loop then accepts
+    cov_cmp = ({k: v for k, v in _covariate_cv(S, spec).items() if k != "all"}
+               if _want(wanted, "unexplained") else {})
+    t_loop = time.time()
+    step_done = False
+    joint, tests, options = None, [], []
+    refused: set[tuple] = set()
+    for step in range(1, cfg.max_steps + 1):
+        ts = time.time()
+        step_done = True
+        if spec.times:
+            for sc in S:
+                _locate_time(sc, cfg)
+        local = _local_candidates(ctx, S, spec)
+        joint = _Joint(ctx, S, spec, local)
+        cands = _candidates(joint, S, local)
+        tests = [joint.test(c) for c in cands]
+        options = _options(ctx, S, spec, joint, tests, confounded, wanted)
+        spec.skip |= set(confounded)
+        for o in options:
+            if _option_key(o) in refused:
+                o.eligible, o.reason = False, "did not survive the refit"
+        best = None
+        # structure no catalog entry explains comes after the catalog, unless it is far
+        # stronger (twice the orders of magnitude): a catalog effect then explains only part
+        # (never before the panel offsets: their maps are modelled on top of the panels)
+        ok = [o for o in options if o.eligible]
+        lp_cat = min((o.log_p for o in ok if o.kind in ("catalog", "panel")), default=0.0)
+        panel_first = any(o.kind == "panel" for o in ok)
+        tier = sorted(ok, key=lambda o: (o.kind != "panel" if panel_first else False,
+                                         o.kind in ("dish", "covariate")
+                                         and not o.log_p < 2.0 * lp_cat, o.log_p))
+        for o in tier:
+            why = _signature_check(ctx, S, spec, joint, o, options)
+            if why:
+                o.eligible, o.reason = False, why
+                continue
+            best = o
+            break
+        last_rows = [o.row() for o in sorted(options, key=lambda o: o.log_p)]
+        log.info("step %d: %d candidates, best %s (%.1f s)", step, len(options),
+                 best.effect if best else "none", time.time() - ts)
+        if best is None:
+            break
+        before = (_global_sigma0(S), _rms(S))
+        saved = _save(S, spec)
+        alternatives = _alternatives(joint, best, options)
+        f = _apply(ctx, S, spec, joint, best)
+        if alternatives:
+            f.extra["alternatives"] = alternatives
+        after = (_global_sigma0(S), _rms(S))
+        lost = any(st["converged"] and not sc.converged for sc, st in zip(S, saved[0]))
+        if after[0] > before[0] * (1.0 + 1e-3) or lost:
+            # a finding must survive the refit: undo, refuse, and look again
+            log.info("refused %s: the refit did not improve the fit (sigma0 %.4f -> %.4f)",
+                     best.effect, before[0], after[0])
+            spec = _restore(S, saved)
+            refused.add(_option_key(best))
+            notes.append(f"{best.effect} ({', '.join(f.scans)}) was significant but did not "
+                         f"survive the refit (sigma0 {before[0]:.4f} -> {after[0]:.4f})")
+            continue
+        f.sigma0_before, f.rms_before_m = before
+        f.sigma0_after, f.rms_after_m = after
+        f.statistic, f.dof = best.T, best.dof
+        f.p_value = math.exp(max(_log_sf(best.T, best.dof), -745.0))
+        f.extra["log10_p_adjusted"] = _num(best.log_p / math.log(10))
+        f.effect_size_m = best.effect_m
+        if best.rms_drop_m is not None:
+            f.extra["practical_effect"] = {
+                "rms_drop_m": _num(best.rms_drop_m),
+                "rms_drop_fraction": _num(best.rms_drop_fraction),
+                "rule": f"rms of the footprint drops by >= {100 * UNEXPLAINED_MIN_DROP:.0f} % "
+                        f"or >= {UNEXPLAINED_MIN_DROP_M * 1e6:.0f} um"}
+        findings.append(f)
+        spec.accepted.append(f.effect)
+        history.append({"step": step, "label": f.effect, "maps": _snapshot(S),
+                        "evidence": f.extra.pop("_evidence", None), "scans": f.scans})
+        log.info("accepted %s (%s): T=%.1f dof=%d, sigma0 %.3f -> %.3f, rms %.3f -> %.3f mm",
+                 f.effect, ",".join(f.scans), best.T, best.dof, before[0], after[0],
+                 1e3 * before[1], 1e3 * after[1])
+    timing["loop"] = time.time() - t_loop
+    if _want(wanted, "thermal"):
+        th = _thermal(ctx, S, len(last_rows) + 1)
+        if th is not None and th[0] == "finding":
+            findings.append(th[1])
+        elif th is not None:
+            confounded.setdefault("thermal", th[1])
+    detect = (_detectability(ctx, joint, tests, len(options), S if spec.times else ())
+              if step_done else [])
+    scans_final = {}
+    for sc in S:
+        cv = np.sqrt(np.maximum(np.diag(sc.cov), 0.0)) if sc.cov.size else np.zeros(0)
+        scans_final[sc.id] = {
+            "model": list(sc.names),
+            "estimates": {n: {"value": float(sc.x[i]), "sigma": float(cv[i])}
+                          for i, n in enumerate(sc.names)},
+            "sigma0": _num(sc.sigma0), "n_points": int(sc.used.sum()),
+            "converged": sc.converged,
+            "cut_points": int(sc.cut.sum()),
+        }
+    if spec.shared:
+        notes.append("instrument parameters found are shared by all scans (joint estimate): "
+                     + ", ".join(f"{k}={v:.4g}" for k, v in spec.shared.items()))
+    timing["total"] = time.time() - t_all
+    diag = Diagnosis(
+        campaign=str(camp.root), start_model=list(start_names), final_model=spec.names(),
+        sigma0_start=sigma0_start, sigma0_final=_global_sigma0(S), rms_start_m=rms_start,
+        rms_final_m=_rms(S), findings=findings, confounded=list(confounded.values()),
+        comparison=comparison, candidates=last_rows, timing_s=timing, notes=notes,
+        scans_final=scans_final, history=history, detectability=detect, skipped=skipped,
+        not_identifiable=not_identifiable, local_search=local_search, layout=ctx.layout_note,
+        extents={sc.id: _extent(sc) for sc in S},
+        covariates=cov_cmp,
+    )
+    if not ctx.has_layout:
+        for f in findings:
+            _cells_not_panels(ctx, f)
+    if report_dir is not None:
+        write_report(diag, report_dir)
+    return diag
+
+
+_STATE = ("names", "x", "cov", "sigma0", "omega", "redundancy", "v", "used", "F", "m", "b0",
+          "probe", "converged", "known", "extra_known", "cut")
+
+
+def _save(S: Sequence[_Scan], spec: _Spec):
+    import copy
+
+    return [{k: getattr(sc, k) for k in _STATE} for sc in S], copy.deepcopy(spec)
+
+
+def _restore(S: Sequence[_Scan], saved) -> _Spec:
+    states, spec = saved
+    for sc, st in zip(S, states):
+        for k, v in st.items():
+            setattr(sc, k, v)
+    return spec
+
+
+def _option_key(o: _Option) -> tuple:
+    scans = tuple(o.payload.cand.scans) if o.kind == "catalog" else ()
+    sub = o.payload.get("covariate") if o.kind == "covariate" else None
+    return (o.kind, o.effect, scans[:1], sub)
+
+
+def _options(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint,
+             tests: Sequence[_Test], confounded: dict, wanted) -> list[_Option]:
+    """Every explanation of this step with its adjusted p-value, effect size and eligibility."""
+    cfg = ctx.config
+    s0 = joint.sigma0
+    do_unexp = _want(wanted, "unexplained")
+    m_tests = len(tests) + 3
+    la = math.log(cfg.alpha)
+    lm = math.log(m_tests)
+    opts: list[_Option] = []
+
+    rms_all = s0 * math.sqrt(joint.n_used / max(joint.sum_q, 1e-300))
+
+    def add(o: _Option, footprint_rms_m: float | None = None):
+        if o.log_p >= la:
+            o.eligible, o.reason = False, "not significant"
+        elif o.effect_m < cfg.min_effect_m:
+            o.eligible, o.reason = False, "below the practical effect size"
+        elif o.effect == "unexplained":
+            # structure with no physics signature must matter in millimetres: the rms of its
+            # own footprint must drop by >= 1 % or >= 10 micrometres (a significant but tiny
+            # structure is the panel pattern seen through a covariate, not a finding)
+            rms = footprint_rms_m or rms_all
+            drop = rms - math.sqrt(max(rms * rms - o.effect_m**2, 0.0))
+            o.rms_drop_m, o.rms_drop_fraction = drop, drop / max(rms, 1e-300)
+            if drop < UNEXPLAINED_MIN_DROP_M and drop / max(rms, 1e-300) < UNEXPLAINED_MIN_DROP:
+                o.eligible = False
+                o.reason = (f"below the practical effect size: the rms of its footprint drops by "
+                            f"{drop * 1e6:.2f} um ({100 * drop / max(rms, 1e-300):.2f} %), "
+                            f"needs {UNEXPLAINED_MIN_DROP_M * 1e6:.0f} um or "
+                            f"{100 * UNEXPLAINED_MIN_DROP:.0f} %")
+        opts.append(o)
+
+    for t in tests:
+        c = t.cand
+        if c.family == "instrument" and t.confounded:
+            confounded.setdefault(c.effect, {
+                "effect": c.effect, "with": t.with_, "correlation": t.correlation,
+                "correlations": dict(zip(t.with_, t.corr_with)),
+                "statistic": _num(t.T if t.T else _raw_T(joint, c)),
+                "reason": "inseparable from the estimated parameters (augmented normal matrix)",
+            })
+            continue
+        if t.dof == 0:
+            continue
+        lp = _log_sf(t.T, t.dof) + lm + math.log(c.penalty)
+        add(_Option("catalog", c.effect, c.family, lp, t.T, t.dof, t.effect_m, t))
+    if spec.panels is None and _want(wanted, "panel_offset") and joint.G_live > 1:
+        T = (joint.omega0_raw - joint.omega0) / s0**2
+        dof = joint.G_live - 1
+        eff = math.sqrt(max(T - dof, 0.0) * s0**2 / joint.sum_q)
+        add(_Option("panel", "panel_offset", "reflector", _log_sf(T, dof) + lm, T, dof, eff,
+                    None))
+    if do_unexp and ctx.has_layout:  # within-panel structure needs real panels
+        Tg, dofg, est, cells = _dish_test(ctx, S, s0)
+        G = ctx.n_panels
+        flagged = [g for g in range(G) if dofg[g] > 0
+                   and _log_sf(Tg[g], dofg[g]) + math.log(G) + lm < la]
+    else:
+        flagged = []
+    if flagged:
+        T = float(np.sum(Tg[flagged]))
+        dof = int(np.sum(dofg[flagged]))
+        qf = sum(float(np.sum((1.0 / sc.m)[sc.used & np.isin(sc.panel, flagged)])) for sc in S)
+        nf = sum(int(np.sum(sc.used & np.isin(sc.panel, flagged))) for sc in S)
+        eff = math.sqrt(max(T - dof, 0.0) * s0**2 / max(qf, 1e-300))
+        add(_Option("dish", "unexplained", "generic", _log_sf(T, dof) + lm, T, dof, eff,
+                    {"flagged": flagged, "est": est, "cells": cells, "Tg": Tg}),
+            footprint_rms_m=s0 * math.sqrt(nf / max(qf, 1e-300)))
+    if do_unexp:
+        ct = _covariate_tests(ctx, S, s0, skip=spec.modelled | spec.no_covariates)
+        cv = None
+        if ct:
+            name = min(ct, key=lambda k: _log_sf(ct[k]["T"], ct[k]["dof"]))
+            if _log_sf(ct[name]["T"], ct[name]["dof"]) + lm + math.log(len(COVARIATES)) < la:
+                # correlated covariates share the structure: the one that carries it is the
+                # one that predicts held-out points best (bins or a period)
+                cv = _covariate_cv(S, spec, only=set(ct))
+                b = cv.get("best")
+                if b and b["cv_explained"] > 0 and b["covariate"] in ct:
+                    name = b["covariate"]
+            r = ct[name]
+            eff = math.sqrt(max(r["T"] - r["dof"], 0.0) * s0**2 / joint.sum_q)
+            add(_Option("covariate", "unexplained", "generic",
+                        _log_sf(r["T"], r["dof"]) + lm + math.log(len(COVARIATES)), r["T"],
+                        r["dof"], eff, {"covariate": name, **r, "cv": cv,
+                                        "all": {k: (v["T"], v["dof"]) for k, v in ct.items()}}))
+    return opts
+
+
+#: practical effect size of an ``unexplained`` finding: the rms of its footprint must drop by
+#: at least this fraction or this much (m)
+UNEXPLAINED_MIN_DROP = 0.01
+UNEXPLAINED_MIN_DROP_M = 1.0e-5
+
+THERMAL_REFERENCE_C = 15.0
+THERMAL_MIN_POSITIONS = 10  # with 7 the temperature term took up 0.4 mm/K of pointing effects
+
+
+def _thermal(ctx: _Context, S: Sequence[_Scan], m_tests: int):
+    """Focal length against temperature across the scans (catalog effect ``thermal``).
+
+    The focal length is estimated per scan, so a thermal change of f leaves no mismatch in the
+    points: it shows in the scans' focal lengths. They are regressed (weights ``1/sigma_f^2``)
+    on a constant, the gravity vector (when the positions span it, so that a gravity change of
+    f is not taken for a thermal one: at least :data:`THERMAL_MIN_POSITIONS` positions then)
+    and ``T - 15 C``; the statistic of the
+    temperature term is scaled by the variance factor of the regression (scatter of f beyond
+    its formal sigma, e.g. from unmodelled surface modes). Returns ``("finding", Finding)``,
+    ``("confounded", dict)`` when temperature and gravity cannot be told apart (fewer
+    positions), or None (too few scans or temperatures, not significant).
+    """
+    from scipy import stats as st
+
+    rows = [sc for sc in S if sc.meta.temperature_c is not None and "f" in sc.names
+            and sc.converged]
+    if len(rows) < 4:
+        return None
+    T = np.array([sc.meta.temperature_c for sc in rows], float) - THERMAL_REFERENCE_C
+    if np.ptp(T) < 1.0:
+        return None
+    j = [sc.names.index("f") for sc in rows]
+    f = np.array([sc.x[k] for sc, k in zip(rows, j)])
+    sf = np.array([math.sqrt(max(sc.cov[k, k], 0.0)) for sc, k in zip(rows, j)])
+    if np.any(sf <= 0):
+        return None
+    G = np.array([sc.g for sc in rows], float)
+    n_pos = len({sc.meta.position for sc in rows})
+    with_g = float(np.ptp(G, axis=0).max()) > 0.05
+    if with_g and n_pos < THERMAL_MIN_POSITIONS:
+        # f also follows the pointing (gravity, and surface modes the fit of f takes up):
+        # with few positions a temperature drift over the night is indistinguishable from it
+        r = max(abs(float(np.corrcoef(T, G[:, a])[0, 1])) for a in range(3)
+                if np.ptp(G[:, a]) > 1e-6)
+        return "confounded", {"effect": "thermal", "with": ["gravity"], "correlation": r,
+                              "reason": f"{n_pos} positions: f against temperature needs at "
+                                        f"least {THERMAL_MIN_POSITIONS} to be told apart from "
+                                        f"f against gravity"}
+    base = [np.ones(len(rows))] + ([G[:, a] for a in range(3)] if with_g else [])
+    w = 1.0 / sf**2
+
+    def wls(cols):
+        X = np.column_stack(cols)
+        N = X.T @ (X * w[:, None])
+        c = np.linalg.solve(N, X.T @ (w * f))
+        r = f - X @ c
+        return c, np.linalg.inv(N), float(np.sum(w * r * r)), r
+
+    p1 = len(base) + 1
+    dof = len(rows) - p1
+    if dof < 1:
+        return None
+    _, _, chi0, r0 = wls(base)
+    c1, Q1, chi1, r1 = wls(base + [T])
+    vf = max(1.0, chi1 / dof)
+    stat = (chi0 - chi1) / vf
+    p = float(st.chi2.sf(stat, 1))
+    b, sb = float(c1[-1]), float(math.sqrt(Q1[-1, -1] * vf))
+    size = abs(b) * float(np.ptp(T))
+    cfg = ctx.config
+    log.info("thermal: df/dT %.4f +- %.4f mm/K over %.1f K, statistic %.1f (variance factor "
+             "%.2f, %d scans, gravity terms %s)", 1e3 * b, 1e3 * sb, np.ptp(T), stat, vf,
+             len(rows), with_g)
+    if not (p * max(m_tests, 1) < cfg.alpha and size > cfg.min_effect_m):
+        return None
+    s0 = _global_sigma0(S)
+    rms = _rms(S)
+    rms_f = (float(np.sqrt(np.mean(r0**2))), float(np.sqrt(np.mean(r1**2))))
+    expl = (f"{EFFECTS['thermal'].explanation}; "
+            f"df/dT = {1e3 * b:.3f} ± {1e3 * sb:.3f} mm/K over {np.ptp(T):.1f} K "
+            f"({len(rows)} scans, {n_pos} positions{', gravity terms estimated' if with_g else ''})"
+            f"; the points' fit is unchanged (f is estimated per scan): the focal lengths "
+            f"scatter {1e3 * rms_f[0]:.3f} -> {1e3 * rms_f[1]:.3f} mm about the model")
+    return "finding", Finding(
+        "thermal", "reflector", [sc.id for sc in rows],
+        {"covariate": "temperature", "temperature_c": [float(T.min() + THERMAL_REFERENCE_C),
+                                                       float(T.max() + THERMAL_REFERENCE_C)],
+         "positions": sorted({sc.meta.position for sc in rows})},
+        {"df_dT_m_per_K": {"value": b, "sigma": sb}}, stat, 1, p, s0, s0, rms, rms, expl,
+        effect_size_m=size,
+        extra={"reference_c": THERMAL_REFERENCE_C, "gravity_terms": with_g,
+               "variance_factor": vf, "focal_rms_before_m": rms_f[0],
+               "focal_rms_after_m": rms_f[1]})
+
+
+def _detectability(ctx: _Context, joint: _Joint, tests: Sequence[_Test],
+                   m_tests: int, S: Sequence[_Scan] = ()) -> list[dict]:
+    """Minimal detectable amplitude of every candidate at the final solution (Baarda).
+
+    The noncentrality ``lam`` gives 80 % power at the Bonferroni-adjusted level of a step; the
+    amplitude of parameter j alone is ``sigma0 sqrt(lam / S_jj)`` (S: the Schur complement of
+    the candidate with the model and the panel offsets eliminated), or what reaches
+    ``min_effect_m``, whichever is larger. ``rms_effect_m`` is the rms change of the points'
+    condition at that amplitude before the model absorbs part of it;
+    ``relative_to_range_noise`` divides it by ``sigma_range_m``.
+    """
+    from scipy import optimize
+
+    cfg = ctx.config
+    out = []
+    s0 = joint.sigma0
+    sq = joint.sum_q
+    for t in tests:
+        if t.S is None or t.dof == 0 or t.confounded or t.cand.effect == "impulsive_shift":
+            continue
+        q = t.dof
+        a = cfg.alpha / max(m_tests, 1) / t.cand.penalty
+        crit = stats.chi2.isf(a, q)
+        lam = optimize.brentq(lambda L: stats.ncx2.sf(crit, q, L) - 0.8, 1e-6, 1e6)
+        for j, name in enumerate(t.cand.names):
+            if t.S[j, j] <= 0:
+                continue
+            # a bias of this parameter alone: noncentrality d^2 S_jj / sigma0^2
+            mdb_stat = s0 * math.sqrt(lam / t.S[j, j])
+            mdb_eff = cfg.min_effect_m * math.sqrt(sq / t.S[j, j])
+            mdb = max(mdb_stat, mdb_eff)
+            raw = mdb * math.sqrt(max(t.Draw[j, j], 0.0) / sq)
+            out.append({"effect": t.cand.effect, "parameter": name, "scans": t.cand.scans,
+                        "minimal_detectable": mdb,
+                        "limited_by": "statistic" if mdb_stat >= mdb_eff else "effect_size",
+                        "rms_effect_m": raw,
+                        "relative_to_range_noise": raw / float(ctx.sigma[0]),
+                        "correlation_with_model": t.correlation})
+    # an impulsive shift: for a reference window (the middle 5 % of the first scan's time),
+    # from the translation derivatives of the points (the windows found in noise are arbitrary)
+    for sc in S[:1]:
+        u = sc.used & (sc.m > 0)
+        t_ = sc.data.time_s[u]
+        a = sc.probe[u][:, :3]
+        q_ = 1.0 / sc.m[u]
+        lo, hi = np.quantile(t_, [0.475, 0.525])
+        w = (t_ >= lo) & (t_ < hi)
+        Ntot = (a * q_[:, None]).T @ a
+        NW = (a[w] * q_[w, None]).T @ a[w]
+        SW = NW - NW @ np.linalg.pinv(Ntot) @ NW
+        pen = float(sc.search.get("n_windows", 1))
+        crit = stats.chi2.isf(cfg.alpha / max(m_tests, 1) / pen, 3)
+        lam = optimize.brentq(lambda L: stats.ncx2.sf(crit, 3, L) - 0.8, 1e-6, 1e6)
+        for j, name in enumerate(SHIFT):
+            mdb_stat = s0 * math.sqrt(lam / max(SW[j, j], 1e-300))
+            mdb_eff = cfg.min_effect_m * math.sqrt(sq / max(SW[j, j], 1e-300))
+            mdb = max(mdb_stat, mdb_eff)
+            raw = mdb * math.sqrt(NW[j, j] / float(np.sum(q_[w])))  # rms inside the window
+            out.append({"effect": "impulsive_shift", "parameter": name, "scans": [sc.id],
+                        "minimal_detectable": mdb,
+                        "limited_by": "statistic" if mdb_stat >= mdb_eff else "effect_size",
+                        "rms_effect_m": raw, "relative_to_range_noise": raw / float(ctx.sigma[0]),
+                        "window": "middle 5 % of the scan (rms effect inside the window)",
+                        "correlation_with_model": None})
+    return out
+
+
+def _raw_T(joint: _Joint, cand: _Candidate) -> float:
+    """Statistic of a confounded candidate ignoring the confounding (for information)."""
+    m = cand.H.T @ joint.n[cand.idx]
+    Nj = cand.H.T @ joint.N[np.ix_(cand.idx, cand.idx)] @ cand.H
+    return float(m @ np.linalg.pinv(Nj) @ m) / joint.sigma0**2
+
+
+def _signature_check(ctx, S, spec, joint, o: _Option, options: Sequence[_Option] = ()) -> str:
+    """The family's physics signature; returns a reason to refuse, or ``""``."""
+    cfg = ctx.config
+    if o.kind == "catalog" and o.family == "instrument":
+        t: _Test = o.payload
+        Td, dd = joint.scan_difference(t.cand, t)
+        t.T_diff, t.dof_diff = Td, dd
+        if dd > 0 and _log_sf(Td, dd) < math.log(cfg.alpha) and Td > cfg.scan_consistency * t.T:
+            return (f"not one instrument constant: freeing it per scan adds T={Td:.0f} "
+                    f"({dd} dof) to T={t.T:.0f}")
+        return ""
+    if o.kind == "catalog" and o.family == "motion":
+        t = o.payload
+        sc = next(s for s in S if s.id == t.cand.scans[0])
+        names = t.cand.names
+        sig = _signature(ctx, sc, spec, names, t.estimate, window_s=sc.window_s,
+                         period_s=sc.period_s)
+        t.notes.append("signature")
+        o.payload.cand.info["signature"] = sig
+        others = [s for s in S if s.meta.position == sc.meta.position and s.id != sc.id]
+        if not others:
+            return ""
+        slope, z = _common_slope(ctx, sc, others, sig / sc.s_rho)
+        o.payload.cand.info["common_slope"] = (slope, z)
+        # the two cycles see a dish point at the same time of their scans: the same motion in
+        # both (a significant candidate there too) shows the same pattern in both
+        twin = [x for x in options if x is not o and x.kind == "catalog" and x.effect == o.effect
+                and x.log_p < math.log(cfg.alpha)
+                and set(x.payload.cand.scans) & {s.id for s in others}
+                and _same_motion(o.effect, sc, next(s for s in others
+                                                   if s.id == x.payload.cand.scans[0]))]
+        if twin:  # modelled together (one step), see _apply
+            best = {}
+            for x in sorted(twin, key=lambda x: x.log_p):
+                best.setdefault(x.payload.cand.scans[0], x)
+            o.payload.cand.info["twins"] = list(best.values())
+            return ""
+        if slope > cfg.common_slope and z > 4.0:
+            return (f"the other cycle shows the same deviation in the same dish cells "
+                    f"(slope {slope:.2f}, z {z:.1f}): a reflector effect, not motion")
+    return ""
+
+
+def _alternatives(joint: _Joint, best: _Option, options: Sequence[_Option]) -> list[dict]:
+    """Other significant candidates of the same family that the data hardly tell apart from
+    the accepted one (|correlation of the estimates| > 0.9): the choice between them rests on
+    a small difference of their statistics."""
+    if best.kind != "catalog" or best.family != "instrument":
+        return []
+    cb = best.payload.cand
+    out = []
+    for o in options:
+        if o is best or o.kind != "catalog" or o.family != "instrument" or not o.log_p < 0:
+            continue
+        c = o.payload.cand
+        pair = _Candidate("pair", "instrument", np.concatenate([cb.idx, c.idx]),
+                          np.kron(np.eye(2), np.ones((len(cb.idx), 1))), [cb.effect, c.effect],
+                          cb.scans)
+        t = joint.test(pair)
+        if t.cov is None or t.dof < 2:
+            continue
+        r = t.cov[0, 1] / math.sqrt(max(t.cov[0, 0] * t.cov[1, 1], 1e-300))
+        if abs(r) > 0.9:
+            out.append({"effect": c.effect, "statistic": _num(o.T),
+                        "correlation": float(r), "joint_statistic": _num(t.T)})
+    return out
+
+
+def _same_motion(effect: str, a: _Scan, b: _Scan) -> bool:
+    """The same motion in two cycles: overlapping windows, or periods within 5 %."""
+    if effect == "impulsive_shift":
+        (s0, d0), (s1, d1) = a.window_s, b.window_s
+        inter = max(0.0, min(s0 + d0, s1 + d1) - max(s0, s1))
+        return inter > 0.5 * max(d0, d1)
+    if effect == "oscillation":
+        return abs(a.period_s / b.period_s - 1.0) < 0.05
+    return True
+
+
+def _common_slope(ctx, sc: _Scan, others: Sequence[_Scan], pred: np.ndarray):
+    """Regression slope of the other scans' mismatch on the predicted deviation, per dish cell."""
+    cell = _panel_cells(ctx, sc)
+    u = sc.used & (cell >= 0)
+    nc = ctx.n_panels * ctx.config.panel_cells[0] * ctx.config.panel_cells[1]
+    cnt = np.bincount(cell[u], minlength=nc)
+    p = np.bincount(cell[u], pred[u], minlength=nc) / np.maximum(cnt, 1)
+    pmax = np.max(np.abs(p)) if len(p) else 0.0
+    hot = (cnt > 0) & (np.abs(p) > 0.5 * pmax)
+    so = np.zeros(nc)
+    co = np.zeros(nc)
+    ss = 0.0
+    n = 0
+    for o in others:
+        c2 = _panel_cells(ctx, o)
+        u2 = o.used & (c2 >= 0)
+        so += np.bincount(c2[u2], o.mismatch_m[u2], minlength=nc)
+        co += np.bincount(c2[u2], minlength=nc)
+        ss += float(np.sum(o.mismatch_m[u2] ** 2))
+        n += int(u2.sum())
+    hot &= co > 0
+    if hot.sum() < 3 or pmax == 0:
+        return 0.0, 0.0
+    om = so[hot] / co[hot]
+    w = co[hot]
+    pp = p[hot]
+    slope = float(np.sum(w * pp * om) / np.sum(w * pp * pp))
+    s2 = ss / max(n, 1)  # per-point variance of the other scans' mismatch
+    se = math.sqrt(s2 / float(np.sum(w * pp * pp)))
+    return slope, slope / se
+
+
+def _joint_step(joint: _Joint, t: _Test | None):
+    """Joint increments of the null unknowns with (optionally) a candidate at its estimate
+    (placed in its own slots, so that :meth:`_Joint.panel_step` sees it too)."""
+    n0 = joint.n[joint.I0].copy()
+    dz = np.zeros(joint.D)
+    if t is not None:
+        c = t.cand
+        dz[c.idx] = c.H @ t.estimate
+        n0 = n0 + joint.N[np.ix_(joint.I0, c.idx)] @ dz[c.idx]
+    dz[joint.I0] = -joint.K_inv @ n0
+    return dz
+
+
+def _update_panels(spec: _Spec, joint: _Joint, dz: np.ndarray) -> None:
+    """Panel offsets of the joint solution (group elimination), fed back as known deviation."""
+    if spec.panels is not None:
+        spec.panels["offset"] = _panel_datum(joint, spec.panels["offset"] + joint.panel_step(dz))
+
+
+def _panel_datum(joint: _Joint, off: np.ndarray) -> np.ndarray:
+    """Offsets without the part a paraboloid absorbs (``a + b rho^2`` over the panel centres):
+    the focal length and the vertex stay those of the best-fit paraboloid."""
+    w = joint.group_count
+    rc = joint.ctx.geo["rho_c"]
+    A = np.column_stack([np.ones_like(rc), rc**2])
+    live = w > 0
+    beta = np.linalg.lstsq(A[live] * np.sqrt(w[live, None]), off[live] * np.sqrt(w[live]),
+                           rcond=None)[0]
+    return np.where(live, off - A @ beta, 0.0)
+
+
+def _update_shared(spec: _Spec, joint: _Joint, dz: np.ndarray) -> None:
+    for i, k in enumerate(joint.shared_names):
+        spec.shared[k] += float(dz[joint.sidx[i]])
+    if spec.zern_C is not None:
+        base = len(joint.shared_names)
+        d = dz[joint.sidx[base: base + 3 * len(ZERNIKE_TESTED)]].reshape(len(ZERNIKE_TESTED), 3)
+        spec.zern_C = spec.zern_C + d
+
+
+def _refit_all(ctx, S, spec, only: Sequence[_Scan] | None = None, hints=None,
+               from_used: bool = True, others: bool = False):
+    """Refit the scans ``only`` (default all) from the window or from their points in use;
+    ``others``: the remaining scans too, from their points in use (the panel offsets or the
+    shared parameters moved)."""
+    for sc in S:
+        mine = only is None or sc in only
+        if not mine and not others:
+            continue
+        _set_known(ctx, sc, spec)
+        _refit(ctx, sc, spec, (hints or {}).get(sc.id), from_used=from_used or not mine)
+
+
+def _refine_periods(ctx: _Context, spec: _Spec, refit) -> None:
+    """Period of a modelled oscillation from the periodogram of the misclosures without it,
+    now that the panel offsets no longer hold part of it; refit when it moved."""
+    for sc, names in refit:
+        mot = spec.motion[sc.id]
+        vals = np.array([sc.value(n) for n in names])
+        sig = _signature(ctx, sc, spec, names, vals)
+        f0 = 1.0 / mot["period_s"]
+        fz = f0 * (1.0 + np.linspace(-0.01, 0.01, 41))
+        Pz = _periodogram_points(sc, fz, sc.F - sig)
+        j = int(np.argmax(Pz))
+        fbest = fz[j]
+        if 0 < j < len(Pz) - 1:
+            den = Pz[j - 1] - 2 * Pz[j] + Pz[j + 1]
+            if den < 0:
+                fbest = fz[j] + 0.5 * (Pz[j - 1] - Pz[j + 1]) / den * (fz[1] - fz[0])
+        if abs(fbest / f0 - 1.0) > 2e-4:
+            log.debug("period of %s refined: %.5f -> %.5f s", sc.id, 1 / f0, 1 / fbest)
+            mot["period_s"] = sc.period_s = float(1.0 / fbest)
+            _set_known(ctx, sc, spec)
+            _refit(ctx, sc, spec, from_used=True)
+
+
+def _free_frequency(ctx: _Context, spec: _Spec, refit) -> dict[str, dict]:
+    """Estimate the oscillation frequency with the amplitudes (one more GH adjustment per scan).
+
+    The amplitudes of a fixed period are conditional on it: a period off by 0.1 % turns the
+    phase by 0.07 rad over an 11 s scan, many sigma of the amplitudes. With the frequency
+    correction ``osc_df_hz`` free the period is corrected and the amplitude covariance grows
+    by ``C_free - C_fixed`` (the part the period's uncertainty adds); the scan is then refitted
+    at the corrected period. Returns per scan id the added covariance over its oscillation
+    names, the period and its sigma (s).
+    """
+    out = {}
+    for sc, names in refit:
+        mot = spec.motion[sc.id]
+        osc = [n for n in names if n in OSCILLATION]
+        if not osc:
+            continue
+        model = _scan_model(sc, spec, ctx.aperture, extra=(OSC_FREQUENCY,))
+        x0 = np.array([sc.value(n) if n in sc.names else 0.0 for n in model.free])
+        w = (sc.used & ~sc.cut).astype(float)
+        res = _adjust(ctx, model, sc.l, x0, sc.consts(), w)
+        free = list(model.free)
+        j = free.index(OSC_FREQUENCY)
+        C = np.asarray(res.cov)
+        if not res.converged or not np.isfinite(C[j, j]) or C[j, j] <= 0:
+            continue
+        f0 = 1.0 / mot["period_s"]
+        df = float(res.x[j])
+        a = [free.index(n) for n in osc]
+        b = [sc.names.index(n) for n in osc]
+        D = C[np.ix_(a, a)] - sc.cov[np.ix_(b, b)]
+        w_, V = np.linalg.eigh(0.5 * (D + D.T))
+        D = (V * np.maximum(w_, 0.0)) @ V.T
+        period = 1.0 / (f0 + df)
+        mot["period_s"] = sc.period_s = float(period)
+        _refit(ctx, sc, spec, from_used=True)
+        out[sc.id] = {"names": osc, "added_cov": D, "period_s": float(period),
+                      "period_sigma_s": float(math.sqrt(C[j, j]) * period**2)}
+    return out
+
+
+def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Option) -> Finding:
+    """Model the accepted explanation, refit, and describe it as a finding."""
+    eff = EFFECTS.get(o.effect)
+    expl = eff.explanation if eff else o.effect
+    fam = o.family
+    where: dict[str, Any] = {}
+    estimate: dict[str, dict[str, float]] = {}
+    scans = [sc.id for sc in S]
+    extra: dict[str, Any] = {}
+    if o.kind == "catalog":
+        t: _Test = o.payload
+        c = t.cand
+        if fam == "motion" and c.info.get("twins"):
+            # the same motion in the other cycle(s) of the position: one joint step
+            members, idx, names = [], [], []
+            for cc in [c] + [tw.payload.cand for tw in c.info["twins"]]:
+                members.append((cc.scans[0], list(cc.names),
+                                slice(len(names), len(names) + len(cc.names))))
+                idx.append(cc.idx)
+                names += [f"{n}@{cc.scans[0]}" for n in cc.names]
+            comb = _Candidate(c.effect, fam, np.concatenate(idx), np.eye(len(names)), names,
+                              [m[0] for m in members], penalty=c.penalty,
+                              info={**c.info, "members": members})
+            tc = joint.test(comb)
+            # a twin must add significantly to the first scan's own explanation (the panel
+            # offsets shared by the cycles make a ghost of one scan's motion in the other)
+            dT, dd = tc.T - t.T, tc.dof - t.dof
+            lm = math.log(max(2, len(members)))
+            if dd > 0 and _log_sf(dT, dd) + lm + math.log(c.penalty) < math.log(ctx.config.alpha):
+                c, t = comb, tc
+                o.T, o.dof = t.T, t.dof
+            else:
+                c.info["twin_rejected"] = {"statistic": dT, "dof": dd}
+        scans = list(c.scans)
+        dz = _joint_step(joint, t)
+        _update_panels(spec, joint, dz)
+        if fam == "instrument":
+            k = c.names[0]
+            _update_shared(spec, joint, dz)
+            spec.shared[k] = float(t.estimate[0])
+            spec.shared_sigma[k] = float(t.sigma[0])
+            estimate[k] = {"value": float(t.estimate[0]), "sigma": float(t.sigma[0])}
+            sig0 = _signature(ctx, S[0], spec, [k], t.estimate[:1] * 0 + 1.0)
+            where = {k2: v for k2, v in _where_of_signature(ctx, S[0], sig0, False).items()
+                     if k2 in ("covariate", "face_split")}
+            extra["scan_difference"] = {"statistic": _num(t.T_diff), "dof": t.dof_diff}
+            _refit_all(ctx, S, spec)
+            expl = (f"{expl}; {k} = {_fmt(k, t.estimate[0], t.sigma[0])}, one value for all "
+                    f"scans")
+        elif fam == "motion":
+            _update_shared(spec, joint, dz)
+            members = c.info.get("members") or [(c.scans[0], list(c.names), slice(0, len(c.names)))]
+            multi = len(members) > 1
+            refit, hints, first = [], {}, None
+            for sid, mnames, sl in members:
+                sc = next(s for s in S if s.id == sid)
+                first = first or (sc, mnames, t.estimate[sl])
+                # parameters individually separable from the model (drift has confounded ones)
+                names = [n for n in mnames if joint.test(_Candidate(
+                    c.effect, fam, np.array([joint.cidx[(sid, n)]]), np.ones((1, 1)), [n],
+                    [sid])).correlation < ctx.config.confounded_correlation]
+                mot = spec.motion.setdefault(sid, {"names": []})
+                mot["names"] = list(mot["names"]) + names
+                if c.effect == "impulsive_shift":
+                    mot["window_s"] = sc.window_s
+                if c.effect == "oscillation":
+                    mot["period_s"] = sc.period_s
+                hints[sid] = {n: float(v) for n, v in zip(mnames, t.estimate[sl]) if n in names}
+                refit.append((sc, names))
+            sc, mnames, est0 = first
+            sig = c.info.get("signature")
+            if sig is None:
+                sig = _signature(ctx, sc, spec, mnames, est0, window_s=sc.window_s,
+                                 period_s=sc.period_s)
+            where = _where_of_signature(ctx, sc, sig, True)
+            where["covariate"] = "time"
+            if multi:
+                where["cycle"] = [s.meta.cycle for s, _ in refit]
+                where.pop("phi_deg", None)
+            if c.effect == "impulsive_shift":
+                where["time_s"] = [sc.window_s[0], sc.window_s[0] + sc.window_s[1]]
+                extra["_evidence"] = {"kind": "change_point", "scan": sc.id,
+                                      "edges": sc.search["edges"],
+                                      "profile": sc.search["box_profile"],
+                                      "translation": sc.search["translation"],
+                                      "window_s": sc.window_s}
+            elif c.effect == "oscillation":
+                where["period_s"] = sc.period_s
+                if multi:
+                    where["period_s_by_scan"] = {s.id: s.period_s for s, _ in refit}
+                extra["_evidence"] = {"kind": "periodogram", "scan": sc.id,
+                                      "periods": sc.search["periods"],
+                                      "periodogram": sc.search["periodogram"],
+                                      "period_s": sc.period_s}
+            if "common_slope" in c.info:
+                extra["other_cycle_slope"] = _num(c.info["common_slope"][0])
+            log.debug("%s one-step estimate %s", c.effect, hints)
+            _refit_all(ctx, S, spec, only=[s for s, _ in refit], hints=hints, from_used=False,
+                       others=True)
+            freq: dict[str, dict] = {}
+            if c.effect == "oscillation":
+                _refine_periods(ctx, spec, refit)
+                freq = _free_frequency(ctx, spec, refit)
+                where["period_s"] = spec.motion[sc.id]["period_s"]
+                if sc.id in freq:
+                    where["period_sigma_s"] = freq[sc.id]["period_sigma_s"]
+                if multi:
+                    where["period_s_by_scan"] = {s.id: spec.motion[s.id]["period_s"]
+                                                 for s, _ in refit}
+            # values from the refit; covariance from the joint system (the panel offsets,
+            # estimated from the same points, are eliminated there, not held fixed)
+            # (an oscillation: plus what the uncertainty of its period adds)
+            sel, rows = [], []
+            for (s_, names), (sid, mnames, sl) in zip(refit, members):
+                for n in names:
+                    sel.append(np.arange(len(t.estimate))[sl][mnames.index(n)])
+                    rows.append((s_, n, f"{n}@{s_.id}" if multi else n))
+            cov = t.cov[np.ix_(sel, sel)].copy()
+            for p_, (sp, n_p, _) in enumerate(rows):
+                for q_, (sq, n_q, _) in enumerate(rows):
+                    fq = freq.get(sp.id)
+                    if sp is sq and fq and n_p in fq["names"] and n_q in fq["names"]:
+                        cov[p_, q_] += fq["added_cov"][fq["names"].index(n_p),
+                                                       fq["names"].index(n_q)]
+            for p_, (s_, n, key) in enumerate(rows):
+                estimate[key] = {"value": s_.value(n), "sigma": float(math.sqrt(cov[p_, p_]))}
+            extra["covariance"] = cov.tolist()
+            vals = {k.split("@")[0]: v["value"] for k, v in estimate.items()
+                    if k.endswith(f"@{sc.id}") or "@" not in k}
+            span = ", ".join(s.id for s, _ in refit)
+            if c.effect == "impulsive_shift":
+                d = np.array([vals.get(n, 0.0) for n in SHIFT])
+                ph = where.get("phi_deg", [0.0, 0.0])
+                expl = (f"{expl}; cycle {sc.meta.cycle}, phi {ph[0]:.1f}-{ph[1]:.1f} deg, "
+                        f"{1e3 * np.linalg.norm(d):.2f} mm for {sc.window_s[1]:.2f} s")
+            elif c.effect == "oscillation":
+                a = [vals.get(n, 0.0) for n in OSCILLATION]
+                amp = max(math.hypot(a[0], a[1]), math.hypot(a[2], a[3]))
+                expl = (f"{expl}; period {sc.period_s:.3f} s, amplitude {amp * 206264.8:.2f} "
+                        f"arcsec ({span})")
+            else:
+                expl = f"{expl} ({span})"
+        elif c.effect == "gravity_deformation":
+            _update_shared(spec, joint, dz)
+            C = t.estimate.reshape(len(ZERNIKE_TESTED), 3)
+            spec.zern_C = C
+            sg = t.sigma.reshape(len(ZERNIKE_TESTED), 3)
+            for i, j in enumerate(ZERNIKE_TESTED):
+                for a, ax in enumerate("xyz"):
+                    estimate[f"zern_{j}_per_g{ax}"] = {"value": float(C[i, a]),
+                                                       "sigma": float(sg[i, a])}
+            where = {"covariate": "gravity", "positions": sorted({s.meta.position for s in S})}
+            extra["covariance"] = t.cov.tolist()
+            _refit_all(ctx, S, spec)
+            expl = f"{expl}; Zernike modes {', '.join(map(str, ZERNIKE_TESTED))} linear in g"
+    elif o.kind == "panel":
+        dz = _joint_step(joint, None)
+        _update_shared(spec, joint, dz)
+        spec.panels = {"offset": _panel_datum(joint, joint.panel_step(dz)),
+                       "n_points": joint.group_count}
+        _refit_all(ctx, S, spec)
+        P = {**spec.panels, **{k: v for k, v in _estimate_panels(ctx, S, spec).items()
+                               if k in ("tilt_r", "tilt_t")}}  # tilts: reported, not modelled
+        live = P["n_points"] > 0
+        off = P["offset"]
+        Sg = joint.group[0]
+        sig = np.where(Sg > 0, joint.sigma0 / np.sqrt(np.where(Sg > 0, Sg, 1.0)), np.inf)
+        order = np.argsort(-np.abs(np.where(live, off / sig, 0.0)))
+        top = [int(g) for g in order[:12]]
+        where = {"panels": top, "covariate": "panel"}
+        # sigma of the rms: the standard deviation of one offset (the noise floor of the rms)
+        estimate = {"offset_rms_m": {"value": float(np.sqrt(np.mean(off[live] ** 2))),
+                                     "sigma": float(np.sqrt(np.mean(sig[live] ** 2)))}}
+        for g in top[:5]:
+            estimate[f"panel_{g}_offset_m"] = {"value": float(off[g]), "sigma": float(sig[g])}
+        extra["panels"] = {"offset_m": [float(v) for v in off],
+                           "tilt_radial_rad": [float(v) for v in P["tilt_r"]],
+                           "tilt_tangential_rad": [float(v) for v in P["tilt_t"]]}
+        rms_mm = 1e3 * estimate["offset_rms_m"]["value"]
+        expl = f"{expl}; {int(live.sum())} panels, offsets {rms_mm:.3f} mm rms"
+    if o.kind == "dish":
+        pl = o.payload
+        flagged = pl["flagged"]
+        est = pl["est"]
+        amp = []
+        for sc, cell in zip(S, pl["cells"]):
+            inf = np.isin(sc.panel, flagged) & (cell >= 0)
+            add = np.where(inf, est[np.where(cell >= 0, cell, 0)], 0.0)
+            sc.extra_known = sc.extra_known + add
+            amp.append(add[sc.used & inf])
+        _refit_all(ctx, S, spec)
+        g = ctx.geo
+        rc = np.array([g["rho_c"][p] for p in flagged])
+        pc = np.array([g["psi_c"][p] for p in flagged])
+        wts = pl["Tg"][flagged]
+        psi_m = float(np.degrees(np.angle(np.sum(wts * np.exp(1j * pc)))) % 360)
+        where = {"panels": [int(p) for p in flagged],
+                 "rho_m": float(np.sum(wts * rc) / np.sum(wts)),
+                 "psi_deg": psi_m,
+                 "covariate": "rho" if np.ptp(rc) < np.ptp(pc) * np.mean(rc) else "psi"}
+        a = np.concatenate(amp) if amp else np.zeros(1)
+        estimate = {"amplitude_m": {"value": float(np.max(np.abs(a))) if a.size else 0.0,
+                                    "sigma": float(joint.sigma0 * 0.0008)},
+                    "rms_m": {"value": float(np.sqrt(np.mean(a**2))) if a.size else 0.0,
+                              "sigma": 0.0}}
+        expl = (f"structure within {len(flagged)} panel(s) common to all scans that neither panel "
+                f"offsets and tilts nor any catalog effect explain, near rho "
+                f"{where['rho_m']:.1f} m, "
+                f"psi {psi_m:.0f} deg; modelled as a measured deviation map")
+        fam = "generic"
+    elif o.kind == "covariate":
+        pl = o.payload
+        name = pl["covariate"]
+        nb, ps = ctx.config.covariate_bins, pl["per_scan"]
+        est, se = pl["est"], pl["se"]
+        spec.modelled.add(name)
+        scans, where, parts = [], {"covariate": name}, []
+        zmax = 0.0
+        for k, sc in enumerate(S):
+            ids = pl["ids"][k]
+            e = est[k * ps: (k + 1) * ps]
+            sg = se[k * ps: (k + 1) * ps]
+            z = np.where(sg > 0, e / np.where(sg > 0, sg, 1.0), 0.0)
+            big = np.nonzero((np.abs(z) > 5.0) & (np.abs(e) > ctx.config.min_effect_m))[0]
+            if not len(big):
+                continue
+            zmax = max(zmax, float(np.max(np.abs(z))))
+            scans.append(sc.id)
+            hit = sc.used & np.isin(ids, big)
+            ph = np.degrees(sc.data.phi_rad[hit])
+            v = _covariate_values(sc)[name][hit]
+            parts.append({"scan": sc.id, "cycle": sc.meta.cycle,
+                          "faces": sorted({int(b // nb) + 1 for b in big}),
+                          "phi_deg": [float(ph.min()), float(ph.max())],
+                          f"{name}_range": [float(v.min()), float(v.max())],
+                          "range_error_m": [float(e[b]) for b in big]})
+            if name == "time":
+                sc.cut = sc.cut | np.isin(ids, big)
+            else:
+                # the joint solution: range error per bin and the panel planes it implies
+                ok = ids >= 0
+                er = pl["raw"][k * ps: (k + 1) * ps]
+                kp = np.where(sc.panel >= 0, sc.panel, 0)
+                plane = np.where(sc.panel >= 0, np.sum(_panel_columns(ctx, sc)
+                                                       * pl["planes"][kp], 1), 0.0)
+                sc.extra_known = sc.extra_known + np.where(
+                    ok, -sc.b0 * er[np.where(ok, ids, 0)] / sc.s_rho, 0.0) - plane
+        if len(parts) == 1:
+            where.update({k: v for k, v in parts[0].items() if k not in ("scan", "faces",
+                                                                         "range_error_m")})
+            if len(parts[0]["faces"]) == 1:
+                where["face"] = parts[0]["faces"][0]
+        elif parts:
+            where["cycle"] = [p["cycle"] for p in parts]
+            where[f"{name}_range"] = [min(p[f"{name}_range"][0] for p in parts),
+                                      max(p[f"{name}_range"][1] for p in parts)]
+        extra["by_scan"] = parts
+        if name == "time":
+            action = f"cut {sum(int(sc.cut.sum()) for sc in S)} points of the affected time range"
+        else:
+            action = f"modelled as a range correction per {name.replace('_', ' ')} bin"
+        _refit_all(ctx, S, spec, only=[sc for sc in S if sc.id in scans], from_used=False)
+        allb = np.concatenate([p["range_error_m"] for p in parts]) if parts else np.zeros(1)
+        estimate = {"range_error_rms_m": {"value": float(np.sqrt(np.mean(allb**2))),
+                                          "sigma": float(np.median(se[se > 0]))}}
+        extra["covariate_statistics"] = {k: {"statistic": _num(v[0]), "dof": v[1]}
+                                         for k, v in pl["all"].items()}
+        cv = pl.get("cv") or {}
+        physics = ""
+        if cv.get("ranking"):
+            extra["covariate_comparison"] = {"method": cv["method"],
+                                             "ranking": cv["ranking"][:5]}
+            b = cv["ranking"][0]
+            if b["covariate"] == name and b["model"] == "periodic" and "note" not in cv:
+                where["period"] = b["period"]
+                where["period_unit"] = "m" if name in ("range", "rho") else (
+                    "s" if name == "time" else "rad" if name != "intensity" else "1")
+                extra["periodic_amplitude_m"] = b.get("amplitude_m")
+            if b["covariate"] == name and cv.get("physics"):
+                physics = f" ({cv['physics']})"
+        expl = (f"residual structure in {', '.join(scans) or 'the scans'} following "
+                f"{name.replace('_', ' ')} that no catalog effect explains{physics}; {action}")
+        fam = "generic"
+    return Finding(effect=o.effect, family=fam, scans=scans, where=where, estimate=estimate,
+                   statistic=o.T, dof=o.dof, p_value=0.0, sigma0_before=0.0, sigma0_after=0.0,
+                   rms_before_m=0.0, rms_after_m=0.0, explanation=expl, extra=extra)
+
+
+def _fmt(name: str, v: float, s: float) -> str:
+    unit = parameter_unit(name)
+    if unit == "rad":
+        return f"{v * 206264.806:.2f} ± {s * 206264.806:.2f} arcsec"
+    if unit == "m":
+        return f"{v * 1e3:.4f} ± {s * 1e3:.4f} mm"
+    return f"{v:.4g} ± {s:.2g} {unit}".strip()
+
+
+# ============================================================================================
+# outputs
+# ============================================================================================
+
+
+def write_json(diag: Diagnosis, path: str | Path) -> Path:
+    """Write the ``hartrao-diagnosis/1`` document (strict JSON, temporary name + rename)."""
+
+    return write_json_atomic(path, diag.to_json(), indent=2, default=_json_default)
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.bool_):
+        return bool(o)
+    raise TypeError(type(o))
+
+
+def write_report(diag: Diagnosis, out_dir: str | Path) -> Path:
+    """Residual maps before and after each accepted step, the evidence of motion findings
+    (change points, periodogram) and ``index.html``; returns the HTML path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    hist = diag.history
+    images: list[tuple[str, str]] = []
+    def maps_figure(before: dict, after: dict, ids: Sequence[str], title: str, name: str):
+        vals = np.concatenate([np.abs(before[i][np.isfinite(before[i])]) for i in ids] or [[1e-4]])
+        vmax = 1e3 * float(np.percentile(vals, 98)) if vals.size else 0.5
+        fig, axes = plt.subplots(len(ids), 2, figsize=(8.5, 4.0 * len(ids)), squeeze=False)
+        for r, i in enumerate(ids):
+            for c, (lab, mp) in enumerate((("before", before), ("after", after))):
+                ax = axes[r, c]
+                im = ax.imshow(1e3 * mp[i].T, origin="lower",
+                               extent=diag.extents.get(i, [-13.0, 13.0, -13.0, 13.0]),
+                               cmap="RdBu_r", vmin=-vmax, vmax=vmax)
+                ax.set_title(f"{i}: {lab}", fontsize=9)
+                ax.set_xlabel("X [m]")
+                if c == 0:
+                    ax.set_ylabel("Y [m]")
+                ax.set_aspect("equal")
+        fig.colorbar(im, ax=axes, shrink=0.6, label="recording - simulation, normal [mm]")
+        fig.suptitle(title, fontsize=10)
+        fig.savefig(out / name, dpi=90)
+        plt.close(fig)
+        images.append((title, name))
+
+    all_ids = list(hist[0]["maps"]) if hist else []
+    for k in range(1, len(hist)):
+        ids = [i for i in (hist[k].get("scans") or all_ids) if i in hist[k]["maps"]][:4]
+        maps_figure(hist[k - 1]["maps"], hist[k]["maps"], ids,
+                    f"step {k}: {hist[k]['label']}", f"step{k}_{hist[k]['label']}_maps.png")
+        ev = hist[k].get("evidence")
+        if ev and ev.get("kind") == "change_point":
+            e = ev["edges"]
+            tb = 0.5 * (e[:-1] + e[1:])
+            fig, (a1, a2) = plt.subplots(2, 1, figsize=(8, 5.5), sharex=True)
+            tr = 1e3 * np.asarray(ev["translation"])
+            for j, ax_name in enumerate("xyz"):
+                a1.plot(tb, tr[:, j], lw=0.7, label=f"d{ax_name}")
+            lo, hi = np.nanpercentile(tr, [2, 98])
+            a1.set_ylim(lo - 0.5 * (hi - lo), hi + 0.5 * (hi - lo))  # weak bins clipped
+            a1.set_ylabel("translation per time bin [mm]")
+            a1.legend(fontsize=8)
+            a2.plot(tb, ev["profile"], lw=0.8, color="k")
+            a2.set_ylabel("box statistic T (max over lengths)")
+            a2.set_xlabel("scan time [s]")
+            for ax in (a1, a2):
+                w0, dw = ev["window_s"]
+                ax.axvspan(w0, w0 + dw, color="orange", alpha=0.3)
+            fig.suptitle(f"{ev['scan']}: change-point search (impulsive shift)", fontsize=10)
+            name = f"step{k}_change_points.png"
+            fig.savefig(out / name, dpi=90)
+            plt.close(fig)
+            images.append((f"step {k}: change-point search", name))
+        elif ev and ev.get("kind") == "periodogram":
+            fig, ax = plt.subplots(figsize=(8, 3.5))
+            ax.semilogx(ev["periods"], ev["periodogram"], lw=0.8, color="k")
+            ax.axvline(ev["period_s"], color="orange")
+            ax.set_xlabel("period [s]")
+            ax.set_ylabel("score statistic T (4 dof)")
+            ax.set_title(f"{ev['scan']}: periodogram of the scanner rotation", fontsize=10)
+            fig.tight_layout()
+            name = f"step{k}_periodogram.png"
+            fig.savefig(out / name, dpi=90)
+            plt.close(fig)
+            images.append((f"step {k}: periodogram", name))
+    if len(hist) > 1:
+        ids = all_ids[:4]
+        maps_figure(hist[0]["maps"], hist[-1]["maps"], ids, "start model vs final model",
+                    "start_vs_final_maps.png")
+    rows = "".join(
+        f"<tr><td>{i + 1}</td><td>{f.effect}</td><td>{f.family}</td><td>{', '.join(f.scans)}</td>"
+        f"<td>{f.statistic:.1f} ({f.dof})</td><td>{1e3 * f.effect_size_m:.4f}</td>"
+        f"<td>{f.sigma0_before:.4f} &rarr; {f.sigma0_after:.4f}</td>"
+        f"<td>{1e3 * f.rms_before_m:.4f} &rarr; {1e3 * f.rms_after_m:.4f}</td>"
+        f"<td>{_html(json.dumps(f.where, default=_json_default))}</td>"
+        f"<td>{_html(f.explanation)}</td></tr>" for i, f in enumerate(diag.findings))
+    conf = "".join(f"<tr><td>{c['effect']}</td><td>{', '.join(c['with'])}</td>"
+                   f"<td>{c['correlation']:.6f}</td></tr>" for c in diag.confounded)
+
+    images += diagnosis_local_figures(diag, out)
+    imgs = "".join(f"<h3>{_html(t)}</h3><img src='{n}' style='max-width:100%'>" for t, n in images)
+    skip = "".join(f"<li>{_html(k['search'])}: {_html(k['why'])}</li>" for k in diag.skipped)
+    loc = "".join(f"<li>{_html(d.get('statement', ''))}</li>" for d in diag.local_search)
+    html = f"""<!doctype html><html><head><meta charset="utf-8"><title>diagnosis</title>
+<style>body{{font-family:sans-serif;max-width:1100px;margin:auto}} td,th{{border:1px solid #ccc;
+padding:3px 6px;font-size:13px;vertical-align:top}} table{{border-collapse:collapse}}</style></head>
+<body><h1>Discrepancy diagnosis</h1>
+<p>Campaign <code>{_html(diag.campaign)}</code>. Start model {', '.join(diag.start_model)};
+final model {', '.join(diag.final_model)}.</p>
+<p>sigma0 {diag.sigma0_start:.4f} &rarr; {diag.sigma0_final:.4f}; rms of recording minus simulation
+(normal) {1e3 * diag.rms_start_m:.4f} &rarr; {1e3 * diag.rms_final_m:.4f} mm.</p>
+<h2>Findings (in the order accepted)</h2>
+<table><tr><th>#</th><th>effect</th><th>family</th><th>scans</th><th>T (dof)</th>
+<th>effect [mm]</th><th>sigma0</th><th>rms [mm]</th><th>where</th><th>explanation</th></tr>
+{rows}</table>
+<h2>Confounded with the model (not tested)</h2>
+<table><tr><th>effect</th><th>with</th><th>correlation</th></tr>{conf}</table>
+<h2>Local deformation search</h2><ul>{loc}</ul>
+<h2>Searches skipped (the recording lacks what they need)</h2><ul>{skip}</ul>
+<h2>Figures</h2>{imgs}
+<p>Notes: {_html('; '.join(diag.notes))}</p></body></html>"""
+    p = out / "index.html"
+    p.write_text(html, encoding="utf-8")
+    return p
+
+
+def _html(s: str) -> str:
+    return str(s).replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")

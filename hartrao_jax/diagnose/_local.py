@@ -1,0 +1,187 @@
+"""The ``local_deformation`` step of the diagnosis: search, judge, model, refit, report.
+
+The residual surface of the start fit (recording minus simulation along the normal, all scans
+together: the reflector is common to them) is searched by :func:`._locate.search` (matched
+filter over centres and widths, significance against the maximum the reflector's own roughness
+produces). An accepted candidate becomes the catalog's ``local_deformation`` term of the model
+(``bump_x_m, bump_y_m, bump_amp_m, bump_width_m``, :func:`._physics.local_deformation`), free
+in the Gauss-Helmert adjustment of every scan that covers it; the scans are refitted and the
+finding must survive the refit (sigma0 drops, the amplitude stays clear of zero). A candidate
+that does not stand out is described as the largest local structure and never as a finding.
+
+Sigmas: the adjustment's sigmas treat the points as independent; on a real reflector the
+panel-scale roughness correlates them, so every reported sigma is multiplied by the search's
+roughness factor at the candidate's width (the spread of the matched-filter scores over the
+surface relative to white noise); the white sigmas are kept beside them.
+
+Units: metres.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from ._locate import NOT_DISTINGUISHABLE, covered_ids, scan_point, search
+from ..model._model import bump_names
+from ..geometry._geometry import polar_to_cartesian
+from ._diagnose import Finding, _global_sigma0, _refit_all, _restore, _rms, _save
+
+ALPHA_LOCAL = 1e-3  # of the maximum over the reflector's placements
+MAX_BUMPS = 2
+
+
+def _points(S):
+    xy = np.concatenate([sc.X_tel[sc.used, :2] for sc in S])
+    r = np.concatenate([sc.mismatch_m[sc.used] for sc in S])
+    return xy, r
+
+
+def _raw_xyz(sc) -> np.ndarray:
+    """The scan's points in its own Cartesian frame as recorded (file coordinates on import)."""
+
+    return np.asarray(polar_to_cartesian(sc.l[:, 0], sc.l[:, 1], sc.l[:, 2]))
+
+
+def _place(ctx, S, x0: float, y0: float, w: float) -> dict:
+    """``where`` of a centre: aperture coordinates, panels (or grid cells), scan-frame point."""
+    where = {"x_m": float(x0), "y_m": float(y0)}
+    best = max(S, key=lambda sc: int(np.sum(np.hypot(sc.X_tel[sc.used, 0] - x0,
+                                                     sc.X_tel[sc.used, 1] - y0) < w)))
+    u = best.used
+    ids = covered_ids(best.X_tel[u, :2], best.panel[u], x0, y0, max(w, 0.3))
+    if ctx.has_layout:
+        where["panels"] = ids
+    else:
+        g = ctx.geo
+        where["cells"] = [{"cell": k, "x_m": float(g["rho_c"][k] * math.cos(g["psi_c"][k])),
+                           "y_m": float(g["rho_c"][k] * math.sin(g["psi_c"][k]))} for k in ids]
+        where["grid"] = ctx.layout_note
+    pt = scan_point(best.X_tel[u, :2], _raw_xyz(best)[u], x0, y0, w)
+    return where, pt, best.id
+
+
+def _describe(c, ctx, S) -> dict:
+    where, pt, sid = _place(ctx, S, c.x_m, c.y_m, c.width_m)
+    kind = "bump" if c.amplitude_m > 0 else "dent"
+    sig = ("no calibrated significance (too few placements)" if c.p_value is None
+           else f"p = {c.p_value:.2g} against the largest of {c.n_peaks} local structures of "
+                f"the same surface")
+    statement = (f"largest local structure: a {kind} of {1e3 * c.amplitude_m:+.2f} mm, width "
+                 f"{c.width_m:.2f} m at x {c.x_m:.2f} m, y {c.y_m:.2f} m ({sig}, roughness "
+                 f"factor {c.roughness:.1f}): {NOT_DISTINGUISHABLE}")
+    return {**c.to_json(), "where": where, "centre_scan_m": pt, "scan": sid,
+            "accepted": False, "statement": statement}
+
+
+def local_step(ctx, S: Sequence, spec, record: list[dict], notes: list[str]) -> list:
+    """Search, and model what stands out (at most :data:`MAX_BUMPS`); returns the findings and
+    appends one summary per search to ``record`` (maps under the private ``_maps`` key)."""
+
+    out = []
+    for k in range(1, MAX_BUMPS + 1):
+        xy, r = _points(S)
+        exclude = [(b["values"][b["names"][0]], b["values"][b["names"][1]],
+                    abs(b["values"][b["names"][3]])) for b in spec.bumps]
+        srch = search(xy, r, alpha=ALPHA_LOCAL, min_amplitude_m=ctx.config.min_effect_m * 5,
+                      exclude=exclude)
+        c = srch.candidate
+        if c is None:
+            record.append({"search": k, "statement": "no place of the surface is covered densely "
+                           "enough for the local-deformation search", "accepted": False,
+                           "skipped_widths_m": srch.skipped_widths, "_maps": srch.maps})
+            break
+        desc = _describe(c, ctx, S)
+        desc.update(search=k, skipped_widths_m=srch.skipped_widths, _maps=srch.maps)
+        record.append(desc)
+        if not c.significant:
+            break
+        # ---- model it: the catalog term, free in the scans that cover it
+        names = bump_names(k)
+        hint = dict(zip(names, (c.x_m, c.y_m, c.amplitude_m, c.width_m)))
+        covering = [sc.id for sc in S if int(np.sum(np.hypot(
+            sc.X_tel[sc.used, 0] - c.x_m, sc.X_tel[sc.used, 1] - c.y_m) < 2 * c.width_m)) >= 20]
+        if not covering:
+            break
+        before = (_global_sigma0(S), _rms(S))
+        saved = _save(S, spec)
+        spec.bumps.append({"names": names, "values": dict(hint), "scans": covering})
+        _refit_all(ctx, S, spec, only=[sc for sc in S if sc.id in covering],
+                   hints={sid: hint for sid in covering}, from_used=True, others=True)
+        est = _combine(S, covering, names)
+        after = (_global_sigma0(S), _rms(S))
+        ok = (est is not None and after[0] < before[0] and all(sc.converged for sc in S)
+              and 0.02 < est[names[3]][0] < 20.0
+              and abs(est[names[2]][0]) > 3 * est[names[2]][1] * c.roughness
+              and math.hypot(est[names[0]][0] - c.x_m, est[names[1]][0] - c.y_m)
+              < 3 * c.width_m)
+        if not ok:
+            spec2 = _restore(S, saved)
+            spec.__dict__.update(spec2.__dict__)
+            desc["statement"] = desc["statement"].replace(
+                "largest local structure:", "largest local structure (significant in the search "
+                "but it did not survive the refit):")
+            notes.append("local deformation candidate did not survive the refit "
+                         f"(sigma0 {before[0]:.4f} -> {after[0]:.4f})")
+            break
+        spec.bumps[-1]["values"] = {n: est[n][0] for n in names}
+        x, y, a, w = (est[n][0] for n in names)
+        f_ = c.roughness
+        where, pt, sid = _place(ctx, S, x, y, abs(w))
+        estimate = {
+            "amplitude_m": {"value": a, "sigma": est[names[2]][1] * f_,
+                            "sigma_white": est[names[2]][1]},
+            "width_m": {"value": abs(w), "sigma": est[names[3]][1] * f_,
+                        "sigma_white": est[names[3]][1]},
+            "x_m": {"value": x, "sigma": est[names[0]][1] * f_, "sigma_white": est[names[0]][1]},
+            "y_m": {"value": y, "sigma": est[names[1]][1] * f_, "sigma_white": est[names[1]][1]},
+        }
+        kind = "bump" if a > 0 else "dent"
+        expl = (f"a smooth local {kind} of {1e3 * a:+.2f} ± {1e3 * est[names[2]][1] * f_:.2f} mm "
+                f"and width {abs(w):.2f} ± {est[names[3]][1] * f_:.2f} m at x {x:.2f} m, y "
+                f"{y:.2f} m of the aperture stands out from the reflector's own roughness "
+                f"(p = {c.p_value:.2g} against its {c.n_peaks} local structures); modelled as "
+                f"local_deformation, rms {1e3 * before[1]:.4f} -> {1e3 * after[1]:.4f} mm")
+        desc.update(accepted=True, statement=expl, estimate=estimate, where=where,
+                    centre_scan_m=pt)
+        p = c.p_value if c.p_value is not None else 1.0
+        out.append(Finding(
+            effect="local_deformation", family="reflector", scans=covering, where=where,
+            estimate=estimate, statistic=c.t * c.t, dof=1, p_value=p,
+            sigma0_before=before[0], sigma0_after=after[0], rms_before_m=before[1],
+            rms_after_m=after[1], explanation=expl, effect_size_m=abs(a),
+            extra={"centre_scan_m": pt, "centre_scan_of": sid, "parameters": list(names),
+                   "null": {"method": "maximum of the matched filter over the reflector's own "
+                                      "placements (peak-height tail, same surface)",
+                            "p_value": c.p_value, "t": c.t, "n_peaks": c.n_peaks,
+                            "roughness_factor": c.roughness, "tail": c.tail},
+                   "sigma_note": "sigmas are the adjustment's times the roughness factor "
+                                 f"{f_:.2f} (correlated panel-scale roughness)"}))
+    return out
+
+
+def _combine(S, ids, names):
+    """Inverse-variance mean of the bump parameters over the scans where they are free:
+    ``{name: (value, sigma)}``, or None when an adjustment failed."""
+    vals = {n: [] for n in names}
+    for sc in S:
+        if sc.id not in ids or not all(n in sc.names for n in names):
+            continue
+        sd = np.sqrt(np.maximum(np.diag(sc.cov), 0.0))
+        for n in names:
+            i = sc.names.index(n)
+            if not (np.isfinite(sc.x[i]) and np.isfinite(sd[i]) and sd[i] > 0):
+                return None
+            vals[n].append((float(sc.x[i]), float(sd[i])))
+    out = {}
+    for n, v in vals.items():
+        if not v:
+            return None
+        w = np.array([1 / s**2 for _, s in v])
+        out[n] = (float(np.sum(w * np.array([x for x, _ in v])) / w.sum()),
+                  float(1 / math.sqrt(w.sum())))
+    if out[names[3]][0] < 0:  # the sign of the width is not observable
+        out[names[3]] = (-out[names[3]][0], out[names[3]][1])
+    return out

@@ -1,0 +1,543 @@
+"""Scale-out on Dask distributed: per-scan work on workers, small normal matrices back.
+
+Every scan is read, preprocessed and adjusted on a worker (:func:`fit_dask`); what travels back
+to the client is a summary of a few kilobytes (estimates, covariance, the ``fit.json`` record) --
+the points and residuals stay on the worker, which writes the residual table itself when the
+output directory is shared. The joint adjustment (:mod:`._joint`) runs its Schur-complement
+iteration on the client over the same worker-resident scans (:class:`DaskBackend`): per
+iteration the workers return their normal equations (9 x 9) and apply the step to their
+residuals.
+
+Workers import JAX themselves and switch on float64 and the persistent compilation cache
+(:class:`JaxWorkerPlugin`); a :class:`~distributed.LocalCluster` is started with one thread per
+worker process and XLA limited to one intra-op thread, so ``n`` workers use ``n`` cores.
+
+Two things made a worker 3.5 times slower per scan than the in-process fit, both fixed here:
+
+* every scan has its own number of rows, so every scan compiled its own Gauss-Helmert program
+  (two: with and without start residuals), ~4 s of a ~5 s scan; a worker now pads each scan to
+  a bucket size (:func:`._fit.fit_scan` pads): one compilation per worker for a campaign;
+* Dask's nanny starts workers with ``MALLOC_TRIM_THRESHOLD_`` set, which switches off glibc's
+  dynamic mmap threshold: every large NumPy/JAX buffer became a fresh ``mmap`` with its page
+  faults, tripling the CPU time of the preprocessing and bookkeeping (:func:`_pre_spawn_environ`).
+
+North alignment of zenith scans needs the mount heading from the tilted scans: as in
+:func:`._fit.fit_campaign`, tilted scans are fitted first (in parallel), then the near-zenith
+ones with the heading hint. The result equals the in-process fit.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from .._config import enable_compilation_cache, enable_x64
+from ..campaign._campaign import load_campaign, read_scan
+from ..campaign._safeio import OutputDir
+from ..geometry._geometry import pointing_gravity
+from ..model._model import parse_model
+from ..preprocess._preprocess import PreprocessConfig, keep_mask_fn
+from ._align import Alignment, MIN_TILT_RAD, mount_heading
+from ._fit import CampaignFit, FIT_SCHEMA, ScanFit, fit_position, fit_scan, position_record, scan_record, sigma_vector, write_residuals
+from ._joint import JointFit, ScanProblem, bucket_size, check_shared, group_of, joint_json, joint_scan_fit, schur_iterate
+
+log = logging.getLogger("hartrao_jax")
+
+WORKER_ENV = {
+    "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false",
+    "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+    "JAX_ENABLE_X64": "1", "JAX_PLATFORMS": "cpu",
+}
+MALLOC_VAR = "MALLOC_TRIM_THRESHOLD_"  # see _pre_spawn_environ
+
+
+# --------------------------------------------------------------------------------------------
+# Cluster
+# --------------------------------------------------------------------------------------------
+
+
+def worker_setup() -> None:
+    """Runs in every worker: float64 and the persistent compilation cache."""
+    for k, v in WORKER_ENV.items():
+        os.environ.setdefault(k, v)
+
+    enable_x64()
+    try:
+        enable_compilation_cache()
+    except OSError:  # read-only home on a remote worker: compile every time
+        pass
+
+
+try:
+    from distributed.diagnostics.plugin import WorkerPlugin
+except ImportError:  # pragma: no cover - dask is an optional dependency
+    WorkerPlugin = object  # type: ignore[misc,assignment]
+
+
+class JaxWorkerPlugin(WorkerPlugin):  # type: ignore[misc]
+    """Imports hartrao_jax in each worker (float64, compilation cache) before any task."""
+
+    name = "hartrao-jax"
+
+    def setup(self, worker):  # noqa: D401
+        worker_setup()
+
+
+def start_client(scheduler: str | None = None, *, n_workers: int = 2, threads_per_worker: int = 1,
+                 memory_limit: str | float | None = "auto"):
+    """A Dask client: to ``scheduler`` (address) or to a new local cluster of processes.
+
+    Returns ``(client, cluster)``; ``cluster`` is None for an existing scheduler. Close both
+    when done (:func:`close_client`).
+    """
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as e:  # pragma: no cover
+        raise ImportError("the Dask commands need dask[distributed]: pip install "
+                          "'hartrao-jax[dask]'") from e
+    _quiet()
+    cluster = None
+    if scheduler:
+        client = Client(scheduler)
+    else:
+        import dask
+
+        with dask.config.set({"distributed.nanny.pre-spawn-environ": _pre_spawn_environ()}):
+            cluster = LocalCluster(n_workers=n_workers, threads_per_worker=threads_per_worker,
+                                   processes=True, env=dict(WORKER_ENV), dashboard_address=None,
+                                   memory_limit=memory_limit, silence_logs=logging.ERROR)
+        client = Client(cluster)
+    client.register_plugin(JaxWorkerPlugin())
+    return client, cluster
+
+
+def _pre_spawn_environ() -> dict:
+    """Dask's pre-spawn environment of worker processes without ``MALLOC_TRIM_THRESHOLD_``.
+
+    Dask's nanny sets ``MALLOC_TRIM_THRESHOLD_=65536`` in every worker process (and in the
+    process that starts them, before each spawn). Setting any glibc malloc tunable switches
+    off glibc's dynamic mmap threshold: every array above 128 KiB is then a fresh ``mmap``
+    and its pages are faulted in again on every allocation. The preprocessing and the
+    per-scan bookkeeping allocate many such arrays (NumPy and JAX host buffers): measured on
+    a 20k-row scan, 1.5 s CPU per scan in-process against 4.8 s in a worker, 2.7 s of it
+    system time. Without the variable the workers allocate like the
+    in-process fit. A leftover value from an earlier cluster in this process (the nanny
+    writes it into ``os.environ``) is removed as well, as the workers inherit it.
+    """
+    import dask
+
+    pre = dict(dask.config.get("distributed.nanny.pre-spawn-environ", default={}) or {})
+    trim = pre.pop(MALLOC_VAR, None)
+    if trim is not None and os.environ.get(MALLOC_VAR) == str(trim):
+        del os.environ[MALLOC_VAR]
+    return pre
+
+
+def _quiet() -> None:
+    """Dask's own INFO messages (scheduler start/stop) are not the user's business."""
+    for name in list(logging.root.manager.loggerDict):
+        if name.startswith("distributed"):
+            logging.getLogger(name).setLevel(logging.WARNING)
+    logging.getLogger("distributed").setLevel(logging.WARNING)
+
+
+def close_client(client, cluster) -> None:
+    client.close()
+    if cluster is not None:
+        cluster.close()
+
+
+# --------------------------------------------------------------------------------------------
+# Worker tasks (module-level functions: pickled by reference)
+# --------------------------------------------------------------------------------------------
+
+
+CLEAR_EVERY = 64  # tasks between jax.clear_caches() in a worker (see release_compiled)
+_tasks_since_clear = [0]
+
+
+def release_compiled(every: int = CLEAR_EVERY) -> bool:
+    """Drop JAX's in-memory compilation caches every ``every`` calls.
+
+    Every scan of a campaign has its own number of points, hence its own compiled programs;
+    after some thousand executables a process runs out of memory maps (``vm.max_map_count``,
+    65530 by default: LLVM then fails with "Cannot allocate memory" and the process dies).
+    Clearing the in-memory caches now and then bounds that; programs used again come back from
+    the persistent compilation cache. With the adjustment padded (:func:`._fit.fit_scan`) only
+    the preprocessing still compiles per scan (4 to 7 small programs), hence the longer
+    interval. Returns True when it cleared.
+    """
+    _tasks_since_clear[0] += 1
+    if _tasks_since_clear[0] < every:
+        return False
+    import jax
+
+    jax.clear_caches()
+    _tasks_since_clear[0] = 0
+    return True
+
+
+@functools.lru_cache(maxsize=8)
+def _campaign(root: str):
+    return load_campaign(root)
+
+
+@dataclass
+class ScanSummary:
+    """What a worker sends back after fitting a scan (small)."""
+
+    id: str
+    names: tuple[str, ...]
+    x: np.ndarray
+    cov: np.ndarray
+    sigma0: float
+    record: dict
+    alignment_source: str
+    heading_rad: float | None
+    gravity: np.ndarray
+    elevation_deg: float
+    n_points: int
+    seconds: float
+    worker: str = ""
+    extra: dict = field(default_factory=dict)
+
+
+def _keep_fn(preprocess: bool, campaign):
+    if not preprocess:
+        return None
+    try:
+        pass
+    except ImportError:
+        return None
+    return keep_mask_fn(PreprocessConfig(), campaign)
+
+
+def task_fit_scan(root: str, scan_id: str, model, fixed: dict | None, robust_k: float | None,
+                  preprocess: bool, heading_hint_rad: float | None):
+    """Worker: read, preprocess and fit one scan; the :class:`ScanFit` stays on the worker."""
+    import time
+
+    worker_setup()
+
+    release_compiled()
+    t0 = time.perf_counter()
+    camp = _campaign(root)
+    meta = camp.scan(scan_id)
+    data = read_scan(camp, meta)
+    keep_fn = _keep_fn(preprocess, camp)
+    keep = keep_fn(meta, data) if keep_fn is not None else None
+    fit = fit_scan(camp, meta, model, data=data, keep=keep, fixed=fixed,
+                   robust_k=robust_k, heading_hint_rad=heading_hint_rad)  # padded rows
+    fit.notes = list(fit.notes)
+    fit._seconds = time.perf_counter() - t0  # type: ignore[attr-defined]
+    return fit
+
+
+def task_fit_position(root: str, scan_ids: Sequence[str], model, fixed: dict | None,
+                      robust_k: float | None, preprocess: bool, heading_hint_rad: float | None,
+                      out_dir: str | None):
+    """Worker: read, preprocess and adjust the scans of one position together (two faces, the
+    surface a random effect); returns the scans' summaries and the position's record."""
+    import time
+
+    worker_setup()
+
+    release_compiled()
+    t0 = time.perf_counter()
+    camp = _campaign(root)
+    metas = [camp.scan(i) for i in scan_ids]
+    pf = fit_position(camp, metas, model, keep=_keep_fn(preprocess, camp), fixed=fixed,
+                      robust_k=robust_k, heading_hint_rad=heading_hint_rad)
+    seconds = time.perf_counter() - t0
+    out = []
+    for s in pf.scans:
+        s._seconds = seconds / len(pf.scans)  # type: ignore[attr-defined]
+        out.append(task_summary(s, out_dir, held=pf.held))
+    return out, position_record(pf)
+
+
+def task_summary(fit, out_dir: str | None = None, held=None) -> ScanSummary:
+    """Worker: the small summary of a fitted scan (and its residual table, if ``out_dir``)."""
+    from distributed import get_worker
+
+
+    if out_dir:
+        (Path(out_dir) / "residuals").mkdir(parents=True, exist_ok=True)
+        write_residuals(Path(out_dir) / "residuals" / f"{fit.meta.id}.parquet", fit)
+    heading = None
+    if fit.alignment.source == "gravity":
+        heading = mount_heading(fit.alignment.kappa_rad, fit.value("rx"), fit.value("ry"),
+                                fit.gravity)
+    try:
+        wname = get_worker().address
+    except ValueError:
+        wname = "local"
+    return ScanSummary(fit.meta.id, tuple(fit.names), np.asarray(fit.x), np.asarray(fit.cov),
+                       float(fit.sigma0), scan_record(fit, held), fit.alignment.source, heading,
+                       np.asarray(fit.gravity), float(fit.elevation_deg), int(fit.n_points),
+                       float(getattr(fit, "_seconds", math.nan)), wname)
+
+
+def task_problem(fit, sigma_l, n_pad: int | None):
+    """Worker: the joint-iteration arrays of a fitted scan (stay on the worker)."""
+
+    worker_setup()
+    return ScanProblem.from_fit(fit, sigma_l, n_pad or bucket_size(len(fit.data)))
+
+
+def task_normals(problem, x):
+    return problem.normals(np.asarray(x))
+
+
+def task_update(problem, x, dx):
+    return problem.update(np.asarray(x), np.asarray(dx))
+
+
+def task_omega(problem) -> float:
+    return problem.omega
+
+
+def task_finish_joint(root, fit, problem, x, cov, N, sigma0, n_used, omega, u_object, iterations,
+                      converged, hint, out_dir):
+    """Worker: the joint ScanFit of one scan, its fit.json record and residual table."""
+
+    camp = _campaign(root)
+    jf = joint_scan_fit(camp, fit, x, cov, N, sigma0, problem.v[: problem.n],
+                        problem.e[: problem.n], n_used, omega, u_object, iterations, converged,
+                        hint)
+    jf._seconds = 0.0  # type: ignore[attr-defined]
+    return task_summary(jf, out_dir)
+
+
+# --------------------------------------------------------------------------------------------
+# Client side
+# --------------------------------------------------------------------------------------------
+
+
+def thin_scan_fit(summary: ScanSummary, meta):
+    """A ScanFit without point arrays (enough for positions, precision and correlations)."""
+
+    e = np.zeros(0)
+    return ScanFit(meta=meta, model=None, names=summary.names, x=summary.x, cov=summary.cov,
+                   sigma0=summary.sigma0, iterations=summary.record.get("iterations", 0),
+                   converged=summary.record.get("converged", True), n_points=summary.n_points,
+                   n_rejected=summary.record.get("n_rejected", 0),
+                   n_window=summary.record.get("n_outside_window", 0),
+                   alignment=Alignment(summary.record.get("kappa_rad", 0.0),
+                                       summary.alignment_source),
+                   init=None, data=None, used=e.astype(bool), v=e, normalized=e, deviation_m=e,
+                   X_tel=np.zeros((0, 3)), gravity=summary.gravity,
+                   elevation_deg=summary.elevation_deg)
+
+
+def fit_document(campaign, names, summaries: Sequence[ScanSummary],
+                 positions: Sequence[dict] | None = None) -> dict:
+    """``fit.json`` from worker summaries, in the form :func:`._fit.fit_json` gives
+    (``positions``: the records of two-face position adjustments; None: per-cycle fits)."""
+
+    thin = [thin_scan_fit(s, campaign.scan(s.id)) for s in summaries]
+    doc = {"schema": FIT_SCHEMA, "model": list(names)}
+    if positions is not None:
+        doc["adjustment"] = "two-face, surface random effect"
+    doc.update({"campaign": str(campaign.root), "scans": [s.record for s in summaries],
+                "positions": list(positions) if positions is not None
+                else CampaignFit(campaign, tuple(names), thin).positions()})
+    return doc
+
+
+@dataclass
+class DaskFit:
+    """Result of :func:`fit_dask`: the ``fit.json`` document and the worker summaries."""
+
+    document: dict
+    summaries: list[ScanSummary]
+    seconds: float
+    n_workers: int
+    joint: object | None = None  # a JointFit with thin scans when joint=True
+    fit_futures: list | None = None
+
+
+class DaskBackend:
+    """:class:`._joint.JointBackend` over worker-resident scan problems (futures)."""
+
+    def __init__(self, client, problem_futures):
+        self.client = client
+        self.futures = list(problem_futures)
+
+    def normals(self, xs):
+        futs = self.client.map(task_normals, self.futures, [np.asarray(x) for x in xs], pure=False)
+        return self.client.gather(futs)
+
+    def update(self, xs, dxs):
+        new = self.client.map(task_update, self.futures, [np.asarray(x) for x in xs],
+                              [np.asarray(d) for d in dxs], pure=False)
+        self.futures = new
+        return self.client.gather(self.client.map(task_omega, new, pure=False))
+
+
+def _tilt(meta, campaign) -> float:
+    g = pointing_gravity(meta, campaign.telescope, campaign.site)
+    return float(np.arccos(np.clip(-g[2], -1, 1)))
+
+
+def fit_dask(
+    campaign,
+    model="extended",
+    *,
+    client=None,
+    scheduler: str | None = None,
+    n_workers: int = 2,
+    scans: Sequence[str] | None = None,
+    fixed: dict | None = None,
+    robust_k: float | None = 4.0,
+    preprocess: bool = True,
+    out_dir=None,
+    joint: bool = False,
+    shared: Sequence[str] = ("x4", "x6", "x7"),
+    group: str = "night",
+    keep_futures: bool = False,
+    per_cycle: bool = False,
+) -> DaskFit:
+    """Fit the scans of ``campaign`` on Dask workers; with ``out_dir`` write ``fit.json`` (and
+    the workers write ``residuals/``) as ``hartrao-jax fit`` does.
+
+    ``client``: an existing client; else one to ``scheduler`` or to a new
+    ``LocalCluster(n_workers, threads_per_worker=1, processes=True)`` (closed at the end).
+    ``joint=True``: then the joint adjustment (shared calibration per ``group``) with the
+    Schur-complement iteration over the worker-resident scans. Default: one task per position,
+    both faces adjusted together with the surface as a random effect (as ``fit``);
+    ``per_cycle=True``: one task per scan, each cycle alone.
+    """
+    import time
+
+
+    t0 = time.perf_counter()
+    own = client is None
+    cluster = None
+    if own:
+        client, cluster = start_client(scheduler, n_workers=n_workers)
+    try:
+        root = str(Path(campaign.root).resolve())
+        metas = [campaign.scan(s) for s in scans] if scans else list(campaign.scans)
+        order = sorted(metas, key=lambda m: -_tilt(m, campaign))
+        tilted = [m for m in order if _tilt(m, campaign) >= MIN_TILT_RAD]
+        flat = [m for m in order if _tilt(m, campaign) < MIN_TILT_RAD]
+        outd = str(Path(out_dir).resolve()) if out_dir and not joint else None
+        od = None
+        if out_dir:
+            # workers write the residual tables in place (each atomically): no fit.json
+            # until the new one lists them
+            od = OutputDir(out_dir, "fit.json")
+            od.invalidate()
+        fits: dict[str, object] = {}
+        summaries: dict[str, ScanSummary] = {}
+        if not joint and not per_cycle:  # one task per position: both faces together
+            groups: dict[str, list] = {}
+            for m in order:
+                groups.setdefault(m.position, []).append(m)
+            records: dict[str, dict] = {}
+
+            def run_positions(names_, hint):
+                fut = client.map(task_fit_position, [root] * len(names_),
+                                 [[m.id for m in groups[p]] for p in names_],
+                                 [model] * len(names_), [fixed] * len(names_),
+                                 [robust_k] * len(names_), [preprocess] * len(names_),
+                                 [hint] * len(names_), [outd] * len(names_), pure=False)
+                for p, (summ, rec) in zip(names_, client.gather(fut)):
+                    records[p] = rec
+                    for s in summ:
+                        summaries[s.id] = s
+
+            first = [p for p in groups if _tilt(groups[p][0], campaign) >= MIN_TILT_RAD]
+            run_positions(first, None)
+            hs = [summaries[m.id].heading_rad for p in first for m in groups[p][:1]
+                  if summaries[m.id].alignment_source == "gravity"]
+            hint = float(np.angle(np.mean(np.exp(1j * np.array(hs))))) if hs else None
+            rest = [p for p in groups if p not in first]
+            if rest:
+                run_positions(rest, hint)
+            ordered = [summaries[m.id] for m in metas]
+            pos_order = list(dict.fromkeys(m.position for m in metas))
+            doc = fit_document(campaign, parse_model(model), ordered,
+                               [records[p] for p in pos_order])
+            if od is not None:
+                for m in metas:
+                    if (Path(out_dir) / "residuals" / f"{m.id}.parquet").is_file():
+                        od.adopt(f"residuals/{m.id}.parquet")
+                od.commit(doc)
+            n_w = len(client.scheduler_info().get("workers", {}))
+            return DaskFit(doc, ordered, time.perf_counter() - t0, n_w, None, None)
+
+        def run(batch, hint):
+            fut = client.map(task_fit_scan, [root] * len(batch), [m.id for m in batch],
+                             [model] * len(batch), [fixed] * len(batch),
+                             [robust_k] * len(batch), [preprocess] * len(batch),
+                             [hint] * len(batch), pure=False)
+            summ = client.gather(client.map(task_summary, fut, [outd] * len(batch), pure=False))
+            for m, f, s in zip(batch, fut, summ):
+                fits[m.id], summaries[m.id] = f, s
+
+        run(tilted, None)
+        hs = [summaries[m.id].heading_rad for m in tilted
+              if summaries[m.id].alignment_source == "gravity"]
+        hint = float(np.angle(np.mean(np.exp(1j * np.array(hs))))) if hs else None
+        if flat:
+            run(flat, hint)
+        names = parse_model(model)
+        ordered = [summaries[m.id] for m in metas]
+        doc = fit_document(campaign, names, ordered)
+        jf = None
+        if joint:
+            jf, doc = _joint_on_workers(client, root, campaign, metas, fits, ordered, names,
+                                        shared, group, sigma_vector(campaign), hint, out_dir)
+        if od is not None:
+            for m in metas:
+                if (Path(out_dir) / "residuals" / f"{m.id}.parquet").is_file():
+                    od.adopt(f"residuals/{m.id}.parquet")
+            od.commit(doc)
+        n_w = len(client.scheduler_info().get("workers", {}))
+        return DaskFit(doc, ordered, time.perf_counter() - t0, n_w, jf,
+                       [fits[m.id] for m in metas] if keep_futures else None)
+    finally:
+        if own:
+            close_client(client, cluster)
+
+
+def _joint_on_workers(client, root, campaign, metas, fits, summaries, names, shared, group, sigma_l,
+                      hint, out_dir):
+    shared = check_shared(names, shared)
+    # rows of each scan = used + rejected + outside the window: one padded shape for all
+    n_pad = max(bucket_size(s.n_points + s.record.get("n_rejected", 0)
+                            + s.record.get("n_outside_window", 0)) for s in summaries)
+    futs = [fits[m.id] for m in metas]
+    probs = client.map(task_problem, futs, [sigma_l] * len(futs), [n_pad] * len(futs), pure=False)
+    backend = DaskBackend(client, probs)
+    groups = [group_of(m, group) for m in metas]
+    sol = schur_iterate(backend, names, shared, groups, [s.x for s in summaries])
+    outd = str(Path(out_dir).resolve()) if out_dir else None
+    jsum = client.gather(client.map(
+        task_finish_joint, [root] * len(futs), futs, backend.futures, sol.xs,
+        [sol.cov(i) for i in range(len(futs))],
+        sol.N, [sol.sigma0] * len(futs), sol.n_used, sol.omega, [len(sol.o_idx)] * len(futs),
+        [sol.iterations] * len(futs), [sol.converged] * len(futs), [hint] * len(futs),
+        [outd] * len(futs), pure=False))
+    thin_joint = [thin_scan_fit(s, m) for s, m in zip(jsum, metas)]
+    thin_start = [thin_scan_fit(s, m) for s, m in zip(summaries, metas)]
+    gmap: dict[str, list[str]] = {}
+    for m, g in zip(metas, groups):
+        gmap.setdefault(g, []).append(m.id)
+    jf = JointFit(campaign, tuple(names), shared, group, gmap, thin_joint,
+                  CampaignFit(campaign, tuple(names), thin_start), sol)
+    doc = joint_json(jf, base=fit_document(campaign, names, jsum))
+    return jf, doc
+
+
+__all__ = ["DaskBackend", "DaskFit", "JaxWorkerPlugin", "ScanSummary", "WORKER_ENV",
+           "close_client", "fit_dask", "fit_document", "release_compiled", "start_client",
+           "thin_scan_fit", "worker_setup"]

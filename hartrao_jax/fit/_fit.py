@@ -1,0 +1,947 @@
+"""Fit campaigns: per scan initial values, cleaning, rigorous GH adjustment, north alignment.
+
+Everything here is bookkeeping (NumPy) around the differentiable core (:mod:`._ghm`,
+:mod:`._model`). Results are plain dataclasses of NumPy arrays, written to ``fit.json``
+(schema ``hartrao-fit/1``, ``shared/spec/outputs.md``) and to per-scan residual tables.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+from ._align import Alignment, mount_heading, north_alignment
+from ..campaign._campaign import Campaign, ScanData, ScanMeta, read_scan
+from ..geometry._geometry import face_of, paraboloid_deviation, pointing_elevation_deg, pointing_gravity, rot_z
+from ..solver._ghm import GHResult, gauss_helmert_batch, robust_gauss_helmert
+from ..preprocess._initial import (
+    InitialValues,
+    geometry_window,
+    initial_values,
+    patch_initial_values,
+    quadric_initial_values,
+)
+from ..model._model import N_CONSTS, ZERNIKE_PREFIX, ParaboloidModel, make_model, parameter_unit
+from ..physics._catalog import INSTRUMENT
+from ..campaign._campaign import _concat as concat_scans
+from ..campaign._safeio import OutputDir, write_file_atomic
+from ..geometry._geometry import panel_cells
+from ..model._model import parse_model
+from ..solver._ghm import gauss_helmert
+from ..solver._mixed import gauss_helmert_mixed, unidentifiable
+from ._joint import bucket_size
+
+log = logging.getLogger("hartrao_jax")
+
+FIT_SCHEMA = "hartrao-fit/1"
+
+
+@dataclass
+class ScanFit:
+    """The adjustment of one scan (NumPy; SI units).
+
+    ``used`` marks the points of ``data`` that entered the final adjustment; ``deviation_m`` is
+    the signed normal distance of every point of ``data`` from the fitted paraboloid (positive
+    towards the focus), ``X_tel`` its north-aligned telescope-frame coordinates (m).
+    """
+
+    meta: ScanMeta
+    model: ParaboloidModel
+    names: tuple[str, ...]
+    x: np.ndarray
+    cov: np.ndarray
+    sigma0: float
+    iterations: int
+    converged: bool
+    n_points: int
+    n_rejected: int
+    n_window: int
+    alignment: Alignment
+    init: InitialValues
+    data: ScanData
+    used: np.ndarray
+    v: np.ndarray
+    normalized: np.ndarray
+    deviation_m: np.ndarray
+    X_tel: np.ndarray
+    gravity: np.ndarray
+    elevation_deg: float
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def sigma(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.cov))
+
+    @property
+    def estimates(self) -> dict[str, tuple[float, float]]:
+        return {n: (float(self.x[i]), float(self.sigma[i])) for i, n in enumerate(self.names)}
+
+    def value(self, name: str) -> float:
+        """Estimated or fixed value of a parameter (0 for a parameter not in the model)."""
+        if name in self.names:
+            return float(self.x[self.names.index(name)])
+        fixed = dict(zip(self.model.fixed_names, np.asarray(self.model.fixed_values)))
+        return float(fixed.get(name, 0.0))
+
+    def sigma_of(self, name: str) -> float:
+        """Standard deviation of an estimate (0 for a fixed parameter)."""
+        return float(self.sigma[self.names.index(name)]) if name in self.names else 0.0
+
+    @property
+    def correlation(self) -> np.ndarray:
+        s = self.sigma
+        return self.cov / np.outer(s, s)
+
+
+@dataclass
+class Held:
+    """A parameter the data cannot determine: held at ``value`` (its fixed or prior value)."""
+
+    value: float
+    note: str
+    confounded_with: tuple[str, ...] = ()
+    correlation: float | None = None
+
+
+@dataclass
+class SurfaceEffect:
+    """The surface random effect of a position adjustment (``shared/spec/physics.md``).
+
+    ``cells``: description of the cells (panels, or square cells where the telescope has no
+    panel layout); ``u`` (g, 3) the cells' predicted offset (m, positive towards the focus) and
+    tilts (rad: radial/tangential, or x/y for square cells) with prediction-error covariances
+    ``u_cov`` (g, 3, 3); ``n`` points per cell. ``variances``: the estimated components
+    (``noise``: factor on the a priori variances; ``offset_m2``, ``tilt_rad2``, ``modes_m2``)
+    and their redundancy shares.
+    """
+
+    cells: str
+    u: np.ndarray
+    u_cov: np.ndarray
+    n: np.ndarray
+    variances: dict[str, float]
+    redundancy: dict[str, float]
+    modes: dict[str, tuple[float, float]] = field(default_factory=dict)
+
+
+@dataclass
+class PositionFit:
+    """One telescope position adjusted from both faces at once (or from its one usable face).
+
+    One pose, one f and one set of calibration parameters (``names``, ``x``, ``cov``) for all
+    of ``scans``; ``cov`` includes the surface random effect. ``held``: parameters not
+    identifiable from these data, held at their fixed/prior value. ``faces``: 2 when both
+    cycles entered the adjustment, 1 otherwise (never called a cycle average).
+    """
+
+    position: str
+    scans: list[ScanFit]
+    names: tuple[str, ...]
+    x: np.ndarray
+    cov: np.ndarray
+    held: dict[str, Held]
+    faces: int
+    sigma0: float
+    surface: SurfaceEffect | None
+    iterations: int
+    converged: bool
+    n_points: int
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def sigma(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.cov))
+
+    def estimate(self, name: str) -> tuple[float, float]:
+        i = self.names.index(name)
+        return float(self.x[i]), float(self.sigma[i])
+
+
+@dataclass
+class CampaignFit:
+    """The fitted scans of a campaign. ``shared``: parameters estimated jointly by all scans of
+    a group (a joint adjustment's calibration; empty for scan-by-scan fits). ``position_fits``:
+    the two-face adjustments the scans come from (empty for per-cycle fits)."""
+
+    campaign: Campaign
+    model_names: tuple[str, ...]
+    scans: list[ScanFit]
+    shared: tuple[str, ...] = ()
+    position_fits: list[PositionFit] = field(default_factory=list)
+
+    def positions(self) -> list[dict]:
+        """Per position: its adjustment's estimates (two-face fits), or the inverse-variance mean
+        focal length of its scans (per-cycle fits)."""
+        if self.position_fits:
+            return [position_record(p) for p in self.position_fits]
+        out: dict[str, list[ScanFit]] = {}
+        for s in self.scans:
+            out.setdefault(s.meta.position, []).append(s)
+        rows = []
+        for pos, fits in out.items():
+            v = np.array([s.value("f") for s in fits])
+            sg = np.array([s.sigma_of("f") for s in fits])
+            if np.all(sg > 0):
+                w = 1.0 / sg**2
+                mean = float(np.sum(w * v) / np.sum(w))
+                sig = float(1.0 / math.sqrt(np.sum(w)))
+            else:  # focal length held fixed
+                w = np.ones_like(v)
+                mean, sig = float(np.mean(v)), 0.0
+            m = fits[0].meta
+            row = {"position": pos}
+            if m.ha_deg is not None:
+                row.update(ha_deg=m.ha_deg, dec_deg=m.dec_deg)
+            if m.azimuth_deg is not None or m.elevation_deg is not None:
+                row.update(azimuth_deg=m.azimuth_deg)
+            row.update(elevation_deg=fits[0].elevation_deg,
+                       f={"value": mean, "sigma": sig},
+                       gravity=[float(a) for a in fits[0].gravity],
+                       scans=[s.meta.id for s in fits])
+            if len(fits) > 1 and sig > 0:
+                chi2 = float(np.sum(w * (v - mean) ** 2))
+                row["f_consistency_chi2"] = chi2
+            rows.append(row)
+        return rows
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def scan_arrays(data: ScanData) -> tuple[np.ndarray, np.ndarray]:
+    """Observations ``l = (r, phi, theta)`` (n, 3) and constants ``c = (time_s, 0)`` (n, 2)."""
+    l = np.column_stack([data.range_m, data.phi_rad, data.theta_rad])
+    c = np.zeros((len(data), N_CONSTS))
+    c[:, 0] = data.time_s
+    return l, c
+
+
+def sigma_vector(campaign: Campaign) -> np.ndarray:
+    s = campaign.scanner
+    return np.array([s.sigma_range_m, s.sigma_angle_rad, s.sigma_angle_rad])
+
+
+def _x0(names: Sequence[str], init: InitialValues, fixed: dict[str, float]) -> np.ndarray:
+    return np.array([init.x.get(n, fixed.get(n, 0.0)) for n in names], dtype=float)
+
+
+def choose_initial_values(campaign: Campaign, meta: ScanMeta, data: ScanData, g, *, seed=0):
+    """Pointing-based initial values (scanner hanging on its gimbal) when they fit the data,
+    else the pose-free quadric fit (one-face exports, other scanner set-ups, offset reflectors).
+    """
+    tel = campaign.telescope
+    cands = []
+    if meta.cycle != 0 and tel.offset_m == 0:
+        cands.append(initial_values(data.range_m, data.phi_rad, data.theta_rad, g,
+                                    focal_length_m=tel.focal_length_m, seed=seed))
+        if cands[-1].inlier_fraction >= 0.5:
+            return cands[-1]
+    q = quadric_initial_values(data.range_m, data.phi_rad, data.theta_rad, seed=seed)
+    cands.append(q)
+    if q.inlier_fraction < 0.5:  # a region too small for a quadric: use its curvature
+        cands.extend(patch_initial_values(data.range_m, data.phi_rad, data.theta_rad,
+                                          focal_length_m=tel.focal_length_m, seed=seed))
+    return max(cands, key=lambda c: c.inlier_fraction)
+
+
+def prepare_scan(
+    campaign: Campaign, meta: ScanMeta, data: ScanData | None = None, *, window_m: float = 0.10,
+    keep: np.ndarray | None = None, seed: int = 0,
+):
+    """Read a scan, find initial values and the points inside the geometry window.
+
+    Returns ``(data, gravity, init, window)`` where ``window`` marks points within
+    ``window_m`` (vertical) of the initial paraboloid (and inside ``keep`` if given).
+    """
+    data = read_scan(campaign, meta) if data is None else data
+    g = pointing_gravity(meta, campaign.telescope, campaign.site)
+    init = choose_initial_values(campaign, meta, data, g, seed=seed)
+    window = geometry_window(data.range_m, data.phi_rad, data.theta_rad, init.x, window_m)
+    if keep is not None:
+        window &= keep
+    return data, g, init, window
+
+
+def fit_scan(
+    campaign: Campaign,
+    meta: ScanMeta,
+    model: str | Iterable[str] = "extended",
+    *,
+    data: ScanData | None = None,
+    keep: np.ndarray | None = None,
+    fixed: dict[str, float] | None = None,
+    robust_k: float | None = 4.0,
+    window_m: float = 0.10,
+    heading_hint_rad: float | None = None,
+    max_iter: int = 30,
+    pad: bool = True,
+) -> ScanFit:
+    """Adjust one scan with the given model (names, ``"simplified"`` or ``"extended"``).
+
+    ``keep``: optional boolean mask of points to consider (e.g. from preprocessing).
+    ``robust_k``: reject points beyond ``k`` a posteriori sigmas (None: no rejection).
+    ``pad``: run the adjustment on the rows padded to :func:`._joint.bucket_size` (copies of
+    the first row at weight 0, which enter no sum): scans of similar size then share one
+    compiled program instead of compiling one each (compilation was most of the time per scan
+    of a campaign). The estimates equal the unpadded ones to round-off.
+    """
+
+    fixed = dict(fixed or {})
+    data, g, init, window = prepare_scan(campaign, meta, data, window_m=window_m, keep=keep)
+    mdl = make_model(model, fixed, aperture_radius_m=campaign.telescope.diameter_m / 2)
+    n = len(data)
+    n_pad = bucket_size(n) if pad else n
+    pdata = data.subset(np.concatenate([np.arange(n), np.zeros(n_pad - n, np.int64)])) \
+        if n_pad > n else data
+    l, c = scan_arrays(pdata)
+    c[n:] = 0.0
+    wpad = np.zeros(n_pad, bool)
+    wpad[:n] = window
+    w = wpad.astype(float)
+    x0 = _x0(mdl.free, init, fixed)
+    sig = sigma_vector(campaign)
+    if robust_k is None:
+        res = gauss_helmert(mdl, l, x0, sig, c, w, v0=np.zeros_like(l), max_iter=max_iter)
+    else:
+        res = robust_gauss_helmert(mdl, l, x0, sig, c, w, k=robust_k, max_iter=max_iter)
+    fit = finish_scan_fit(campaign, meta, mdl, pdata, res, g, init, wpad,
+                          heading_hint_rad=heading_hint_rad)
+    if n_pad == n:
+        return fit
+    # back to the scan's own rows (the padding rows are unused and outside the window)
+    fit.data = data
+    for k in ("used", "v", "normalized", "deviation_m", "X_tel"):
+        setattr(fit, k, np.asarray(getattr(fit, k))[:n])
+    fit.n_window -= n_pad - n
+    return fit
+
+
+def finish_scan_fit(
+    campaign: Campaign, meta: ScanMeta, mdl: ParaboloidModel, data: ScanData, res: GHResult,
+    g: np.ndarray, init: InitialValues, window: np.ndarray, *, heading_hint_rad: float | None = None,
+) -> ScanFit:
+    """Turn a GH result into a :class:`ScanFit`: alignment, deviations, bookkeeping."""
+    import jax
+
+    x = np.asarray(res.x)
+    names = mdl.free
+    used = np.asarray(res.weights) > 0
+    l, c = scan_arrays(data)
+    X_fit = np.asarray(jax.vmap(mdl.telescope_point, in_axes=(0, None, 0))(l, res.x, c))
+    p = {k: float(v) for k, v in mdl.params(res.x).items()}
+    f = p["f"]
+    dev = np.asarray(paraboloid_deviation(jnp.asarray(X_fit), f))
+    tel = campaign.telescope
+    rim = tel.diameter_m / 2
+    align = north_alignment(
+        p["rx"], p["ry"], g, X_fit[used], leg_azimuths_deg=tel.quadrupod_azimuths_deg,
+        rho_range_m=(max(tel.cone_radius_m, 0.25 * rim) , 0.92 * rim),
+        heading_hint_rad=heading_hint_rad,
+    )
+    X_tel = X_fit @ np.asarray(rot_z(align.kappa_rad)).T
+    notes = []
+    if not bool(res.converged):
+        notes.append(f"not converged after {int(res.iterations)} iterations")
+    if meta.cycle == 0:
+        two_face = [n for n in names if n in INSTRUMENT and INSTRUMENT[n].two_face != "no"]
+        if two_face:
+            notes.append("one-face scan: " + ", ".join(two_face) + " are not separable from the "
+                         "object parameters without a second face")
+    return ScanFit(
+        meta=meta, model=mdl, names=names, x=x, cov=np.asarray(res.cov),
+        sigma0=float(res.sigma0), iterations=int(res.iterations), converged=bool(res.converged),
+        n_points=int(used.sum()), n_rejected=int(window.sum() - used.sum()),
+        n_window=int(len(data) - window.sum()), alignment=align, init=init, data=data, used=used,
+        v=np.asarray(res.v), normalized=np.asarray(res.normalized), deviation_m=dev, X_tel=X_tel,
+        gravity=np.asarray(g), elevation_deg=pointing_elevation_deg(meta, tel, campaign.site),
+        notes=notes,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Two-face position adjustment with the surface as a random effect
+# --------------------------------------------------------------------------------------------
+
+#: Smooth surface modes (Noll indices) carried as random effects on a centred reflector:
+#: astigmatism, coma, trefoil, spherical -- what gravity produces. Piston, tilt and defocus are
+#: the pose and f themselves.
+SURFACE_MODES: tuple[int, ...] = (5, 6, 7, 8, 9, 10, 11)
+#: Start values of the variance components: offsets (m^2), tilts (rad^2), modes (m^2).
+_CELL_VAR0 = (1e-8, 1e-8, 1e-8)
+_MODE_VAR0 = 1e-8
+
+
+def two_face_parameters(names: Iterable[str]) -> tuple[str, ...]:
+    """Calibration parameters whose effect flips between the faces: a one-face recording cannot
+    separate them from the pose and f."""
+    return tuple(n for n in names if n in INSTRUMENT and INSTRUMENT[n].two_face != "no")
+
+
+def _faces(metas: Sequence[ScanMeta]) -> int:
+    return 2 if {1, 2} <= {m.cycle for m in metas} else 1
+
+
+def _concat(parts: Sequence[np.ndarray]) -> np.ndarray:
+    return np.concatenate(parts, axis=0)
+
+
+def _pad_rows(a: np.ndarray, n_pad: int) -> np.ndarray:
+    n = len(a)
+    if n_pad <= n:
+        return a
+    return np.concatenate([a, np.repeat(a[:1], n_pad - n, axis=0)], axis=0)
+
+
+def _hold_note(group, partners, corr, reason, sigmas, elevation_deg) -> str:
+    """One line saying what the data cannot determine, and why."""
+    who = " and ".join(group)
+    verb = "is" if len(group) == 1 else "are"
+    where = (f"near zenith (elevation {elevation_deg:.1f} deg)" if elevation_deg is not None
+             and elevation_deg > 80 else f"at elevation {elevation_deg:.1f} deg"
+             if elevation_deg is not None else "")
+    if reason == "correlation":
+        with_ = ", ".join(partners) if partners else "the other unknowns together"
+        text = f"{who} {verb} not separable from {with_} {where} (|correlation| {corr:.4f})"
+    else:
+        sig = ", ".join(f"{n} {sigmas[n]:.2g}" for n in group)
+        text = (f"{who} {verb} not determined {where}: sigma ({sig}) exceeds the typical "
+                f"magnitude" + (f"; correlated with {', '.join(partners)}" if partners else ""))
+    return text.replace("  ", " ") + "; held at the fixed/prior value"
+
+
+def _typical() -> dict[str, float]:
+    return {k: p.typical for k, p in INSTRUMENT.items()}
+
+
+def _hold(held, fixed, bad, cov, names, elevation):
+    sig = dict(zip(names, np.sqrt(np.diag(np.asarray(cov)))))
+    for group, partners, corr, reason in bad:
+        note = _hold_note(group, partners, corr, reason, sig, elevation)
+        for n_ in group:
+            held[n_] = Held(fixed.get(n_, 0.0), note, partners, corr)
+
+
+def fit_position(
+    campaign: Campaign,
+    metas: Sequence[ScanMeta],
+    model: str | Iterable[str] = "extended",
+    *,
+    datas: Sequence[ScanData] | None = None,
+    keep: Callable[[ScanMeta, ScanData], np.ndarray] | None = None,
+    fixed: dict[str, float] | None = None,
+    robust_k: float | None = 4.0,
+    window_m: float = 0.10,
+    heading_hint_rad: float | None = None,
+    surface: bool = True,
+    max_iter: int = 30,
+) -> PositionFit:
+    """Adjust the scans of one position together: one pose, one f, one set of calibration.
+
+    1. Initial values and the geometry window per scan; the best-fitting scan's initial values
+       start the joint adjustment (both cycles share the scanner set-up).
+    2. A robust Gauss-Helmert adjustment of all points (white noise) rejects outliers and gives
+       the pose for the north alignment, hence each point's panel (surface cell).
+    3. The adjustment with the surface as a random effect (:mod:`._mixed`): panel offsets and
+       tilts (and, on a centred reflector, the smooth modes of :data:`SURFACE_MODES`) with
+       variances estimated from the data; sigmas include the surface's blur.
+    4. Identifiability: two-face parameters are held on a one-face position; any calibration
+       parameter the normal matrix cannot separate (``|correlation| > 0.99``, e.g. x6/x7 near
+       the zenith) is held at its fixed/prior value with a note, and the position refitted.
+    """
+
+    metas = list(metas)
+    fixed = dict(fixed or {})
+    tel = campaign.telescope
+    faces = _faces(metas)
+    names = tuple(n for n in parse_names(model) if n not in fixed)
+    held: dict[str, Held] = {}
+    if faces == 1:
+        for n in two_face_parameters(names):
+            held[n] = Held(fixed.get(n, 0.0), f"{n} flips sign between the faces: a one-face "
+                           "recording cannot separate it from the pose and f; held at "
+                           f"{fixed.get(n, 0.0):g}")
+    prepared = []
+    for i, m in enumerate(metas):
+        data = datas[i] if datas is not None else read_scan(campaign, m)
+        k = keep(m, data) if keep is not None else None
+        prepared.append(prepare_scan(campaign, m, data, window_m=window_m, keep=k))
+    init = max((p[2] for p in prepared), key=lambda c: c.inlier_fraction)
+    g = prepared[0][1]
+    elevation = pointing_elevation_deg(metas[0], tel, campaign.site)
+    sizes = [len(p[0]) for p in prepared]
+    n = int(sum(sizes))
+    l = _concat([scan_arrays(p[0])[0] for p in prepared])
+    c = _concat([scan_arrays(p[0])[1] for p in prepared])
+    w = _concat([p[3] for p in prepared]).astype(float)
+    n_pad = _bucket(n)
+    l, c = _pad_rows(l, n_pad), _pad_rows(c, n_pad)
+    c[n:] = 0.0
+    w = np.concatenate([w, np.zeros(n_pad - n)])
+    sig = sigma_vector(campaign)
+    aperture = tel.diameter_m / 2
+
+    def free_of(extra=()):
+        return tuple(n_ for n_ in names if n_ not in held) + tuple(extra)
+
+    def model_of(free, kappa=0.0):
+        fx = {**fixed, **{k_: h.value for k_, h in held.items()}}
+        return make_model(free, fx, aperture_radius_m=aperture, kappa_rad=kappa,
+                          check_separable=False)
+
+    # 2. white-noise robust adjustment, with identifiability on its normal matrix
+    for _ in range(4):
+        mdl = model_of(free_of())
+        x0 = _x0(mdl.free, init, fixed)
+        if robust_k is None:
+            res = gauss_helmert(mdl, l, x0, sig, c, w, v0=np.zeros_like(l), max_iter=max_iter)
+        else:
+            res = robust_gauss_helmert(mdl, l, x0, sig, c, w, k=robust_k, max_iter=max_iter)
+        cand = [n_ for n_ in mdl.free if n_ in INSTRUMENT]
+        bad = unidentifiable(np.asarray(res.cov), mdl.free, cand, typical=_typical())
+        if not bad:
+            break
+        _hold(held, fixed, bad, res.cov, mdl.free, elevation)
+    used = np.asarray(res.weights) > 0
+    fit1 = finish_scan_fit(campaign, metas[0], mdl, _PaddedData.of(prepared, n_pad), res, g,
+                           init, used, heading_hint_rad=heading_hint_rad)
+    kappa = fit1.alignment.kappa_rad
+    res_final, surf, mdl_final, notes = res, None, mdl, []
+    if surface:
+        cell, local, n_cells, desc = panel_cells(
+            fit1.X_tel, tel.ring_edges_m, tel.panels_per_ring,
+            cell_m=float(tel.extra.get("panel_cell_m", 2.0)) if tel.extra else 2.0)
+        design = np.column_stack([np.ones(n_pad), local]) * (cell >= 0)[:, None]
+        modes = SURFACE_MODES if tel.offset_m == 0 else ()
+        for _ in range(3):
+            extra = tuple(f"{ZERNIKE_PREFIX}{j}" for j in modes)
+            mdl2 = model_of(free_of(extra), kappa)
+            x0 = np.array([float(res.x[list(mdl.free).index(n_)]) if n_ in mdl.free else 0.0
+                           for n_ in mdl2.free])
+            ridge = {"modes": [mdl2.free.index(e) for e in extra]} if extra else None
+            rm = gauss_helmert_mixed(
+                mdl2, l, x0, sig, c, used.astype(float), cell, design, n_cells,
+                robust_k=robust_k, cell_var0=np.asarray(_CELL_VAR0), ridge=ridge,
+                ridge_var0=_MODE_VAR0, v0=np.asarray(res.v), max_iter=60)
+            cand = [n_ for n_ in mdl2.free if n_ in INSTRUMENT]
+            bad = unidentifiable(np.asarray(rm.cov), mdl2.free, cand, typical=_typical())
+            if not bad:
+                break
+            _hold(held, fixed, bad, rm.cov, mdl2.free, elevation)
+        keep_idx = [i for i, n_ in enumerate(mdl2.free) if not n_.startswith(ZERNIKE_PREFIX)]
+        mode_idx = [i for i, n_ in enumerate(mdl2.free) if n_.startswith(ZERNIKE_PREFIX)]
+        xs = np.asarray(rm.x)
+        cov = np.asarray(rm.cov)
+        counts = np.bincount(cell[(cell >= 0) & (np.asarray(rm.weights) > 0)],
+                             minlength=n_cells)
+        surf = SurfaceEffect(
+            cells=desc, u=np.asarray(rm.u), u_cov=np.asarray(rm.u_cov), n=counts,
+            variances={"noise": float(rm.noise_var),
+                       "offset_m2": float(rm.cell_var[0]), "tilt_rad2": float(
+                           np.mean(np.asarray(rm.cell_var[1:]))),
+                       **({"modes_m2": float(rm.ridge_var[0])} if mode_idx else {})},
+            redundancy={"noise": float(rm.redundancy_noise),
+                        "offset": float(rm.redundancy_cells[0]),
+                        "tilt": float(np.sum(np.asarray(rm.redundancy_cells[1:]))),
+                        **({"modes": float(rm.redundancy_ridge[0])} if mode_idx else {})},
+            modes={mdl2.free[i]: (float(xs[i]), float(np.sqrt(cov[i, i]))) for i in mode_idx})
+        free = tuple(mdl2.free[i] for i in keep_idx)
+        x_pos, cov_pos = xs[keep_idx], cov[np.ix_(keep_idx, keep_idx)]
+        mdl_final = model_of(free, kappa)
+        weights = np.asarray(rm.weights)
+        v, omega_pt = np.asarray(rm.v), np.asarray(rm.omega_point)
+        noise = float(rm.noise_var)
+        r_e = float(rm.redundancy_noise)
+        sigma0 = float(rm.sigma0)
+        iterations, converged = int(rm.iterations), bool(rm.converged)
+        if not converged:
+            notes.append(f"surface random effect: not converged after {iterations} iterations")
+        normalized = np.asarray(rm.normalized)
+    else:
+        free, x_pos, cov_pos = mdl.free, np.asarray(res.x), np.asarray(res.cov)
+        weights = np.asarray(res.weights)
+        v = np.asarray(res.v)
+        k_ = np.asarray(res.normalized) * float(res.sigma0)
+        omega_pt = k_ * k_
+        noise = float(res.sigma0) ** 2
+        r_e = float(res.redundancy)
+        sigma0 = float(res.sigma0)
+        iterations, converged = int(res.iterations), bool(res.converged)
+        normalized = np.asarray(res.normalized)
+    n_used = int(np.sum(weights > 0))
+    # 4. per-scan views: the shared estimates, each scan's own residuals and statistics
+    scans, start = [], 0
+    for (data, gg, init_s, window), m, size in zip(prepared, metas, sizes):
+        sl = slice(start, start + size)
+        start += size
+        ws = weights[sl]
+        n_s = int(np.sum(ws > 0))
+        r_s = max(r_e * n_s / max(n_used, 1), 1.0)
+        s0 = math.sqrt(float(np.sum(np.where(ws > 0, omega_pt[sl], 0.0))) / r_s)
+        gh = GHResult(x=jnp.asarray(x_pos), cov=jnp.asarray(cov_pos),
+                      N=jnp.asarray(np.linalg.pinv(cov_pos)), sigma0=jnp.asarray(s0),
+                      v=jnp.asarray(v[sl]), misclosure=jnp.zeros(size),
+                      normalized=jnp.asarray(normalized[sl]), weights=jnp.asarray(ws),
+                      redundancy=jnp.asarray(n_s), iterations=jnp.asarray(iterations),
+                      converged=jnp.asarray(converged))
+        sf = finish_scan_fit(campaign, m, mdl_final, data, gh, gg, init_s, window,
+                             heading_hint_rad=heading_hint_rad)
+        sf.notes = [t for t in sf.notes if not t.startswith("one-face scan")]
+        sf.notes.append("two-face position adjustment" if faces == 2 else
+                        "one usable face: adjusted alone")
+        scans.append(sf)
+    for h in held.values():
+        if h.note not in notes:
+            notes.append(h.note)
+    return PositionFit(
+        position=metas[0].position, scans=scans, names=tuple(free), x=x_pos, cov=cov_pos,
+        held=held, faces=faces, sigma0=sigma0, surface=surf, iterations=iterations,
+        converged=converged, n_points=n_used, notes=notes)
+
+
+class _PaddedData:
+    """The concatenated (padded) rows of a position's scans, as :class:`ScanData` for the
+    alignment (only what :func:`finish_scan_fit` reads)."""
+
+    @staticmethod
+    def of(prepared, n_pad: int) -> ScanData:
+        d = concat_scans([p[0] for p in prepared])
+        n = len(d)
+        if n_pad > n:
+            d = d.subset(np.concatenate([np.arange(n), np.zeros(n_pad - n, np.int64)]))
+        return d
+
+
+def _bucket(n: int) -> int:
+    """Padded length (one compiled program per size bucket; see :func:`._joint.bucket_size`)."""
+    p2 = 1 << max(0, int(math.ceil(math.log2(max(n, 1)))))
+    q = max(4096, p2 // 8)
+    return int(-(-n // q) * q)
+
+
+def _value_sigma(v: float, s: float | None, unit: str) -> dict:
+    return {"value": _num(v), "sigma": None if s is None else _num(s), "unit": unit}
+
+
+def panel_predictions(p: PositionFit) -> list[dict]:
+    """The surface random effect's predictions (BLUPs) per cell with points, with their sigmas.
+
+    Offsets in m (positive towards the focus), tilts in rad (``tilt_radial_rad``: outer edge up,
+    ``tilt_tangential_rad``: counter-clockwise edge up; for square cells ``tilt_x_rad``,
+    ``tilt_y_rad``), from every point of both faces. Deviations are from the fitted paraboloid
+    plus the smooth modes (``surface_modes``).
+    """
+    if p.surface is None:
+        return []
+    sf = p.surface
+    names = (("tilt_radial_rad", "tilt_tangential_rad") if sf.cells.startswith("panels")
+             else ("tilt_x_rad", "tilt_y_rad"))
+    out = []
+    for g in np.flatnonzero(sf.n > 0):
+        sd = np.sqrt(np.clip(np.diag(sf.u_cov[g]), 0.0, None))
+        out.append({"panel" if sf.cells.startswith("panels") else "cell": int(g),
+                    "offset_m": _num(sf.u[g, 0]), "offset_sigma_m": _num(sd[0]),
+                    names[0]: _num(sf.u[g, 1]), names[0].replace("_rad", "_sigma_rad"): _num(sd[1]),
+                    names[1]: _num(sf.u[g, 2]), names[1].replace("_rad", "_sigma_rad"): _num(sd[2]),
+                    "n": int(sf.n[g])})
+    return out
+
+
+def position_record(p: PositionFit) -> dict:
+    """The ``positions[]`` entry of ``fit.json`` for a position adjustment."""
+    m = p.scans[0].meta
+    s0 = p.scans[0]
+    row: dict = {"position": p.position}
+    if m.ha_deg is not None:
+        row.update(ha_deg=m.ha_deg, dec_deg=m.dec_deg)
+    if m.azimuth_deg is not None:
+        row.update(azimuth_deg=m.azimuth_deg)
+    row.update(elevation_deg=s0.elevation_deg, faces=p.faces,
+               kind="two-face adjustment" if p.faces == 2 else "one face",
+               scans=[s.meta.id for s in p.scans])
+    for i, n in enumerate(p.names):
+        row[n] = _value_sigma(p.x[i], p.sigma[i], parameter_unit(n))
+    for n, h in p.held.items():
+        row[n] = {"value": _num(h.value), "sigma": None, "identifiable": False, "note": h.note,
+                  "unit": parameter_unit(n)}
+    row["sigma0"] = _num(p.sigma0)
+    row["n_points"] = p.n_points
+    row["iterations"] = p.iterations
+    row["converged"] = p.converged
+    if p.surface is not None:
+        v = p.surface.variances
+        row["variance_components"] = {
+            "noise": _num(v["noise"]), "surface_m": _num(math.sqrt(v["offset_m2"])),
+            "tilt_rad": _num(math.sqrt(v["tilt_rad2"])),
+            **({"modes_m": _num(math.sqrt(v["modes_m2"]))} if "modes_m2" in v else {}),
+            "redundancy": {k: _num(x) for k, x in p.surface.redundancy.items()},
+            "cells": p.surface.cells}
+        if p.surface.modes:
+            row["surface_modes"] = {k: _value_sigma(a, b, "m") for k, (a, b) in
+                                    p.surface.modes.items()}
+        row["panels"] = panel_predictions(p)
+    row["gravity"] = [float(a) for a in s0.gravity]
+    row["notes"] = list(p.notes)
+    return row
+
+
+def _progress(disable: bool):
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    return Progress(
+        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+        TimeElapsedColumn(), disable=disable, transient=False,
+    )
+
+
+def fit_campaign(
+    campaign: Campaign,
+    model: str | Iterable[str] = "extended",
+    *,
+    scans: Sequence[str] | None = None,
+    fixed: dict[str, float] | None = None,
+    robust_k: float | None = 4.0,
+    keep: Callable[[ScanMeta, ScanData], np.ndarray] | None = None,
+    batch: bool = False,
+    progress: bool = True,
+    per_cycle: bool = False,
+    surface: bool = True,
+) -> CampaignFit:
+    """Fit a campaign (or the scans named) with one model.
+
+    Default: one adjustment per position from both faces together, the surface a random effect
+    (:func:`fit_position`); a position with one usable cycle is adjusted alone and says so.
+    ``per_cycle=True``: every scan by itself, white noise (the paper's procedure; the
+    disturbed-scan checks need it); ``batch=True`` fits the scans that way in one compiled call.
+    Positions away from the zenith are fitted first; their mount heading then resolves the
+    quadrupod symmetry of zenith positions' north alignment.
+    """
+    metas = [campaign.scan(s) for s in scans] if scans else list(campaign.scans)
+    tel, site = campaign.telescope, campaign.site
+    tilt = {m.id: np.arccos(np.clip(-pointing_gravity(m, tel, site)[2], -1, 1)) for m in metas}
+    names = parse_names(model)
+    if not per_cycle and not batch:
+        groups: dict[str, list[ScanMeta]] = {}
+        for m in metas:
+            groups.setdefault(m.position, []).append(m)
+        order = sorted(groups, key=lambda p: -tilt[groups[p][0].id])
+        pfits: dict[str, PositionFit] = {}
+        headings: list[float] = []
+        with _progress(not progress) as prog:
+            task = prog.add_task("fitting positions", total=len(order))
+            for pos in order:
+                prog.update(task, description=f"fitting {pos}")
+                hint = float(np.angle(np.mean(np.exp(1j * np.array(headings))))) if headings else None
+                pf = fit_position(campaign, groups[pos], model, keep=keep, fixed=fixed,
+                                  robust_k=robust_k, heading_hint_rad=hint, surface=surface)
+                s0 = pf.scans[0]
+                if s0.alignment.source == "gravity":
+                    headings.append(mount_heading(s0.alignment.kappa_rad, s0.value("rx"),
+                                                  s0.value("ry"), s0.gravity))
+                pfits[pos] = pf
+                prog.advance(task)
+        by_id = {s.meta.id: s for pf in pfits.values() for s in pf.scans}
+        plist = [pfits[p] for p in groups]
+        return CampaignFit(campaign, names, [by_id[m.id] for m in metas], position_fits=plist)
+    order = sorted(metas, key=lambda m: -tilt[m.id])
+    if batch:
+        fits = _fit_batch(campaign, order, model, fixed=fixed, robust_k=robust_k, keep=keep,
+                          progress=progress)
+    else:
+        fits = {}
+        headings = []
+        with _progress(not progress) as prog:
+            task = prog.add_task("fitting scans", total=len(order))
+            for m in order:
+                prog.update(task, description=f"fitting {m.id}")
+                data = read_scan(campaign, m)
+                k = keep(m, data) if keep is not None else None
+                hint = float(np.angle(np.mean(np.exp(1j * np.array(headings))))) if headings else None
+                fit = fit_scan(campaign, m, model, data=data, keep=k, fixed=fixed, robust_k=robust_k,
+                               heading_hint_rad=hint)
+                if fit.alignment.source == "gravity":
+                    headings.append(mount_heading(fit.alignment.kappa_rad, fit.value("rx"),
+                                                  fit.value("ry"), fit.gravity))
+                fits[m.id] = fit
+                prog.advance(task)
+    return CampaignFit(campaign, names, [fits[m.id] for m in metas])
+
+
+def parse_names(model) -> tuple[str, ...]:
+    return parse_model(model)
+
+
+def _fit_batch(campaign, metas, model, *, fixed, robust_k, keep, progress) -> dict[str, ScanFit]:
+    """All scans padded to one shape and adjusted in one compiled call (vmap)."""
+    fixed = dict(fixed or {})
+    mdl = make_model(model, fixed, aperture_radius_m=campaign.telescope.diameter_m / 2)
+    prepared = []
+    with _progress(not progress) as prog:
+        task = prog.add_task("reading and initial values", total=len(metas))
+        for m in metas:
+            data = read_scan(campaign, m)
+            k = keep(m, data) if keep is not None else None
+            prepared.append((m,) + prepare_scan(campaign, m, data, keep=k))
+            prog.advance(task)
+    n = max(len(p[1]) for p in prepared)
+    B = len(prepared)
+    L = np.zeros((B, n, 3))
+    C = np.zeros((B, n, N_CONSTS))
+    W = np.zeros((B, n))
+    X0 = np.zeros((B, len(mdl.free)))
+    for b, (m, data, g, init, window) in enumerate(prepared):
+        l, c = scan_arrays(data)
+        L[b, : len(l)] = l
+        L[b, len(l):] = l[0]  # harmless padding (weight 0)
+        C[b, : len(c)] = c
+        W[b, : len(l)] = window
+        X0[b] = _x0(mdl.free, init, fixed)
+    sig = sigma_vector(campaign)
+    res = gauss_helmert_batch(mdl, L, X0, sig, C, W)
+    for _ in range(6 if robust_k is not None else 0):
+        bad = (np.asarray(res.normalized) > robust_k) & (W > 0)
+        if not bad.any():
+            break
+        W = np.where(bad, 0.0, W)
+        res = gauss_helmert_batch(mdl, L, np.asarray(res.x), sig, C, W)
+    out = {}
+    headings = []
+    for b, (m, data, g, init, window) in enumerate(prepared):
+        nb = len(data)
+        rb = GHResult(
+            x=res.x[b], cov=res.cov[b], N=res.N[b], sigma0=res.sigma0[b], v=res.v[b, :nb],
+            misclosure=res.misclosure[b, :nb], normalized=res.normalized[b, :nb],
+            weights=res.weights[b, :nb], redundancy=res.redundancy[b],
+            iterations=res.iterations[b], converged=res.converged[b],
+        )
+        hint = float(np.angle(np.mean(np.exp(1j * np.array(headings))))) if headings else None
+        fit = finish_scan_fit(campaign, m, mdl, data, rb, g, init, window, heading_hint_rad=hint)
+        if fit.alignment.source == "gravity":
+            headings.append(mount_heading(fit.alignment.kappa_rad, fit.value("rx"), fit.value("ry"),
+                                          fit.gravity))
+        out[m.id] = fit
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Outputs
+# --------------------------------------------------------------------------------------------
+
+
+def _num(v: float) -> float | None:
+    return float(v) if np.isfinite(v) else None
+
+
+def scan_record(s: ScanFit, held: dict[str, Held] | None = None) -> dict:
+    """The ``scans[]`` entry of ``fit.json`` for one scan (``held``: the parameters its
+    position adjustment could not determine, listed with ``identifiable: false``)."""
+    corr = s.correlation
+    high = []
+    for i in range(len(s.names)):
+        for j in range(i + 1, len(s.names)):
+            if abs(corr[i, j]) > 0.95:
+                high.append({"a": s.names[i], "b": s.names[j], "correlation": float(corr[i, j])})
+    return {
+        "id": s.meta.id,
+        "position": s.meta.position,
+        "cycle": s.meta.cycle,
+        "estimates": {
+            **{n: {"value": v, "sigma": sg, "unit": parameter_unit(n)}
+               for n, (v, sg) in s.estimates.items()},
+            **{n: {"value": h.value, "sigma": None, "identifiable": False, "note": h.note,
+                   "unit": parameter_unit(n)} for n, h in (held or {}).items()},
+        },
+        "sigma0": s.sigma0,
+        "n_points": s.n_points,
+        "n_rejected": s.n_rejected,
+        "n_outside_window": s.n_window,
+        "n_dropped_nonfinite": int(s.data.n_dropped_nonfinite),
+        "iterations": s.iterations,
+        "converged": s.converged,
+        "kappa_rad": s.alignment.kappa_rad,
+        "kappa_source": s.alignment.source,
+        "kappa_ambiguity_rad": s.alignment.ambiguity_rad,
+        "elevation_deg": s.elevation_deg,
+        "gravity": [float(a) for a in s.gravity],
+        "rms_deviation_m": float(np.sqrt(np.mean(s.deviation_m[s.used] ** 2))),
+        "high_correlations": high,
+        "notes": s.notes,
+    }
+
+
+def fit_json(cf: CampaignFit) -> dict:
+    """``fit.json`` (schema ``hartrao-fit/1``, ``shared/spec/outputs.md``).
+
+    Two-face fits: ``positions[]`` carry the shared estimates (f, pose, every calibration
+    parameter, each ``{value, sigma}``; not identifiable ones ``{value, sigma: null,
+    identifiable: false, note}``) and the variance components; ``scans[]`` repeat them under
+    ``estimates`` and keep their own sigma0, counts and convergence.
+    """
+    held = {s.meta.id: p.held for p in cf.position_fits for s in p.scans}
+    scans = [scan_record(s, held.get(s.meta.id)) for s in cf.scans]
+    return {
+        "schema": FIT_SCHEMA,
+        "model": list(cf.model_names),
+        "adjustment": "two-face, surface random effect" if cf.position_fits else "per cycle",
+        "campaign": str(cf.campaign.root),
+        "scans": scans,
+        "positions": cf.positions(),
+    }
+
+
+def write_residuals(path: Path, s: ScanFit) -> None:
+    """Per-point residuals of one scan as Parquet (every row of the scan, ``used`` flags).
+
+    Written to a temporary name and renamed (never a half-written table at ``path``).
+    """
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+
+    d = s.data
+    table = pa.table({
+        "row": d.row.astype(np.int64),
+        "used": s.used,
+        "face": face_of(d.theta_rad).astype(np.int8),
+        "phi_rad": d.phi_rad,
+        "theta_rad": d.theta_rad,
+        "range_m": d.range_m,
+        "time_s": d.time_s,
+        "intensity": d.intensity,
+        "v_range_m": s.v[:, 0],
+        "v_phi_rad": s.v[:, 1],
+        "v_theta_rad": s.v[:, 2],
+        "normalized": s.normalized,
+        "deviation_m": s.deviation_m,
+        "X_m": s.X_tel[:, 0],
+        "Y_m": s.X_tel[:, 1],
+        "Z_m": s.X_tel[:, 2],
+    })
+    write_file_atomic(path, lambda t: pq.write_table(table, t), durable=False)
+
+
+def write_fit(out_dir: str | Path, cf: CampaignFit, *, residuals: bool = True) -> Path:
+    """Write ``fit.json`` and ``residuals/<scan>.parquet``; returns the JSON path.
+
+    Crash-safe (:class:`._safeio.OutputDir`): the residual tables go to temporary names,
+    ``fit.json`` is written last and lists them (``"files"``: bytes, SHA-256); the JSON is
+    strict (non-finite numbers null, listed under ``"nonfinite"``). Each scan record gets
+    ``n_dropped``: the rows dropped while reading, per reason.
+    """
+
+    doc = fit_json(cf)
+    for rec, s in zip(doc.get("scans", []), cf.scans):
+        if getattr(s, "data", None) is not None and "n_dropped" not in rec:
+            rec["n_dropped"] = dict(s.data.dropped)
+    with OutputDir(out_dir, "fit.json") as od:
+        if residuals:
+            for s in cf.scans:
+                od.write_with(f"residuals/{s.meta.id}.parquet",
+                              lambda t, s=s: write_residuals(t, s))
+        return od.commit(doc)

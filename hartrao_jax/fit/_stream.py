@@ -1,0 +1,620 @@
+"""Streaming Gauss-Helmert adjustment of a full-resolution scan with bounded memory.
+
+A scan at the paper's resolution has about 1.3e7 points; the 88-position campaign (176 scans)
+about 2.3e9 -- more than this machine's memory. Here one scan is adjusted without ever holding
+it: every iteration streams the scan's chunks from disk (:func:`._campaign.iter_scan_chunks`)
+and runs the package's one-pass kernel (:func:`._kernel.make_pass`, the pass of
+:func:`._kernel.gh_one_pass`) on each chunk: per point ONE linearisation per iteration, the
+residual update of the previous iteration fused into the normal-equation pass of this one.
+
+The kernel's per-point store (``a``, ``b`` in float32, ``w``, ``m`` in float64: 64 bytes per
+point for the extended model) and the weights live in flat files under ``store``, one slot
+block per streamed chunk, read and written with ``pread``/``pwrite`` chunk by chunk (not
+memory-mapped, so the page cache of these files never counts towards the process's resident
+memory). Memory is bounded by a few chunk buffers whatever the number of rows.
+
+One read of the file per iteration, and everything else from the same pass:
+
+* the normals ``N``, ``n`` and ``w^T M^-1 w`` at the new linearisation point, so the weighted
+  square sum after the step follows without another pass:
+  ``omega = sum q (a.dx + w)^2 = w^T M^-1 w + dx.n`` (for ``dx = -N^-1 n``);
+* the residuals ``v`` and standardized residuals of the previous solution (from the stored
+  ``a, b, w, m`` and the previous step, as the kernel's final sweep computes them).
+
+So the first pass of robust round ``r + 1`` (the rejection beyond ``k`` a-posteriori sigmas of
+round ``r``, applied per chunk, then the normals at round ``r``'s solution with the residuals
+``v`` of round ``r`` -- exactly what :func:`._ghm.robust_gauss_helmert` starts the next
+adjustment from) also writes round ``r``'s ``v`` and standardized residuals; if it rejects
+nothing, those are the final result. Passes over the file = iterations + 1. The arithmetic is
+that of :func:`._ghm.gauss_helmert` / :func:`._ghm.robust_gauss_helmert` (same kernel, same
+linearisation points, same convergence test, rounds until nothing new is rejected), so the
+result equals the in-memory adjustment to round-off.
+
+One departure (``stall=True``, the default): a robust round whose iteration stalls -- the step
+below one sigma but no longer shrinking -- is checked for rejections at once instead of being
+iterated to ``max_iter``; if nothing is rejected it goes on as before. At full resolution the
+first round stalls (gross outliers a few 1e-4 rad from the scanner's pole, where the x6/x7
+corrections are singular, see the main loop); the in-memory fit spends ``max_iter`` = 30
+iterations there. Rounds that converge normally are unaffected, so then the result is the
+in-memory one; after a stall the rejections are decided at a solution within a fraction of a
+sigma of the round's limit (the same points on the data measured).
+
+Outputs under ``store`` (indexed by the file row, rows dropped as non-finite are zero):
+``v.npy`` (rows, 3) residuals, ``w.npy`` weights (0: outside the window or rejected),
+``e.npy`` standardized residuals ``|k| sqrt(m) / sigma0``.
+
+Initial values come from a seeded random sample of the scan (``n_sample`` rows, drawn while
+streaming); the geometry window (distance from the initial paraboloid) is applied per chunk.
+The RANSAC preprocessing is not applied here (its patches cross chunk boundaries).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import tempfile
+import time
+from collections.abc import Iterable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..campaign._campaign import Campaign, ScanMeta, iter_scan_chunks
+from ._fit import _x0, sigma_vector
+from ..geometry._geometry import pointing_gravity
+from ..preprocess._initial import InitialValues, geometry_window, initial_values
+from ..solver._kernel import _solve, linearize_rev, make_pass
+from ..model._model import N_CONSTS, make_model
+from ..campaign._campaign import load_campaign
+from ..model._model import parameter_unit
+from ._distributed import worker_setup
+from ._fit import _progress
+
+log = logging.getLogger("hartrao_jax")
+
+INNER_CHUNK = 8192  # points per step of the kernel's loop (its ``chunk``)
+BLOCK = 1 << 18  # points per compiled call (a streamed chunk is split into blocks)
+STORE_DTYPE = np.float32  # a, b as the in-memory kernel stores them
+
+
+def _chunk_pass_impl(model, obs, c, w, sig, a, b, wm, m, x, dx_prev, reject, sigma0, k_rob, on):
+    """One compute block (padded to a multiple of the kernel chunk, padding with weight 0).
+
+    1. residuals of the previous solution from the stored ``a, b, wm, m`` and ``dx_prev``:
+       ``k``, ``v = Sigma b k``, ``e = |k| sqrt(m) / sigma0``; if ``reject``, points with
+       ``e > k_rob`` get weight 0 (as :func:`._ghm.robust_gauss_helmert`);
+    2. the kernel's pass (:func:`._kernel.make_pass`) at ``x`` with the new weights: ``N``,
+       ``n`` and the new store; ``wMw = sum q wm^2`` from that store.
+    """
+    f = obs.dtype
+    nc, C = wm.shape
+    s2 = sig**2
+    k = -(jnp.einsum("icu,u->ic", a.astype(f), dx_prev) + wm) / m
+    e = jnp.abs(k) * jnp.sqrt(m) / sigma0
+    v = s2 * b.astype(f) * k[..., None]
+    w2 = w.reshape(nc, C)
+    bad = reject & (w2 > 0) & (e > k_rob)
+    w_new = jnp.where(bad, 0.0, w2)
+    one_pass, _, _, _ = make_pass(model, obs, c, w_new.reshape(-1), sig, on, lin=linearize_rev,
+                                  chunk=C, store_dtype=a.dtype)
+    N, nv, (a2, b2, wm2, m2) = one_pass(x, dx_prev, (a, b, wm, m))
+    wmw = jnp.sum(jnp.where(w_new > 0, w_new * wm2 * wm2 / m2, 0.0))
+    return (N, nv, wmw, jnp.sum(bad), jnp.sum(w_new > 0), a2, b2, wm2, m2,
+            v.reshape(-1, 3), e.reshape(-1), w_new.reshape(-1))
+
+
+# every array argument but the model is a fresh buffer per call: donated, so the new store
+# is written in place of the old one (no copy of the chunk's store)
+_chunk_pass = eqx.filter_jit(_chunk_pass_impl, donate="all-except-first")
+
+
+@eqx.filter_jit
+def _chunk_residuals(sig, a, b, wm, m, dx, sigma0):
+    """Residuals ``v`` and ``e = |k| sqrt(m) / sigma0`` from a stored chunk (no linearisation)."""
+    f = wm.dtype
+    k = -(jnp.einsum("icu,u->ic", a.astype(f), dx) + wm) / m
+    v = sig**2 * b.astype(f) * k[..., None]
+    return v.reshape(-1, 3), (jnp.abs(k) * jnp.sqrt(m) / sigma0).reshape(-1)
+
+
+class _SlotFile:
+    """A flat binary file of per-slot records, read and written by chunk (pread/pwrite)."""
+
+    def __init__(self, path: Path, dtype, tail: tuple[int, ...] = ()):
+        self.path = path
+        self.dtype = np.dtype(dtype)
+        self.tail = tail
+        self.rec = self.dtype.itemsize * int(np.prod(tail, dtype=int))
+        self.fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o644)
+
+    def read(self, start: int, n: int) -> np.ndarray:
+        buf = np.empty((n, *self.tail), self.dtype)
+        got = os.preadv(self.fd, [memoryview(buf).cast("B")], start * self.rec)
+        if got != buf.nbytes:
+            raise OSError(f"{self.path}: short read ({got} of {buf.nbytes} bytes)")
+        return buf
+
+    def write(self, start: int, arr) -> None:
+        self._write_at(start * self.rec, arr)
+
+    def _write_at(self, off: int, arr) -> None:
+        arr = np.ascontiguousarray(arr, self.dtype)
+        mv = memoryview(arr).cast("B")
+        while len(mv):
+            k = os.pwrite(self.fd, mv, off)
+            mv, off = mv[k:], off + k
+
+    def close(self, remove: bool = False) -> None:
+        os.close(self.fd)
+        if remove:
+            self.path.unlink(missing_ok=True)
+
+
+class _NpyRows(_SlotFile):
+    """A ``.npy`` file of ``n_rows`` records indexed by the file row, written by row blocks."""
+
+    def __init__(self, path: Path, dtype, n_rows: int, tail: tuple[int, ...] = ()):
+        mm = np.lib.format.open_memmap(path, mode="w+", dtype=dtype, shape=(n_rows, *tail))
+        del mm  # header written, data zero-filled (sparse)
+        self.path = path
+        self.dtype = np.dtype(dtype)
+        self.tail = tail
+        self.rec = self.dtype.itemsize * int(np.prod(tail, dtype=int))
+        self.fd = os.open(path, os.O_RDWR)
+        self.header = os.fstat(self.fd).st_size - n_rows * self.rec
+
+    def write_rows(self, rows: np.ndarray, values) -> None:
+        """``values`` at the file rows ``rows`` (increasing; gaps, if any, are written as 0)."""
+        if len(rows) == 0:
+            return
+        r0, r1 = int(rows[0]), int(rows[-1]) + 1
+        if r1 - r0 != len(rows):
+            block = np.zeros((r1 - r0, *self.tail), self.dtype)
+            block[rows - r0] = values
+            values = block
+        self._write_at(self.header + r0 * self.rec, values)
+
+
+@dataclass
+class StreamFit:
+    """Result of :func:`stream_fit_scan` (SI units). Per-point results under ``store``:
+    ``v.npy`` (rows, 3) residuals, ``w.npy`` weights, ``e.npy`` standardized residuals
+    (|k| sqrt(m) / sigma0), indexed by the file row.
+
+    ``iterations``: kernel passes (one linearisation per point) over all robust rounds;
+    ``passes``: reads of the scan file by the adjustment (iterations + 1: the last pass
+    confirms that nothing more is rejected and writes the residuals; without rejection
+    iterations, the residuals coming from the store); ``round_iterations`` per round;
+    ``ratios``: the convergence measure ``max |dx_j| / sigma_j`` of each iteration (converged
+    below ``tol``); ``stalled_rounds``: rounds checked for rejections at a stall."""
+
+    id: str
+    names: tuple[str, ...]
+    x: np.ndarray
+    cov: np.ndarray
+    N: np.ndarray
+    sigma0: float
+    n_rows: int
+    n_window: int
+    n_points: int
+    n_rejected: int
+    iterations: int
+    rounds: int
+    passes: int
+    converged: bool
+    seconds: float
+    store: Path
+    init: InitialValues
+    timings: dict = field(default_factory=dict)
+    round_iterations: list = field(default_factory=list)
+    ratios: list = field(default_factory=list)
+    stalled_rounds: list = field(default_factory=list)
+
+    @property
+    def sigma(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.cov))
+
+    @property
+    def estimates(self) -> dict[str, tuple[float, float]]:
+        return {n: (float(self.x[i]), float(self.sigma[i])) for i, n in enumerate(self.names)}
+
+
+def _count_rows(campaign: Campaign, meta: ScanMeta) -> int:
+    path = campaign.root / meta.file
+    if path.suffix.lower() == ".parquet":
+        import pyarrow.parquet as pq
+
+        return int(pq.ParquetFile(path).metadata.num_rows)
+    n = 0
+    for ch in iter_scan_chunks(campaign, meta, 1_000_000):
+        n = max(n, int(ch.row[-1]) + 1 if len(ch) else n)
+    return n
+
+
+def _sample(campaign, meta, rows_per_chunk: int, n_rows: int, n_sample: int, seed: int):
+    rng = np.random.default_rng(seed)
+    frac = min(1.0, 1.5 * n_sample / max(n_rows, 1))
+    parts = []
+    for ch in iter_scan_chunks(campaign, meta, rows_per_chunk):
+        pick = rng.random(len(ch)) < frac
+        parts.append((ch.range_m[pick], ch.phi_rad[pick], ch.theta_rad[pick]))
+    r, phi, th = (np.concatenate([p[i] for p in parts]) for i in range(3))
+    return r, phi, th
+
+
+@jax.jit
+def _solve_step(N, nv, wmw):
+    """``dx = -N^-1 n`` (as :func:`._kernel.gh_one_pass`), ``N^-1``, the convergence measure
+    ``max |dx_j| / sqrt((N^-1)_jj)`` and the weighted square sum after the step."""
+    dx, Ninv = _solve(N, -nv)
+    d = jnp.diagonal(Ninv)
+    ratio = jnp.max(jnp.abs(dx) / jnp.sqrt(jnp.where(d > 0, d, 1.0)))
+    return dx, Ninv, ratio, wmw + dx @ nv
+
+
+def _blocks(m: int, B: int, G: int) -> list[tuple[int, int, int]]:
+    """``(start, rows, padded size)`` of the compute blocks of a chunk of ``m`` rows: blocks of
+    ``B`` rows, the last one padded to a multiple of ``G`` (few distinct compiled shapes)."""
+    out = []
+    for s0 in range(0, m, B):
+        n = min(B, m - s0)
+        out.append((s0, n, min(B, -(-n // G) * G)))
+    return out
+
+
+def stream_fit_scan(
+    campaign: Campaign,
+    scan: str | ScanMeta,
+    model: str | Iterable[str] = "extended",
+    *,
+    rows_per_chunk: int = 1_000_000,
+    store=None,
+    fixed: dict[str, float] | None = None,
+    init: InitialValues | None = None,
+    window_m: float = 0.10,
+    robust_k: float | None = 4.0,
+    max_rounds: int = 6,
+    max_iter: int = 30,
+    tol: float = 1e-6,
+    n_sample: int = 200_000,
+    seed: int = 0,
+    prefetch: bool = False,
+    stall: bool = True,
+) -> StreamFit:
+    """Adjust one scan streaming it from disk in chunks of ``rows_per_chunk`` file rows.
+
+    ``store``: directory for the per-point results (default: a new temporary directory); the
+    kernel's working files there are removed at the end. ``init``: initial values (default:
+    from a random sample of the scan, as :func:`._fit.prepare_scan` does from the whole scan).
+    ``prefetch``: read the next chunk (file and store) in a thread while this one is computed
+    (no gain measured on 2 busy cores, and glibc's per-thread arena keeps about 1 GiB more).
+    ``stall``: check rejections as soon as a round's iteration stalls below one sigma (see
+    the main loop) instead of iterating it to ``max_iter``; ``False``: exactly the iteration
+    of :func:`._ghm.robust_gauss_helmert`.
+    Other arguments as :func:`._fit.fit_scan` / :func:`._ghm.robust_gauss_helmert`.
+    """
+    t_start = time.perf_counter()
+    meta = campaign.scan(scan) if isinstance(scan, str) else scan
+    fixed = dict(fixed or {})
+    mdl = make_model(model, fixed, aperture_radius_m=campaign.telescope.diameter_m / 2)
+    names = mdl.free
+    u = len(names)
+    sig = sigma_vector(campaign)
+    store = Path(store) if store is not None else Path(tempfile.mkdtemp(prefix="hartrao-stream-"))
+    store.mkdir(parents=True, exist_ok=True)
+    timings: dict[str, float] = {"read_s": 0.0, "wait_s": 0.0, "compute_s": 0.0, "write_s": 0.0}
+
+    t0 = time.perf_counter()
+    n_rows = _count_rows(campaign, meta)
+    g = pointing_gravity(meta, campaign.telescope, campaign.site)
+    if init is None:
+        r, phi, th = _sample(campaign, meta, rows_per_chunk, n_rows, n_sample, seed)
+        init = initial_values(r, phi, th, g, focal_length_m=campaign.telescope.focal_length_m,
+                              seed=seed)
+    timings["initial_values_s"] = time.perf_counter() - t0
+
+    inner = int(min(INNER_CHUNK, max(256, 1 << math.ceil(math.log2(max(rows_per_chunk, 1))))))
+    B = min(BLOCK, -(-rows_per_chunk // inner) * inner)  # rows per compiled call
+    G = max(inner, B // 4 // inner * inner)  # granularity of a chunk's last block
+    P = -(-rows_per_chunk // B) * B  # store slots per streamed chunk
+    files = {"a": _SlotFile(store / "_a.bin", STORE_DTYPE, (u,)),
+             "b": _SlotFile(store / "_b.bin", STORE_DTYPE, (3,)),
+             "wm": _SlotFile(store / "_wm.bin", np.float64),
+             "m": _SlotFile(store / "_m.bin", np.float64),
+             "w": _SlotFile(store / "_w.bin", np.float32)}
+    out_v = _NpyRows(store / "v.npy", np.float64, n_rows, (3,))
+    out_w = _NpyRows(store / "w.npy", np.float32, n_rows)
+    out_e = _NpyRows(store / "e.npy", np.float64, n_rows)
+    chunk_rows: list[np.ndarray | tuple[int, int]] = []  # file rows of each streamed chunk
+    x = _x0(names, init, fixed)
+    dx_prev = np.zeros(u)
+    state = {"first": True, "passes": 0, "n_window": 0, "n_seen": 0}
+    k_rob = np.inf if robust_k is None else float(robust_k)
+
+    def rows_of(j):
+        r = chunk_rows[j]
+        return np.arange(r[0], r[0] + r[1]) if isinstance(r, tuple) else r
+
+    def read_store(slot, n):
+        ni = n // inner
+        return (files["a"].read(slot, n).reshape(ni, inner, u),
+                files["b"].read(slot, n).reshape(ni, inner, 3),
+                files["wm"].read(slot, n).reshape(ni, inner),
+                files["m"].read(slot, n).reshape(ni, inner))
+
+    def load(item):
+        """Read side of one streamed chunk (in the prefetch thread): per compute block the
+        observations, constants and weights padded to the block's size (repeating the last
+        row, weight 0), and the block's kernel store."""
+        j, ch = item
+        m = len(ch)
+        if m > P:
+            raise ValueError(f"chunk of {m} rows > rows_per_chunk {rows_per_chunk}")
+        if state["first"]:
+            w_all = geometry_window(ch.range_m, ch.phi_rad, ch.theta_rad, init.x,
+                                    window_m).astype(np.float32)
+        else:
+            w_all = files["w"].read(j * P, m)
+        blocks = []
+        for s0, n, size in _blocks(m, B, G):
+            obs = np.empty((size, 3))
+            c = np.zeros((size, N_CONSTS))
+            for col, arr in enumerate((ch.range_m, ch.phi_rad, ch.theta_rad)):
+                obs[:n, col] = arr[s0:s0 + n]
+            c[:n, 0] = ch.time_s[s0:s0 + n]
+            obs[n:] = obs[n - 1]
+            c[n:] = c[n - 1]
+            w = np.zeros(size, np.float32)
+            w[:n] = w_all[s0:s0 + n]
+            ni = size // inner
+            if state["first"]:  # the kernel's start store: v = 0
+                st = (np.zeros((ni, inner, u), STORE_DTYPE), np.zeros((ni, inner, 3), STORE_DTYPE),
+                      np.full((ni, inner), -1.0), np.ones((ni, inner)))
+            else:
+                st = read_store(j * P + s0, size)
+            blocks.append((s0, n, obs, c, w, st))
+        return j, ch.row, m, blocks
+
+    def stream_pass(x, dx_prev, *, reject: bool, sigma0: float, write: bool):
+        """One read of the file: (rejection and) residuals of the previous solution, normals
+        at ``x``. ``write``: write the residuals of the previous solution to the outputs."""
+        N = np.zeros((u, u))
+        nv = np.zeros(u)
+        wmw = 0.0
+        n_bad = n_used = 0
+        src = enumerate(iter_scan_chunks(campaign, meta, rows_per_chunk))
+
+        def fetch():  # the file and store reads of the next chunk
+            t = time.perf_counter()
+            item = next(src, None)
+            out = None if item is None else load(item)
+            return out, time.perf_counter() - t
+
+        pool = ThreadPoolExecutor(1) if prefetch else None
+        try:
+            nxt = pool.submit(fetch) if pool else None
+            while True:
+                tq = time.perf_counter()
+                item, t_read = nxt.result() if pool else fetch()
+                timings["wait_s"] += time.perf_counter() - tq
+                timings["read_s"] += t_read
+                if item is None:
+                    break
+                if pool:
+                    nxt = pool.submit(fetch)
+                j, rows, m, blocks = item
+                if state["first"]:
+                    contiguous = m and int(rows[-1]) - int(rows[0]) + 1 == m
+                    chunk_rows.append((int(rows[0]), m) if contiguous else np.asarray(rows))
+                    state["n_seen"] += m
+                for s0, n, obs, c, w, st in blocks:
+                    tc = time.perf_counter()
+                    outs = _chunk_pass(mdl, obs, c, w, sig, *st, x, dx_prev, np.asarray(reject),
+                                       np.asarray(sigma0), np.asarray(k_rob), np.ones((), bool))
+                    Nc, nc_, wc, bad, used, a2, b2, wm2, m2, v, e, w2 = (
+                        np.asarray(o) for o in outs)
+                    timings["compute_s"] += time.perf_counter() - tc
+                    tw = time.perf_counter()
+                    N += Nc
+                    nv += nc_
+                    wmw += float(wc)
+                    n_bad += int(bad)
+                    n_used += int(used)
+                    slot = j * P + s0
+                    if state["first"]:
+                        state["n_window"] += int(n - np.count_nonzero(w[:n]))
+                    if state["first"] or bad:
+                        files["w"].write(slot, w2[:n])
+                    for key, arr in zip(("a", "b", "wm", "m"), (a2, b2, wm2, m2)):
+                        files[key].write(slot, arr.reshape((-1, *files[key].tail)))
+                    if write:
+                        r = rows[s0:s0 + n]
+                        out_v.write_rows(r, v[:n])
+                        out_e.write_rows(r, e[:n])
+                        out_w.write_rows(r, w2[:n])
+                    timings["write_s"] += time.perf_counter() - tw
+        finally:
+            if pool:
+                pool.shutdown(wait=True, cancel_futures=True)
+        state["first"] = False
+        state["passes"] += 1
+        return N, nv, wmw, n_bad, n_used
+
+    def final_sweep(dx, sigma0):
+        """Residuals of the solution from the store alone (no read of the file)."""
+        for j in range(len(chunk_rows)):
+            rows = rows_of(j)
+            w_all = files["w"].read(j * P, len(rows))
+            for s0, n, size in _blocks(len(rows), B, G):
+                v, e = (np.asarray(o) for o in _chunk_residuals(
+                    sig, *read_store(j * P + s0, size), dx, np.asarray(sigma0)))
+                r = rows[s0:s0 + n]
+                out_v.write_rows(r, v[:n])
+                out_e.write_rows(r, e[:n])
+                out_w.write_rows(r, w_all[s0:s0 + n])
+
+    t0 = time.perf_counter()
+    try:
+        rounds, it_round, total_it = 1, 0, 0
+        round_its: list[int] = []
+        ratios: list[float] = []
+        stalls: list[int] = []  # rounds ended early by a stall (see below)
+        sigma0 = 1.0
+        pending = False  # the next pass checks rejections (with sigma0 of the last solution)
+        settled = False  # the last solution ends its round (converged or max_iter)
+        may_stall = True  # stall test on in this round (off once a stalled round resumed)
+        converged = False
+        N_final = Ninv_final = None
+        n_used_final = 0
+        prev_ratio = math.inf
+        while True:
+            N, nv, wmw, n_bad, n_used = stream_pass(x, dx_prev, reject=pending, sigma0=sigma0,
+                                                    write=pending)
+            if pending:
+                pending = False
+                if n_bad:  # a new round from the last solution and its residuals
+                    log.info("stream %s: round %d rejects %d points", meta.id, rounds, n_bad)
+                    round_its.append(it_round)
+                    rounds += 1
+                    it_round, prev_ratio, may_stall = 0, math.inf, True
+                elif settled:  # nothing more rejected: the last solution is final (its
+                    break  # residuals were written by this pass)
+                else:  # a stalled round, nothing to reject: it goes on (this pass is its
+                    may_stall = False  # next iteration) to convergence or max_iter
+            dx, Ninv, ratio, omega = (np.asarray(o) for o in _solve_step(N, nv, wmw))
+            ratio, omega = float(ratio), float(omega)
+            it_round += 1
+            total_it += 1
+            ratios.append(ratio)
+            log.debug("stream %s: round %d iteration %d ratio %.3g", meta.id, rounds, it_round,
+                      ratio)
+            x = x + dx
+            dx_prev = dx
+            settled = ratio < tol or it_round >= max_iter
+            # A stall: the step is below one sigma but no longer shrinks (it shrinks 1e3-fold
+            # per iteration otherwise). Seen in round 1 at full resolution: gross outliers a
+            # few 1e-4 rad from the scanner's pole, where x6/x7 (1/sin theta) are singular, get
+            # residuals v_theta of that size; their re-linearisation at l + v jumps between
+            # iterations and the step oscillates at ~0.1 sigma until max_iter. Rejection does
+            # not need the round's 1e-6 sigma limit (a sub-sigma change of x moves standardized
+            # residuals by ~sqrt(u/n) of it): check it now; if nothing is rejected, the round
+            # goes on as without this test.
+            stalled = (stall and may_stall and not settled and robust_k is not None
+                       and rounds <= max_rounds and it_round >= 2 and ratio < 1.0
+                       and ratio > 0.5 * prev_ratio)
+            prev_ratio = ratio
+            if settled or stalled:
+                sigma0 = math.sqrt(max(omega, 0.0) / max(n_used - u, 1))
+                if stalled:
+                    stalls.append(rounds)
+                    log.info("stream %s: round %d stalled at iteration %d (ratio %.3g): checking "
+                             "rejections now", meta.id, rounds, it_round, ratio)
+                if settled:
+                    converged = ratio < tol
+                    N_final, Ninv_final, n_used_final = N, Ninv, n_used
+                    if robust_k is None or rounds > max_rounds:  # as robust_gauss_helmert
+                        final_sweep(dx_prev, sigma0)
+                        break
+                pending = True
+        round_its.append(it_round)
+    finally:
+        for f_ in files.values():
+            f_.close(remove=True)
+        for f_ in (out_v, out_w, out_e):
+            f_.close()
+    timings["adjustment_s"] = time.perf_counter() - t0
+    timings["s_per_pass"] = timings["adjustment_s"] / max(state["passes"], 1)
+    cov = sigma0**2 * Ninv_final
+    n_window = state["n_window"]
+    return StreamFit(meta.id, names, np.asarray(x), cov, N_final, sigma0, n_rows, n_window,
+                     n_used_final, state["n_seen"] - n_window - n_used_final, total_it, rounds,
+                     state["passes"], converged, time.perf_counter() - t_start, store, init,
+                     timings, round_its, ratios, stalls)
+
+
+def peak_rss_gib() -> float:
+    """Peak resident memory of this process (GiB), from ``getrusage``."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+
+
+def stream_document(r: StreamFit) -> dict:
+    """The JSON record of one streamed scan (``"schema": "hartrao-stream/1"``; SI units)."""
+
+    return {"schema": "hartrao-stream/1", "scan": r.id, "model": list(r.names),
+            "estimates": {n: {"value": v, "sigma": s, "unit": parameter_unit(n)}
+                          for n, (v, s) in r.estimates.items()},
+            "sigma0": r.sigma0, "n_rows": r.n_rows, "n_points": r.n_points,
+            "n_rejected": r.n_rejected, "n_outside_window": r.n_window,
+            "iterations": r.iterations, "rounds": r.rounds, "passes": r.passes,
+            "converged": r.converged, "seconds": r.seconds, "peak_rss_gib": peak_rss_gib(),
+            "store": str(r.store), "timings": r.timings}
+
+
+def _stream_task(root: str, scan_id: str, model, store: str | None, rows_per_chunk: int,
+                 robust_k: float | None) -> dict:
+    """One scan streamed where this runs (in-process or on a Dask worker): its small record;
+    the per-point results stay in ``store`` (on the worker's disk)."""
+
+    try:  # on a Dask worker: float64 and the compilation cache
+        worker_setup()
+    except ImportError:  # pragma: no cover
+        pass
+    camp = load_campaign(root)
+    r = stream_fit_scan(camp, scan_id, model, rows_per_chunk=rows_per_chunk, store=store,
+                        robust_k=robust_k)
+    return stream_document(r)
+
+
+def stream_fit_campaign(
+    campaign: Campaign,
+    scans: Iterable[str] | None = None,
+    model: str | Iterable[str] = "extended",
+    *,
+    store=None,
+    rows_per_chunk: int = 1_000_000,
+    robust_k: float | None = 4.0,
+    client=None,
+    progress: bool = False,
+) -> dict:
+    """Stream every scan of a campaign (a full-resolution campaign larger than memory).
+
+    Each scan is adjusted by :func:`stream_fit_scan` with bounded memory, one after the other
+    in this process, or as independent tasks on a Dask ``client`` (one scan per worker core at
+    a time; only the small records travel back). ``store``: a directory receiving one
+    sub-directory of per-point results per scan (default: temporary ones). Returns
+    ``{"schema": "hartrao-stream-campaign/1", "scans": [record, ...], "seconds": ...}`` in the
+    campaign's scan order.
+    """
+    t0 = time.perf_counter()
+    ids = [m.id for m in campaign.scans] if scans is None else list(scans)
+    for sid in ids:
+        campaign.scan(sid)  # unknown ids: the campaign's own error, before any work
+    root = str(campaign.root)
+    stores = [None if store is None else str(Path(store) / sid) for sid in ids]
+    if client is None:
+        recs = []
+        with _progress(not progress) as prog:
+            task = prog.add_task("streaming scans", total=len(ids))
+            for sid, st in zip(ids, stores):
+                prog.update(task, description=f"streaming {sid}")
+                recs.append(_stream_task(root, sid, model, st, rows_per_chunk, robust_k))
+                prog.advance(task)
+    else:
+        futs = [client.submit(_stream_task, root, sid, model, st, rows_per_chunk, robust_k,
+                              key=f"stream-{sid}", pure=False) for sid, st in zip(ids, stores)]
+        recs = client.gather(futs)
+    return {"schema": "hartrao-stream-campaign/1", "campaign": root, "scans": recs,
+            "seconds": time.perf_counter() - t0, "rows_per_chunk": rows_per_chunk,
+            "workers": None if client is None else len(client.scheduler_info()["workers"])}
+
+
+__all__ = ["StreamFit", "peak_rss_gib", "stream_document", "stream_fit_campaign",
+           "stream_fit_scan"]

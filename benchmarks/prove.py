@@ -35,7 +35,8 @@ def main(argv=None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     logging.getLogger("hartrao_jax").setLevel(logging.INFO)
     import hartrao_jax  # noqa: F401
-    from hartrao_jax.prove._prove import detectability, merge_results, print_table, run_prove
+    from hartrao_jax.cli._diagnose import print_table
+    from hartrao_jax.prove._prove import detectability, merge_results, run_prove
 
     if args.merge:
         res = merge_results(args.out, args.merge.split(","))

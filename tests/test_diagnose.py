@@ -21,7 +21,6 @@ from hartrao_jax.diagnose._diagnose import (
     _box_search,
     _log_sf,
     _periodogram,
-    diagnose,
     write_json,
 )
 from hartrao_jax.prove._prove import (
@@ -31,6 +30,7 @@ from hartrao_jax.prove._prove import (
     _intensity_range_error,
     score,
 )
+from hartrao_jax.report._diagnosis import diagnose_with_report as diagnose  # report_dir
 from hartrao_jax.simulate._simulate import simulate_campaign
 
 STEP = 0.02

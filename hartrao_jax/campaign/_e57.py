@@ -20,7 +20,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from ._campaign import (
+from ._format import (
     ANGLE_TOL_RAD,
     DEFAULT_INTENSITY,
     PHI_RANGE,

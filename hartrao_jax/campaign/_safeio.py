@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from ._campaign import CampaignError
+from ._format import CampaignError
 
 #: Fault-injection hook of the crash tests: with ``HARTRAO_JAX_SAFEIO_PAUSE_S=<seconds>`` in
 #: the environment an :class:`OutputDir` pauses after each file it writes and after each step

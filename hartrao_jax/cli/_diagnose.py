@@ -10,10 +10,11 @@ import time
 import click
 
 from ._main import UserError, _console, command, main
-from ..diagnose._diagnose import DiagnoseConfig, diagnose, write_json
+from ..diagnose._diagnose import DiagnoseConfig, write_json
+from ..report._diagnosis import diagnose_with_report
 from ..physics._catalog import EFFECTS
 from ..preprocess._preprocess import PreprocessConfig, keep_mask_fn
-from ..prove._prove import CASES, detectability as mda, print_table, run_prove
+from ..prove._prove import CASES, detectability as mda, run_prove
 
 
 def _keep(preprocess: bool):
@@ -79,7 +80,7 @@ def diagnose_command(campaign, json_path, start, report_dir, scans, effects, alp
     cfg = DiagnoseConfig(alpha=alpha, min_effect_m=min_effect_mm * 1e-3, max_steps=max_steps,
                          effects=eff)
     t0 = time.time()
-    diag = diagnose(campaign, start, config=cfg, scans=scans.split(",") if scans else None,
+    diag = diagnose_with_report(campaign, start, config=cfg, scans=scans.split(",") if scans else None,
                     keep=_keep(preprocess), report_dir=report_dir)
     p = write_json(diag, json_path)
     print_diagnosis(diag)
@@ -128,3 +129,20 @@ def prove_command(out_dir, seeds, cases, step_rad, list_cases, keep_campaigns, d
                     keep_campaigns=keep_campaigns, progress=True)
     print_table(res)
     click.echo(f"wrote {res['paths']['json']} and {res['paths']['table']}")
+
+
+def print_table(res: dict) -> None:
+    """The prove table (one row per concealed case)."""
+    from rich.table import Table
+
+    t = Table(title="diagnosis on concealed data")
+    for c in ("case", "amplitude/noise", "found", "located", "estimate", "improved",
+              "false alarms", "time [s]"):
+        t.add_column(c, justify="right")
+    for r in res["table"]:
+        t.add_row(r["case"], f"{r['amplitude_rel_noise']:.3f}", r["found"], r["located"],
+                  r["estimate"], r["improved"],
+                  r["false_alarms"] + (f" ({','.join(r['false_effects'])})"
+                                       if r["false_effects"] else ""),
+                  f"{r['mean_time_s']:.1f}")
+    _console().print(t)

@@ -45,7 +45,6 @@ Units: metres, radians, seconds; ``_deg`` keys are degrees.
 from __future__ import annotations
 
 import functools
-import json
 import logging
 import math
 import time
@@ -61,10 +60,9 @@ import numpy as np
 from scipy import stats
 
 from ..campaign._campaign import Campaign, ScanData, ScanMeta, load_campaign
-from ..geometry._geometry import face_of, panel_geometry, panel_ids, paraboloid_normal_scale
-from ..solver._ghm import gauss_helmert, normal_equations, robust_gauss_helmert
-from ..model._model import (BUMP, DRIFT, OSC_FREQUENCY, OSCILLATION, SHIFT, ZERNIKE_PREFIX, bump_names,
-                     make_model, parse_model)
+from ..geometry._geometry import face_of, panel_ids, paraboloid_normal_scale
+from ..solver._ghm import normal_equations
+from ..model._model import (DRIFT, OSC_FREQUENCY, OSCILLATION, SHIFT, ZERNIKE_PREFIX, make_model, parse_model)
 from ..physics._catalog import EFFECTS, INSTRUMENT, inseparable_pairs
 from ._recording import capabilities, skipped_searches, two_face_parameters
 from ..campaign._campaign import read_scan, require_points
@@ -73,10 +71,31 @@ from ..fit._align import mount_heading
 from ..fit._fit import finish_scan_fit, prepare_scan, scan_arrays
 from ..geometry._geometry import pointing_gravity, rot_z
 from ..model._model import parameter_unit
-from ..report._report import diagnosis_local_figures
-from ..solver._ghm import GHResult
 from ._covariates import compare
 from ._local import local_step
+from ._state import (  # noqa: F401
+    _adjust,
+    _Context,
+    _evaluate,
+    _fixed,
+    _global_sigma0,
+    _npad,
+    _num,
+    _pad,
+    _panel_known,
+    _refit,
+    _refit_all,
+    _restore,
+    _rms,
+    _save,
+    _Scan,
+    _scan_model,
+    _set_known,
+    _Spec,
+    DiagnoseConfig,
+    Finding,
+    ZERNIKE_TESTED,
+)
 
 log = logging.getLogger("hartrao_jax")
 
@@ -87,50 +106,9 @@ MOTION: dict[str, tuple[str, ...]] = {
     # within one scan the drift rotations are inseparable from the drift translations
     "impulsive_shift": SHIFT, "oscillation": OSCILLATION, "drift": DRIFT[:3],
 }
-ZERNIKE_TESTED: tuple[int, ...] = (5, 6, 7, 8, 9, 10, 11)  # Noll; defocus (4) is the focal length
-PROBE = ("shift_x", "shift_y", "shift_z", "osc_cx", "osc_cy")  # translation (3), rotation x, y
 COVARIATES = ("theta", "range", "incidence_angle", "intensity", "rho", "psi", "time")
-GRID_CELL_M = 2.0  # cell of the stated regular grid of telescopes without a panel layout
 
 
-@dataclass(frozen=True)
-class DiagnoseConfig:
-    """Decision thresholds and search settings of :func:`diagnose`.
-
-    Attributes:
-        alpha: family-wise false-alarm probability of one step; divided among the candidates
-            (and the windows and periods searched for motion) by Bonferroni.
-        min_effect_m: practical effect size: the predicted rms change of the fit (m) a finding
-            must reach, however significant.
-        confounded_correlation: multiple correlation with the model above which a parameter is
-            inseparable (reported under ``confounded``, never tested).
-        max_steps: at most this many findings are accepted.
-        robust_k: rejection threshold of the refits (a-posteriori sigmas; None: off).
-        max_time_bins / min_points_per_bin: time bins of the motion search.
-        max_window_fraction: longest impulsive-shift window searched (fraction of the scan).
-        covariate_bins: quantile bins per covariate and face.
-        panel_cells: sub-cells per panel (radial, azimuthal) of the within-panel search.
-        scan_consistency: a shared (instrument) candidate is refused when freeing it per scan
-            improves the fit by more than this fraction of its own statistic (and
-            significantly): its structure then belongs to one scan, not to the instrument.
-        common_slope: a motion candidate is refused when the other cycle shows the same
-            deviation in the same dish cells (regression slope above this and significant).
-        effects: effect ids to test (None: all of the catalog).
-    """
-
-    alpha: float = 1e-6
-    min_effect_m: float = 1.0e-5
-    confounded_correlation: float = 0.9995
-    max_steps: int = 10
-    robust_k: float | None = 4.0
-    max_time_bins: int = 1024
-    min_points_per_bin: int = 120
-    max_window_fraction: float = 0.3
-    covariate_bins: int = 16
-    panel_cells: tuple[int, int] = (3, 3)
-    scan_consistency: float = 0.3
-    common_slope: float = 0.5
-    effects: tuple[str, ...] | None = None
 
 
 # ============================================================================================
@@ -138,221 +116,30 @@ class DiagnoseConfig:
 # ============================================================================================
 
 
-@dataclass
-class _Scan:
-    """One scan under diagnosis: fixed geometry from the start fit and the current solution."""
-
-    meta: ScanMeta
-    data: ScanData
-    g: np.ndarray
-    init_x: dict[str, float]
-    window: np.ndarray  # points inside the geometry window (and the preprocessing mask)
-    l: np.ndarray
-    kappa: float
-    elevation_deg: float
-    X_tel: np.ndarray
-    rho: np.ndarray
-    psi: np.ndarray
-    panel: np.ndarray  # panel id (-1: none), from the start fit
-    s_rho: np.ndarray  # sqrt(1 + rho^2/4f^2): d condition / d normal offset
-    face: np.ndarray
-    incidence: np.ndarray
-    known: np.ndarray  # modelled normal deviation (m): panels and empirical maps
-    extra_known: np.ndarray  # the empirical (unexplained) part of it
-    cut: np.ndarray  # points cut from the adjustment (bool)
-    # current solution
-    names: tuple[str, ...] = ()
-    x: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
-    sigma0: float = float("nan")
-    omega: float = 0.0
-    redundancy: int = 0
-    v: np.ndarray | None = None
-    used: np.ndarray | None = None
-    F: np.ndarray | None = None  # misclosure at the observations (m, condition units)
-    m: np.ndarray | None = None  # b Sigma b^T
-    b0: np.ndarray | None = None  # dF/dr
-    probe: np.ndarray | None = None  # dF/d(translation x y z, rotation x y), (n, 5)
-    converged: bool = True
-    window_s: tuple[float, float] | None = None  # shift window found by the search (s)
-    window_stat: float = 0.0
-    period_s: float | None = None  # oscillation period found by the periodogram (s)
-    period_stat: float = 0.0
-    search: dict = field(default_factory=dict)  # curves of the searches (for figures)
-
-    @property
-    def id(self) -> str:
-        return self.meta.id
-
-    def value(self, name: str) -> float:
-        return float(self.x[self.names.index(name)])
-
-    @property
-    def mismatch_m(self) -> np.ndarray:
-        """Recording minus simulation as normal surface deviation (m, towards the focus)."""
-        return -self.F / self.s_rho
-
-    @property
-    def mismatch_range_m(self) -> np.ndarray:
-        """Recording minus simulation in observation space: the range error (m)."""
-        b0 = np.where(np.abs(self.b0) > 1e-12, self.b0, 1e-12)
-        return self.F / b0
-
-    def consts(self) -> np.ndarray:
-        return np.column_stack([self.data.time_s, self.known, self.s_rho])
 
 
-@dataclass
-class _Spec:
-    """The functional model being grown (what is common to all scans and what is per scan)."""
-
-    start: tuple[str, ...]
-    shared: dict[str, float] = field(default_factory=dict)  # accepted instrument parameters
-    shared_sigma: dict[str, float] = field(default_factory=dict)
-    zern_C: np.ndarray | None = None  # (K, 3) gravity Zernike coefficients, modes ZERNIKE_TESTED
-    motion: dict[str, dict] = field(default_factory=dict)  # scan id -> names, window_s, period_s
-    panels: dict[str, np.ndarray] | None = None  # offset, tilt_r, tilt_t per panel
-    accepted: list[str] = field(default_factory=list)
-    skip: set[str] = field(default_factory=set)  # found confounded: not tested again
-    modelled: set[str] = field(default_factory=set)  # covariates modelled by a map
-    times: bool = True  # recorded scan times (else no motion search)
-    no_covariates: set[str] = field(default_factory=set)  # covariates the recording lacks
-    # modelled local deformations: {"names": bump_* names, "values": {name: value},
-    # "scans": ids of the scans where they are free (the others hold them fixed)}
-    bumps: list[dict] = field(default_factory=list)
-
-    def names(self) -> list[str]:
-        out = list(self.start) + list(self.shared)
-        for m in self.motion.values():
-            out += [n for n in m["names"] if n not in out]
-        if self.zern_C is not None:
-            out += [f"{ZERNIKE_PREFIX}{j}" for j in ZERNIKE_TESTED]
-        if self.panels is not None:
-            out.append("panel_offset")
-        for a in self.accepted:
-            if a.startswith("unexplained") and "unexplained" not in out:
-                out.append("unexplained")
-        for b in self.bumps:
-            out += list(b["names"])
-        return out
 
 
-def _fixed(sc: _Scan, spec: _Spec) -> dict[str, float]:
-    fixed = dict(spec.shared)
-    for b in spec.bumps:
-        fixed.update(b["values"])
-    if spec.zern_C is not None:
-        for k, j in enumerate(ZERNIKE_TESTED):
-            fixed[f"{ZERNIKE_PREFIX}{j}"] = float(spec.zern_C[k] @ sc.g)
-    return fixed
 
 
-def _scan_model(sc: _Scan, spec: _Spec, aperture: float, extra: Sequence[str] = (),
-                window_s=None, period_s=None):
-    mot = spec.motion.get(sc.id, {})
-    names = list(spec.start) + [n for n in mot.get("names", ()) if n not in spec.start]
-    for b in spec.bumps:
-        if sc.id in b["scans"]:
-            names += list(b["names"])
-    names += [n for n in extra if n not in names]
-    window = mot.get("window_s") or window_s or (0.0, 0.0)
-    period = mot.get("period_s") or period_s or 1.0
-    fixed = {k: v for k, v in _fixed(sc, spec).items() if k not in names}  # free wins here
-    return make_model(names, fixed, shift_window_s=window, osc_period_s=period,
-                      kappa_rad=sc.kappa, aperture_radius_m=aperture, check_separable=False)
 
 
-@eqx.filter_jit
-def _pointwise(model, probe, l, x, xp, c, s2):
-    """Per point: ``m = b Sigma b^T``, ``dF/dr`` and the probe derivatives (translation,
-    rotation)."""
-    k = len(PROBE)
-
-    def one(args):
-        ll, cc = args
-        b = jax.grad(lambda l0: model(l0, x, cc))(ll)
-        m = jnp.sum(b * b * s2)
-        ap = jax.jacfwd(lambda p: probe(ll, jnp.concatenate([xp, p]), cc))(jnp.zeros(k, ll.dtype))
-        return m, b[0], ap
-
-    return jax.lax.map(one, (l, c), batch_size=8192)
 
 
-_misclosure = eqx.filter_jit(
-    lambda model, l, x, c: jax.lax.map(lambda a: model(a[0], x, a[1]), (l, c), batch_size=8192)
-)
 
 
-class _Context:
-    """Campaign-level constants of one diagnosis."""
-
-    def __init__(self, campaign: Campaign, config: DiagnoseConfig):
-        self.campaign = campaign
-        self.config = config
-        tel = campaign.telescope
-        self.aperture = tel.diameter_m / 2
-        s = campaign.scanner
-        self.sigma = np.array([s.sigma_range_m, s.sigma_angle_rad, s.sigma_angle_rad])
-        self.has_layout = bool(tel.ring_edges_m and tel.panels_per_ring)
-        if self.has_layout:
-            self.edges, self.counts = list(tel.ring_edges_m), list(tel.panels_per_ring)
-            self.layout_note = f"panels of the {tel.name} layout"
-        else:
-            # no panel layout (e.g. the GBT): a stated regular grid of cells of about
-            # GRID_CELL_M in the aperture plane (rings of that width, arcs of that length),
-            # over the radii the reflector spans (an offset reflector: offset +- D/2)
-            off = float(getattr(tel, "offset_m", 0.0) or 0.0)
-            r0 = max(float(tel.cone_radius_m or 0.0), off - self.aperture)
-            r1 = off + self.aperture
-            nr = max(1, round((r1 - r0) / GRID_CELL_M))
-            self.edges = list(np.linspace(r0, r1, nr + 1))
-            self.counts = [max(6, round(2 * np.pi * 0.5 * (a + b) / GRID_CELL_M))
-                           for a, b in zip(self.edges[:-1], self.edges[1:])]
-            self.layout_note = (f"{tel.name} has no panel layout: grid cells of about "
-                                f"{GRID_CELL_M:g} m x {GRID_CELL_M:g} m in the aperture plane "
-                                f"(rings of {GRID_CELL_M:g} m, arcs of {GRID_CELL_M:g} m), "
-                                "ids are grid cells, not panels")
-        self.geo = panel_geometry(self.edges, self.counts)
-        self.n_panels = int(sum(self.counts))
 
 
 # --------------------------------------------------------------------------------------------
 # fitting
 # --------------------------------------------------------------------------------------------
 
-_BUCKET = 1 << 15  # point arrays are padded to a multiple: scans of similar size share programs
 
 
-def _npad(n: int) -> int:
-    return max(_BUCKET, -(-n // _BUCKET) * _BUCKET)
 
 
-def _pad(a: np.ndarray, npad: int, fill=None) -> np.ndarray:
-    """Rows padded to ``npad``: repeating the last row (``fill=None``) or with ``fill``."""
-    a = np.asarray(a)
-    n = a.shape[0]
-    if n == npad:
-        return a
-    tail = (np.repeat(a[-1:], npad - n, 0) if fill is None
-            else np.full((npad - n,) + a.shape[1:], fill, a.dtype))
-    return np.concatenate([a, tail])
 
 
-def _adjust(ctx: _Context, model, l, x0, c, w, v0=None):
-    """Robust GH on padded arrays; returns the result cut back to the points."""
-
-    n = len(l)
-    npad = _npad(n)
-    lp, cp, wp = _pad(l, npad), _pad(c, npad), _pad(w, npad, 0.0)
-    k = ctx.config.robust_k
-    if k is None:
-        res = gauss_helmert(model, lp, x0, ctx.sigma, cp, wp)
-    else:
-        res = robust_gauss_helmert(model, lp, x0, ctx.sigma, cp, wp, k=k)
-    return GHResult(x=res.x, cov=res.cov, N=res.N, sigma0=res.sigma0, v=res.v[:n],
-                    misclosure=res.misclosure[:n], normalized=res.normalized[:n],
-                    weights=res.weights[:n], redundancy=res.redundancy, iterations=res.iterations,
-                    converged=res.converged)
 
 
 def _start_scans(ctx: _Context, start: tuple[str, ...], keep,
@@ -416,56 +203,12 @@ def _start_scans(ctx: _Context, start: tuple[str, ...], keep,
     return out
 
 
-def _refit(ctx: _Context, sc: _Scan, spec: _Spec, x_hint: dict[str, float] | None = None,
-           from_used: bool = False) -> None:
-    """Adjust one scan with the current model (rigorous GH with robust rejection).
-
-    Rejection starts from the whole window (points rejected because of an effect that is now
-    modelled come back), or from the points used so far (``from_used``: global, small changes).
-    """
-    model = _scan_model(sc, spec, ctx.aperture)
-    prev = dict(zip(sc.names, sc.x))
-    hint = x_hint or {}
-    x0 = np.array([hint.get(n, prev.get(n, sc.init_x.get(n, 0.0))) for n in model.free])
-    w = ((sc.used if from_used and sc.used is not None else sc.window) & ~sc.cut).astype(float)
-    res = _adjust(ctx, model, sc.l, x0, sc.consts(), w)
-    sc.names = model.free
-    sc.x, sc.cov, sc.sigma0 = np.asarray(res.x), np.asarray(res.cov), float(res.sigma0)
-    sc.v, sc.used = np.asarray(res.v), np.asarray(res.weights) > 0
-    sc.converged = bool(res.converged)
-    _evaluate(ctx, sc, spec, model)
 
 
-def _evaluate(ctx: _Context, sc: _Scan, spec: _Spec, model=None) -> None:
-    """Misclosures, ``m``, ``dF/dr`` and probe derivatives at the current solution."""
-    model = model or _scan_model(sc, spec, ctx.aperture)
-    n = len(sc.l)
-    npad = _npad(n)
-    c = _pad(sc.consts(), npad)
-    lp = jnp.asarray(_pad(sc.l, npad))
-    x = jnp.asarray(sc.x)
-    sc.F = np.asarray(_misclosure(model, lp, x, jnp.asarray(c)))[:n]
-    base = [n for n in model.free if n not in SHIFT + OSCILLATION]
-    fixed = {k: v for k, v in _fixed(sc, spec).items() if k not in base}
-    probe = make_model(base + list(PROBE), fixed, shift_window_s=(-1e9, 1e18),
-                       osc_period_s=1e18, kappa_rad=sc.kappa, aperture_radius_m=ctx.aperture,
-                       check_separable=False)
-    xp = np.array([sc.value(n) for n in probe.free[: len(probe.free) - len(PROBE)]])
-    m, b0, ap = _pointwise(model, probe, lp, x, jnp.asarray(xp), jnp.asarray(c),
-                           jnp.asarray(ctx.sigma**2))
-    sc.m, sc.b0, sc.probe = np.asarray(m)[:n], np.asarray(b0)[:n], np.asarray(ap)[:n]
-    u = sc.used
-    sc.omega = float(np.sum(sc.F[u] ** 2 / sc.m[u]))
-    sc.redundancy = int(u.sum() - len(sc.x))
 
 
-def _global_sigma0(scans: Sequence[_Scan]) -> float:
-    return math.sqrt(sum(s.omega for s in scans) / max(1, sum(s.redundancy for s in scans)))
 
 
-def _rms(scans: Sequence[_Scan]) -> float:
-    v = np.concatenate([s.mismatch_m[s.used] for s in scans])
-    return float(np.sqrt(np.mean(v**2)))
 
 
 # ============================================================================================
@@ -1208,38 +951,6 @@ def _candidates(joint: _Joint, scans: Sequence[_Scan], local: dict[str, list[str
 # ============================================================================================
 
 
-@dataclass
-class Finding:
-    """One accepted effect (a ``findings[]`` entry of ``hartrao-diagnosis/1``)."""
-
-    effect: str
-    family: str
-    scans: list[str]
-    where: dict[str, Any]
-    estimate: dict[str, dict[str, float]]
-    statistic: float
-    dof: int
-    p_value: float
-    sigma0_before: float
-    sigma0_after: float
-    rms_before_m: float
-    rms_after_m: float
-    explanation: str
-    effect_size_m: float = 0.0
-    extra: dict = field(default_factory=dict)
-
-    def to_json(self) -> dict:
-        d = {
-            "effect": self.effect, "family": self.family, "scans": self.scans,
-            "where": self.where, "estimate": self.estimate,
-            "statistic": _num(self.statistic), "dof": int(self.dof),
-            "p_value": _num(self.p_value),
-            "sigma0_before": _num(self.sigma0_before), "sigma0_after": _num(self.sigma0_after),
-            "rms_before_m": _num(self.rms_before_m), "rms_after_m": _num(self.rms_after_m),
-            "explanation": self.explanation, "effect_size_m": _num(self.effect_size_m),
-        }
-        d.update(self.extra)
-        return d
 
 
 @dataclass
@@ -1299,11 +1010,6 @@ class Diagnosis:
         return [f.effect for f in self.findings]
 
 
-def _num(v):
-    if v is None:
-        return None
-    v = float(v)
-    return v if math.isfinite(v) else None
 
 
 # ============================================================================================
@@ -1329,11 +1035,6 @@ def _log_sf(T: float, dof: int) -> float:
 # ============================================================================================
 
 
-def _panel_known(ctx: _Context, sc: _Scan, panels: dict[str, np.ndarray] | None) -> np.ndarray:
-    if panels is None:
-        return np.zeros(len(sc.rho))
-    k = np.where(sc.panel >= 0, sc.panel, 0)
-    return np.where(sc.panel >= 0, panels["offset"][k], 0.0)
 
 
 def _estimate_panels(ctx: _Context, scans: Sequence[_Scan], spec: _Spec) -> dict[str, np.ndarray]:
@@ -1363,8 +1064,6 @@ def _estimate_panels(ctx: _Context, scans: Sequence[_Scan], spec: _Spec) -> dict
     return {"offset": sol[:, 0], "tilt_r": sol[:, 1], "tilt_t": sol[:, 2], "n_points": cnt}
 
 
-def _set_known(ctx: _Context, sc: _Scan, spec: _Spec) -> None:
-    sc.known = _panel_known(ctx, sc, spec.panels) + sc.extra_known
 
 
 @eqx.filter_jit
@@ -1564,9 +1263,10 @@ def diagnose(
     config: DiagnoseConfig | None = None,
     scans: Sequence[str] | None = None,
     keep: Callable[[ScanMeta, ScanData], np.ndarray] | None = None,
-    report_dir: str | Path | None = None,
 ) -> Diagnosis:
     """Find, explain and model the mismatch between the recordings and the model.
+
+    Figures and HTML: :func:`hartrao_jax.report.diagnose_with_report` (``report_dir``).
 
     Args:
         campaign: a campaign (or its directory).
@@ -1574,7 +1274,6 @@ def diagnose(
         config: thresholds and search settings (:class:`DiagnoseConfig`).
         scans: scan ids to diagnose (default all: they are tested jointly).
         keep: optional ``keep(meta, data) -> bool mask`` of points to consider (preprocessing).
-        report_dir: write figures and an HTML summary there.
 
     Returns:
         a :class:`Diagnosis` (``to_json()``: schema ``hartrao-diagnosis/1``).
@@ -1753,27 +1452,13 @@ def diagnose(
     if not ctx.has_layout:
         for f in findings:
             _cells_not_panels(ctx, f)
-    if report_dir is not None:
-        write_report(diag, report_dir)
     return diag
 
 
-_STATE = ("names", "x", "cov", "sigma0", "omega", "redundancy", "v", "used", "F", "m", "b0",
-          "probe", "converged", "known", "extra_known", "cut")
 
 
-def _save(S: Sequence[_Scan], spec: _Spec):
-    import copy
-
-    return [{k: getattr(sc, k) for k in _STATE} for sc in S], copy.deepcopy(spec)
 
 
-def _restore(S: Sequence[_Scan], saved) -> _Spec:
-    states, spec = saved
-    for sc, st in zip(S, states):
-        for k, v in st.items():
-            setattr(sc, k, v)
-    return spec
 
 
 def _option_key(o: _Option) -> tuple:
@@ -2192,17 +1877,6 @@ def _update_shared(spec: _Spec, joint: _Joint, dz: np.ndarray) -> None:
         spec.zern_C = spec.zern_C + d
 
 
-def _refit_all(ctx, S, spec, only: Sequence[_Scan] | None = None, hints=None,
-               from_used: bool = True, others: bool = False):
-    """Refit the scans ``only`` (default all) from the window or from their points in use;
-    ``others``: the remaining scans too, from their points in use (the panel offsets or the
-    shared parameters moved)."""
-    for sc in S:
-        mine = only is None or sc in only
-        if not mine and not others:
-            continue
-        _set_known(ctx, sc, spec)
-        _refit(ctx, sc, spec, (hints or {}).get(sc.id), from_used=from_used or not mine)
 
 
 def _refine_periods(ctx: _Context, spec: _Spec, refit) -> None:
@@ -2586,119 +2260,5 @@ def _json_default(o):
     raise TypeError(type(o))
 
 
-def write_report(diag: Diagnosis, out_dir: str | Path) -> Path:
-    """Residual maps before and after each accepted step, the evidence of motion findings
-    (change points, periodogram) and ``index.html``; returns the HTML path."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    hist = diag.history
-    images: list[tuple[str, str]] = []
-    def maps_figure(before: dict, after: dict, ids: Sequence[str], title: str, name: str):
-        vals = np.concatenate([np.abs(before[i][np.isfinite(before[i])]) for i in ids] or [[1e-4]])
-        vmax = 1e3 * float(np.percentile(vals, 98)) if vals.size else 0.5
-        fig, axes = plt.subplots(len(ids), 2, figsize=(8.5, 4.0 * len(ids)), squeeze=False)
-        for r, i in enumerate(ids):
-            for c, (lab, mp) in enumerate((("before", before), ("after", after))):
-                ax = axes[r, c]
-                im = ax.imshow(1e3 * mp[i].T, origin="lower",
-                               extent=diag.extents.get(i, [-13.0, 13.0, -13.0, 13.0]),
-                               cmap="RdBu_r", vmin=-vmax, vmax=vmax)
-                ax.set_title(f"{i}: {lab}", fontsize=9)
-                ax.set_xlabel("X [m]")
-                if c == 0:
-                    ax.set_ylabel("Y [m]")
-                ax.set_aspect("equal")
-        fig.colorbar(im, ax=axes, shrink=0.6, label="recording - simulation, normal [mm]")
-        fig.suptitle(title, fontsize=10)
-        fig.savefig(out / name, dpi=90)
-        plt.close(fig)
-        images.append((title, name))
-
-    all_ids = list(hist[0]["maps"]) if hist else []
-    for k in range(1, len(hist)):
-        ids = [i for i in (hist[k].get("scans") or all_ids) if i in hist[k]["maps"]][:4]
-        maps_figure(hist[k - 1]["maps"], hist[k]["maps"], ids,
-                    f"step {k}: {hist[k]['label']}", f"step{k}_{hist[k]['label']}_maps.png")
-        ev = hist[k].get("evidence")
-        if ev and ev.get("kind") == "change_point":
-            e = ev["edges"]
-            tb = 0.5 * (e[:-1] + e[1:])
-            fig, (a1, a2) = plt.subplots(2, 1, figsize=(8, 5.5), sharex=True)
-            tr = 1e3 * np.asarray(ev["translation"])
-            for j, ax_name in enumerate("xyz"):
-                a1.plot(tb, tr[:, j], lw=0.7, label=f"d{ax_name}")
-            lo, hi = np.nanpercentile(tr, [2, 98])
-            a1.set_ylim(lo - 0.5 * (hi - lo), hi + 0.5 * (hi - lo))  # weak bins clipped
-            a1.set_ylabel("translation per time bin [mm]")
-            a1.legend(fontsize=8)
-            a2.plot(tb, ev["profile"], lw=0.8, color="k")
-            a2.set_ylabel("box statistic T (max over lengths)")
-            a2.set_xlabel("scan time [s]")
-            for ax in (a1, a2):
-                w0, dw = ev["window_s"]
-                ax.axvspan(w0, w0 + dw, color="orange", alpha=0.3)
-            fig.suptitle(f"{ev['scan']}: change-point search (impulsive shift)", fontsize=10)
-            name = f"step{k}_change_points.png"
-            fig.savefig(out / name, dpi=90)
-            plt.close(fig)
-            images.append((f"step {k}: change-point search", name))
-        elif ev and ev.get("kind") == "periodogram":
-            fig, ax = plt.subplots(figsize=(8, 3.5))
-            ax.semilogx(ev["periods"], ev["periodogram"], lw=0.8, color="k")
-            ax.axvline(ev["period_s"], color="orange")
-            ax.set_xlabel("period [s]")
-            ax.set_ylabel("score statistic T (4 dof)")
-            ax.set_title(f"{ev['scan']}: periodogram of the scanner rotation", fontsize=10)
-            fig.tight_layout()
-            name = f"step{k}_periodogram.png"
-            fig.savefig(out / name, dpi=90)
-            plt.close(fig)
-            images.append((f"step {k}: periodogram", name))
-    if len(hist) > 1:
-        ids = all_ids[:4]
-        maps_figure(hist[0]["maps"], hist[-1]["maps"], ids, "start model vs final model",
-                    "start_vs_final_maps.png")
-    rows = "".join(
-        f"<tr><td>{i + 1}</td><td>{f.effect}</td><td>{f.family}</td><td>{', '.join(f.scans)}</td>"
-        f"<td>{f.statistic:.1f} ({f.dof})</td><td>{1e3 * f.effect_size_m:.4f}</td>"
-        f"<td>{f.sigma0_before:.4f} &rarr; {f.sigma0_after:.4f}</td>"
-        f"<td>{1e3 * f.rms_before_m:.4f} &rarr; {1e3 * f.rms_after_m:.4f}</td>"
-        f"<td>{_html(json.dumps(f.where, default=_json_default))}</td>"
-        f"<td>{_html(f.explanation)}</td></tr>" for i, f in enumerate(diag.findings))
-    conf = "".join(f"<tr><td>{c['effect']}</td><td>{', '.join(c['with'])}</td>"
-                   f"<td>{c['correlation']:.6f}</td></tr>" for c in diag.confounded)
-
-    images += diagnosis_local_figures(diag, out)
-    imgs = "".join(f"<h3>{_html(t)}</h3><img src='{n}' style='max-width:100%'>" for t, n in images)
-    skip = "".join(f"<li>{_html(k['search'])}: {_html(k['why'])}</li>" for k in diag.skipped)
-    loc = "".join(f"<li>{_html(d.get('statement', ''))}</li>" for d in diag.local_search)
-    html = f"""<!doctype html><html><head><meta charset="utf-8"><title>diagnosis</title>
-<style>body{{font-family:sans-serif;max-width:1100px;margin:auto}} td,th{{border:1px solid #ccc;
-padding:3px 6px;font-size:13px;vertical-align:top}} table{{border-collapse:collapse}}</style></head>
-<body><h1>Discrepancy diagnosis</h1>
-<p>Campaign <code>{_html(diag.campaign)}</code>. Start model {', '.join(diag.start_model)};
-final model {', '.join(diag.final_model)}.</p>
-<p>sigma0 {diag.sigma0_start:.4f} &rarr; {diag.sigma0_final:.4f}; rms of recording minus simulation
-(normal) {1e3 * diag.rms_start_m:.4f} &rarr; {1e3 * diag.rms_final_m:.4f} mm.</p>
-<h2>Findings (in the order accepted)</h2>
-<table><tr><th>#</th><th>effect</th><th>family</th><th>scans</th><th>T (dof)</th>
-<th>effect [mm]</th><th>sigma0</th><th>rms [mm]</th><th>where</th><th>explanation</th></tr>
-{rows}</table>
-<h2>Confounded with the model (not tested)</h2>
-<table><tr><th>effect</th><th>with</th><th>correlation</th></tr>{conf}</table>
-<h2>Local deformation search</h2><ul>{loc}</ul>
-<h2>Searches skipped (the recording lacks what they need)</h2><ul>{skip}</ul>
-<h2>Figures</h2>{imgs}
-<p>Notes: {_html('; '.join(diag.notes))}</p></body></html>"""
-    p = out / "index.html"
-    p.write_text(html, encoding="utf-8")
-    return p
 
 
-def _html(s: str) -> str:
-    return str(s).replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")

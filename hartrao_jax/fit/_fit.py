@@ -7,7 +7,6 @@ Everything here is bookkeeping (NumPy) around the differentiable core (:mod:`._g
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from collections.abc import Callable, Iterable, Sequence
@@ -22,11 +21,9 @@ from ..campaign._campaign import Campaign, ScanData, ScanMeta, read_scan
 from ..geometry._geometry import face_of, paraboloid_deviation, pointing_elevation_deg, pointing_gravity, rot_z
 from ..solver._ghm import GHResult, gauss_helmert_batch, robust_gauss_helmert
 from ..preprocess._initial import (
+    choose_initial_values,
     InitialValues,
     geometry_window,
-    initial_values,
-    patch_initial_values,
-    quadric_initial_values,
 )
 from ..model._model import N_CONSTS, ZERNIKE_PREFIX, ParaboloidModel, make_model, parameter_unit
 from ..physics._catalog import INSTRUMENT
@@ -36,7 +33,7 @@ from ..geometry._geometry import panel_cells
 from ..model._model import parse_model
 from ..solver._ghm import gauss_helmert
 from ..solver._mixed import gauss_helmert_mixed, unidentifiable
-from ._joint import bucket_size
+from ..solver._ghm import bucket_size
 
 log = logging.getLogger("hartrao_jax")
 
@@ -230,25 +227,6 @@ def sigma_vector(campaign: Campaign) -> np.ndarray:
 
 def _x0(names: Sequence[str], init: InitialValues, fixed: dict[str, float]) -> np.ndarray:
     return np.array([init.x.get(n, fixed.get(n, 0.0)) for n in names], dtype=float)
-
-
-def choose_initial_values(campaign: Campaign, meta: ScanMeta, data: ScanData, g, *, seed=0):
-    """Pointing-based initial values (scanner hanging on its gimbal) when they fit the data,
-    else the pose-free quadric fit (one-face exports, other scanner set-ups, offset reflectors).
-    """
-    tel = campaign.telescope
-    cands = []
-    if meta.cycle != 0 and tel.offset_m == 0:
-        cands.append(initial_values(data.range_m, data.phi_rad, data.theta_rad, g,
-                                    focal_length_m=tel.focal_length_m, seed=seed))
-        if cands[-1].inlier_fraction >= 0.5:
-            return cands[-1]
-    q = quadric_initial_values(data.range_m, data.phi_rad, data.theta_rad, seed=seed)
-    cands.append(q)
-    if q.inlier_fraction < 0.5:  # a region too small for a quadric: use its curvature
-        cands.extend(patch_initial_values(data.range_m, data.phi_rad, data.theta_rad,
-                                          focal_length_m=tel.focal_length_m, seed=seed))
-    return max(cands, key=lambda c: c.inlier_fraction)
 
 
 def prepare_scan(
@@ -945,3 +923,12 @@ def write_fit(out_dir: str | Path, cf: CampaignFit, *, residuals: bool = True) -
                 od.write_with(f"residuals/{s.meta.id}.parquet",
                               lambda t, s=s: write_residuals(t, s))
         return od.commit(doc)
+
+
+def read_residuals(path, columns: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+    """A ``residuals/<scan>.parquet`` table of ``write_fit`` as NumPy columns (all or those
+    named)."""
+    import pyarrow.parquet as pq
+
+    t = pq.read_table(path, columns=list(columns) if columns is not None else None)
+    return {c: t.column(c).to_numpy() for c in t.column_names}

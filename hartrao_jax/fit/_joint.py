@@ -52,7 +52,15 @@ from ._fit import (
     sigma_vector,
     write_residuals,
 )
-from ..solver._ghm import GHResult, _chunked, _pass_residuals, _unchunk, normal_equations
+from ..solver._ghm import (
+    GHResult,
+    _chunked,
+    _pass_residuals,
+    _unchunk,
+    bucket_size,
+    chunk_for,
+    normal_equations,
+)
 from ..model._model import parameter_unit
 from ..physics._catalog import OBJECT_PARAMETERS
 from ..campaign._safeio import OutputDir
@@ -95,20 +103,6 @@ def residual_update(condition, l, x, sigma_l, consts, weights, v, dx, *, chunk_s
     chunk = int(min(chunk_size, max(256, 1 << int(np.ceil(np.log2(max(n, 1)))))))
     return _residual_pass(condition, l, jnp.asarray(x, l.dtype), s2, consts, weights, v,
                           jnp.asarray(dx, l.dtype), chunk)
-
-
-def bucket_size(n: int, *, granularity: int = 8, minimum: int = 4096) -> int:
-    """Padded length for ``n`` points: a multiple of ``next_pow2(n) / granularity``.
-
-    Scans of similar size share one padded shape, hence one compiled program.
-    """
-    p2 = 1 << max(0, int(math.ceil(math.log2(max(n, 1)))))
-    q = max(minimum, p2 // granularity)
-    return int(-(-n // q) * q)
-
-
-def chunk_for(n_pad: int) -> int:
-    return int(min(1 << 16, max(256, 1 << int(np.ceil(np.log2(max(n_pad, 1)))))))
 
 
 # --------------------------------------------------------------------------------------------

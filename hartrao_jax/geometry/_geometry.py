@@ -17,6 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ..campaign._campaign import cartesian_to_raw  # noqa: F401  (the recording's face rule)
+
 # --------------------------------------------------------------------------------------------
 # Rotations
 # --------------------------------------------------------------------------------------------
@@ -153,31 +155,6 @@ def polar_to_cartesian(r: ArrayLike, phi: ArrayLike, theta: ArrayLike) -> Array:
     """Seed eq. (2): ``(r sin(theta) sin(phi), r sin(theta) cos(phi), r cos(theta))``, last axis 3."""
     st = jnp.sin(theta)
     return jnp.stack([r * st * jnp.sin(phi), r * st * jnp.cos(phi), r * jnp.cos(theta)], axis=-1)
-
-
-def cartesian_to_raw(xyz: np.ndarray, cycle: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Raw two-face ``(r, phi, theta)`` of scanner-frame points, per the spec's face rule.
-
-    A direction of azimuth ``a = atan2(x, y)`` in [0, 2 pi) is recorded in face 1 as
-    ``(a, theta0)`` when ``a`` lies in the cycle's phi range (cycle 1: [0, pi), cycle 2:
-    [pi, 2 pi)), else in face 2 as ``(a - pi mod 2 pi, 2 pi - theta0)``. Cycle 0 (one-face
-    exports) always uses face 1 with phi in [0, 2 pi).
-    """
-    xyz = np.asarray(xyz, dtype=float)
-    x, y, z = xyz[..., 0], xyz[..., 1], xyz[..., 2]
-    r = np.sqrt(x * x + y * y + z * z)
-    a = np.mod(np.arctan2(x, y), 2 * np.pi)
-    theta0 = np.arccos(np.clip(z / np.where(r > 0, r, 1.0), -1.0, 1.0))
-    if cycle == 0:
-        return r, a, theta0
-    lo = 0.0 if cycle == 1 else np.pi
-    face1 = (a >= lo) & (a < lo + np.pi)
-    phi = np.where(face1, a, np.mod(a - np.pi, 2 * np.pi))
-    theta = np.where(face1, theta0, 2 * np.pi - theta0)
-    # guard against round-off putting phi on the wrong side of the cycle boundary
-    phi = np.where(phi >= lo + np.pi, np.nextafter(lo + np.pi, lo), phi)
-    phi = np.where(phi < lo, lo, phi)
-    return r, phi, theta
 
 
 def face_of(theta: ArrayLike) -> np.ndarray:

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..campaign._format import Campaign, ScanData, ScanMeta
 from ..geometry._geometry import decompose_zyx, polar_to_cartesian, rot_x, rot_y, rot_z
 
 
@@ -377,3 +378,22 @@ def patch_initial_values(
             kappa_rad=0.0, heading_rad=0.0, inlier_fraction=float(np.mean(d < tol_m)), tol_m=tol_m,
         ))
     return sorted(out, key=lambda c: -c.inlier_fraction)
+
+
+def choose_initial_values(campaign: Campaign, meta: ScanMeta, data: ScanData, g, *, seed=0):
+    """Pointing-based initial values (scanner hanging on its gimbal) when they fit the data,
+    else the pose-free quadric fit (one-face exports, other scanner set-ups, offset reflectors).
+    """
+    tel = campaign.telescope
+    cands = []
+    if meta.cycle != 0 and tel.offset_m == 0:
+        cands.append(initial_values(data.range_m, data.phi_rad, data.theta_rad, g,
+                                    focal_length_m=tel.focal_length_m, seed=seed))
+        if cands[-1].inlier_fraction >= 0.5:
+            return cands[-1]
+    q = quadric_initial_values(data.range_m, data.phi_rad, data.theta_rad, seed=seed)
+    cands.append(q)
+    if q.inlier_fraction < 0.5:  # a region too small for a quadric: use its curvature
+        cands.extend(patch_initial_values(data.range_m, data.phi_rad, data.theta_rad,
+                                          focal_length_m=tel.focal_length_m, seed=seed))
+    return max(cands, key=lambda c: c.inlier_fraction)

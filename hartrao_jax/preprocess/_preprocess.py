@@ -102,10 +102,9 @@ from jaxtyping import Array, Float
 
 from ..campaign._campaign import Campaign, ScanData, ScanMeta, read_scan
 from ..geometry._geometry import pointing_gravity, polar_to_cartesian
-from ._initial import InitialValues, initial_values
+from ._initial import InitialValues, choose_initial_values
 from ..campaign._campaign import default_campaign
 from ..campaign._safeio import OutputDir, write_file_atomic
-from ..fit._fit import choose_initial_values
 
 log = logging.getLogger("hartrao_jax")
 

@@ -32,7 +32,6 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 from .._config import enable_compilation_cache
-from ..cli._main import _console
 from ..diagnose._diagnose import diagnose
 from ..model._model import parameter_unit
 from ..simulate._simulate import simulate_campaign
@@ -510,21 +509,3 @@ def _figure(out: Path, rows: list[dict]) -> None:
     fig.tight_layout()
     fig.savefig(out / "prove.png", dpi=90)
     plt.close(fig)
-
-
-def print_table(res: dict) -> None:
-    from rich.table import Table
-
-
-    t = Table(title="diagnosis on concealed data")
-    for c in ("case", "amplitude/noise", "found", "located", "estimate", "improved",
-              "false alarms", "time [s]"):
-        t.add_column(c, justify="right")
-    for r in res["table"]:
-        t.add_row(r["case"], f"{r['amplitude_rel_noise']:.3f}", r["found"], r["located"],
-                  r["estimate"], r["improved"],
-                  r["false_alarms"] + (f" ({','.join(r['false_effects'])})"
-                                       if r["false_effects"] else ""),
-                  f"{r['mean_time_s']:.1f}")
-    _console().print(t)
-

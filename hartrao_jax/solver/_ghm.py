@@ -23,6 +23,7 @@ to one shape, rejection of outliers (weight 0), and robust down-weighting.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from functools import partial
 
@@ -380,3 +381,20 @@ def normal_equations(
     chunk = int(min(chunk_size, max(256, 1 << int(np.ceil(np.log2(max(n, 1)))))))
     return _normal_equations(condition, l, jnp.asarray(x, l.dtype), s2, consts, weights, v, groups,
                              int(n_groups), chunk, int(offset_column))
+
+
+# padded shapes: scans of similar size share one compiled program
+
+
+def bucket_size(n: int, *, granularity: int = 8, minimum: int = 4096) -> int:
+    """Padded length for ``n`` points: a multiple of ``next_pow2(n) / granularity``.
+
+    Scans of similar size share one padded shape, hence one compiled program.
+    """
+    p2 = 1 << max(0, int(math.ceil(math.log2(max(n, 1)))))
+    q = max(minimum, p2 // granularity)
+    return int(-(-n // q) * q)
+
+
+def chunk_for(n_pad: int) -> int:
+    return int(min(1 << 16, max(256, 1 << int(np.ceil(np.log2(max(n_pad, 1)))))))

@@ -46,7 +46,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from ._surface import read_residuals
+
+from ..fit._fit import read_residuals
 
 DISTURBED_SCHEMA = "hartrao-disturbed/1"
 

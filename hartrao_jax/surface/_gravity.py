@@ -45,7 +45,7 @@ from ..campaign._campaign import default_campaign, load_campaign
 from ..campaign._safeio import OutputDir, verify_result_dir, write_file_atomic
 from ..campaign._schedule import DEC_LIMITS_DEG, HA_LIMIT_DEG
 from ..fit._fit import scan_arrays, sigma_vector
-from ..fit._joint import bucket_size
+from ..solver._ghm import bucket_size
 from ..geometry._geometry import panel_cells, panel_ids
 from ..model._model import N_CONSTS, make_model
 

@@ -51,7 +51,7 @@ from ..geometry._geometry import face_of, panel_geometry, panel_ids
 from ..campaign._campaign import load_campaign
 from ..campaign._safeio import OutputDir, verify_result_dir
 from ..fit._align import mount_heading
-from ..fit._fit import fit_campaign, fit_scan, panel_predictions, write_fit
+from ..fit._fit import fit_campaign, fit_scan, panel_predictions, read_residuals, write_fit
 from ..preprocess._preprocess import PreprocessConfig, keep_mask_fn
 from ._disturbed import cut_keep, detect_disturbed_campaign, detect_disturbed_residuals
 
@@ -658,15 +658,6 @@ def surface_from_fit(campaign_fit, config: SurfaceConfig | None = None, *,
         positions.append(ps)
     return SurfaceResult(cfg, layout, positions,
                          {"model": list(campaign_fit.model_names), "campaign": str(camp.root)})
-
-
-def read_residuals(path, columns: Sequence[str] | None = None) -> dict[str, np.ndarray]:
-    """A ``residuals/<scan>.parquet`` table of ``write_fit`` as NumPy columns (all or those
-    named)."""
-    import pyarrow.parquet as pq
-
-    t = pq.read_table(path, columns=list(columns) if columns is not None else None)
-    return {c: t.column(c).to_numpy() for c in t.column_names}
 
 
 def layout_for(fit_doc: Mapping | None = None, campaign=None) -> PanelLayout | None:

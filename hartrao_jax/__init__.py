@@ -3,11 +3,12 @@ terrestrial laser scans.
 
 The pipeline, in the order data flows:
 
-* campaign I/O: :func:`load_campaign`, :func:`read_scan`, :func:`write_campaign`
-* physics and models: :data:`EFFECTS`, :data:`INSTRUMENT`, :func:`make_model`
-* solver: :func:`gauss_helmert`, :func:`robust_gauss_helmert`, :func:`gauss_helmert_batch`
-* fitting campaigns: :func:`fit_scan`, :func:`fit_campaign`, :func:`write_fit`
-* simulation: :func:`simulate_campaign`
+* ``campaign/``: :func:`load_campaign`, :func:`read_scan`, :func:`write_campaign`
+* ``geometry/``, ``physics/`` (:data:`EFFECTS`, :data:`INSTRUMENT`), ``model/`` (:func:`make_model`)
+* ``solver/``: :func:`gauss_helmert`, :func:`robust_gauss_helmert`, :func:`gauss_helmert_batch`
+* ``preprocess/``, ``fit/``: :func:`fit_scan`, :func:`fit_campaign`, :func:`write_fit`
+* ``surface/``, ``diagnose/``, ``simulate/`` (:func:`simulate_campaign`), ``prove/``,
+  ``sensitivity/``, ``report/``, ``cli/``: see ``ARCHITECTURE.md``
 
 Importing the package turns on JAX's float64 (``jax_enable_x64``): the adjustment needs it.
 """
@@ -16,7 +17,7 @@ from ._config import enable_x64 as _enable_x64
 
 _enable_x64()
 
-from .campaign._campaign import (  # noqa: E402
+from .campaign import (  # noqa: E402
     Campaign,
     CampaignError,
     ScanData,
@@ -25,11 +26,11 @@ from .campaign._campaign import (  # noqa: E402
     read_scan,
     write_campaign,
 )
-from .fit._fit import CampaignFit, ScanFit, fit_campaign, fit_json, fit_scan, write_fit  # noqa: E402
-from .solver._ghm import GHResult, gauss_helmert, gauss_helmert_batch, robust_gauss_helmert  # noqa: E402
-from .model._model import ModelError, ParaboloidModel, make_model, parse_model  # noqa: E402
-from .physics._catalog import EFFECTS, EXTENDED, INSTRUMENT, SIMPLIFIED  # noqa: E402
-from .simulate._simulate import CLASSES, PRESETS, parse_effects, simulate_campaign, simulate_scan  # noqa: E402
+from .fit import CampaignFit, ScanFit, fit_campaign, fit_json, fit_scan, write_fit  # noqa: E402
+from .model import ModelError, ParaboloidModel, make_model, parse_model  # noqa: E402
+from .physics import EFFECTS, EXTENDED, INSTRUMENT, SIMPLIFIED  # noqa: E402
+from .simulate import CLASSES, PRESETS, parse_effects, simulate_campaign, simulate_scan  # noqa: E402
+from .solver import GHResult, gauss_helmert, gauss_helmert_batch, robust_gauss_helmert  # noqa: E402
 
 simulate = simulate_campaign
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import click
 
 from ..campaign._safeio import strict_json, write_json_atomic
-from ._main import UserError, _console, _keep_fn, _parse_fixes, command, main
+from ._base import UserError, _console, _keep_fn, _parse_fixes, command, main
 from ..campaign._campaign import load_campaign
 from ..campaign._schedule import TOURS, campaign_plan, check_plan, plan_table
 from ..fit._distributed import close_client, fit_dask, start_client

@@ -9,7 +9,7 @@ import time
 
 import click
 
-from ._main import UserError, _console, command, main
+from ._base import UserError, _console, command, main
 from ..diagnose._diagnose import DiagnoseConfig, write_json
 from ..report._diagnosis import diagnose_with_report
 from ..physics._catalog import EFFECTS

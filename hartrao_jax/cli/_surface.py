@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from ._main import UserError, command, main
+from ._base import UserError, command, main
 from ..campaign._campaign import load_campaign
 from ..report._report import write_report
 from ..surface._surface import SurfaceConfig, surface_campaign

@@ -14,7 +14,7 @@ from hartrao_jax.campaign._import import import_file
 from hartrao_jax.diagnose._recording import two_face_parameters
 
 REAL = Path(os.environ.get("HARTRAO_REAL_DATA",
-                           Path(__file__).resolve().parents[2] / "shared" / "real")) / "gbt-lassi"
+                           Path(__file__).resolve().parents[3] / "shared" / "real")) / "gbt-lassi"
 needs_real = pytest.mark.skipif(not REAL.exists(), reason="real GBT data not present")
 
 
@@ -53,7 +53,7 @@ def test_bump_injected_into_scan10_is_found_at_its_place(tmp_path):
     injection benchmark: 1-2 mm at 1 m do not stand out from scan 10's own structure)."""
     import sys
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
     from real_inject import _normals_and_residuals
 
     csv = REAL / "scan10_random_sample.csv"

@@ -9,13 +9,13 @@ import pytest
 from helpers import real_gbt_file
 
 from hartrao_jax.campaign._campaign import CampaignError, load_campaign, read_scan
+from hartrao_jax.cli._import import import_command
 from hartrao_jax.campaign._import import (
     DEFAULT_INTENSITY,
     LEICA_EXPORT_SCANNER,
     ImportedScan,
     _altaz_to_hadec,
     grid_angular_step,
-    import_command,
     import_file,
     iter_ptx,
     nn_angular_step,

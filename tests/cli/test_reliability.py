@@ -597,7 +597,7 @@ def test_minimum_points_rule():
 
 
 def test_import_exit_status_two(tmp_path):
-    from hartrao_jax.campaign._import import import_command
+    from hartrao_jax.cli._import import import_command
 
     r = CliRunner().invoke(import_command, [str(tmp_path / "x.ptx"), "--out", str(tmp_path / "c")])
     assert r.exit_code == 2 and r.stderr.startswith("error: ") and "Error:" not in r.output
@@ -895,7 +895,7 @@ def test_kill_during_fit_leaves_old_or_new_result(tmp_path):
 
     camp = tmp_path / "camp"
     simulate_campaign(camp, preset="clean", step_rad=0.05)
-    env = {**os.environ, "PYTHONPATH": str(pathlib.Path(__file__).resolve().parents[1])}
+    env = {**os.environ, "PYTHONPATH": str(pathlib.Path(__file__).resolve().parents[2])}
     out = tmp_path / "out"
     p = _run_fit(camp, out, "simplified", env)
     assert p.wait(timeout=600) == 0, p.stderr.read().decode()

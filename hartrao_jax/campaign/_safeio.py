@@ -20,7 +20,7 @@ Conventions (``shared/spec/outputs.md``, issue 13):
   directory, ``/``-separated). Files the previous main JSON listed and the new one does not
   are removed after the commit; nothing else in the directory is touched.
 * **Readers verify.** :func:`verify_result_dir` raises the project's one-line user error
-  (:class:`~hartrao_jax._campaign.CampaignError`, printed as ``error: <file>: <field>: ...``
+  (:class:`~hartrao_jax.campaign.CampaignError`, printed as ``error: <file>: <field>: ...``
   with exit status 2) when the main JSON is missing, not strict JSON, has no manifest, or a
   listed file is missing or differs in size or SHA-256: an interrupted write or a directory
   mixing two results is refused, never read.
@@ -479,7 +479,7 @@ def verify_result_dir(directory: str | os.PathLike, main_json: str, *,
                       hashes: bool = True) -> dict:
     """Check that ``directory`` holds one complete result; return its parsed main JSON.
 
-    Raises :class:`~hartrao_jax._campaign.CampaignError` (one line) when the main JSON is
+    Raises :class:`~hartrao_jax.campaign.CampaignError` (one line) when the main JSON is
     missing or not strict JSON, has no ``"files"`` manifest, or a listed file is missing or
     differs in size (or, with ``hashes``, in SHA-256) from what the manifest says.
     """

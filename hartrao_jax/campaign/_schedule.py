@@ -109,7 +109,7 @@ class PlannedPosition:
         return d
 
     def simulator_position(self) -> dict:
-        """The position in the form :func:`hartrao_jax._simulate.simulate_campaign` takes."""
+        """The position in the form :func:`hartrao_jax.simulate.simulate_campaign` takes."""
         return {"position": self.position, "ha_deg": self.ha_deg, "dec_deg": self.dec_deg,
                 "tour": self.tour, "temperature_c": self.temperature_c1,
                 "start": {1: self.start_c1, 2: self.start_c2},

@@ -14,7 +14,6 @@ from ._checks import OneLineGroup
 from .._config import enable_compilation_cache, enable_x64
 from ..campaign._campaign import CampaignError
 from ..model._model import ModelError, parameter_unit
-from ..preprocess._preprocess import PreprocessConfig, keep_mask_fn
 from ..simulate._simulate import EffectError
 from ._checks import parse_fixes, validate_command
 
@@ -175,14 +174,6 @@ def print_fit_table(cf, title="fit") -> None:
         pt.add_row(p["position"], f"{p['elevation_deg']:.2f}", f"{p['f']['value']:.6f}",
                    f"{p['f']['sigma'] * 1e3:.3f}")
     _console().print(pt)
-
-
-def _keep_fn(preprocess: bool, campaign=None):
-    """The preprocessing's keep mask for ``fit_campaign`` (None: no preprocessing)."""
-    if not preprocess:
-        return None
-
-    return keep_mask_fn(PreprocessConfig(), campaign=campaign)
 
 
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False))

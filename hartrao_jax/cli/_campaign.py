@@ -10,7 +10,8 @@ from pathlib import Path
 import click
 
 from ..campaign._safeio import strict_json, write_json_atomic
-from ._base import UserError, _console, _keep_fn, _parse_fixes, command, main
+from ..preprocess._preprocess import preprocess_keep
+from ._base import UserError, _console, _parse_fixes, command, main
 from ..campaign._campaign import load_campaign
 from ..campaign._schedule import TOURS, campaign_plan, check_plan, plan_table
 from ..fit._distributed import close_client, fit_dask, start_client
@@ -69,7 +70,7 @@ def fit_joint_command(campaign, out_dir, model, shared, group, scans, fixes, rob
     try:
         jf = fit_joint(camp, model, shared=_names(shared), group=group,
                        scans=scans.split(",") if scans else None, fixed=_parse_fixes(fixes),
-                       keep=_keep_fn(preprocess, camp), robust_k=robust_k or None, batch=batch,
+                       keep=preprocess_keep(preprocess, camp), robust_k=robust_k or None, batch=batch,
                        progress=True)
     except ValueError as e:
         raise UserError(str(e)) from None
@@ -127,7 +128,7 @@ def sensitivity(campaign, json_file, model, params, fixes, scans, joint, batch, 
     camp = load_campaign(campaign)
     t0 = time.time()
     start = fit_campaign(camp, model, scans=scans.split(",") if scans else None,
-                         fixed=_parse_fixes(fixes), keep=_keep_fn(preprocess, camp), batch=batch,
+                         fixed=_parse_fixes(fixes), keep=preprocess_keep(preprocess, camp), batch=batch,
                          per_cycle=True)  # implicit derivatives of the per-scan adjustment
     if joint:
         start = fit_joint(camp, model, shared=[p for p in _names(params) if p in start.model_names],

@@ -13,18 +13,8 @@ from ._base import UserError, _console, command, main
 from ..diagnose._diagnose import DiagnoseConfig, write_json
 from ..report._diagnosis import diagnose_with_report
 from ..physics._catalog import EFFECTS
-from ..preprocess._preprocess import PreprocessConfig, keep_mask_fn
+from ..preprocess._preprocess import preprocess_keep
 from ..prove._prove import CASES, detectability as mda, run_prove
-
-
-def _keep(preprocess: bool):
-    if not preprocess:
-        return None
-    try:
-        pass
-    except ImportError:
-        return None
-    return keep_mask_fn(PreprocessConfig())
 
 
 def print_diagnosis(diag) -> None:
@@ -81,7 +71,7 @@ def diagnose_command(campaign, json_path, start, report_dir, scans, effects, alp
                          effects=eff)
     t0 = time.time()
     diag = diagnose_with_report(campaign, start, config=cfg, scans=scans.split(",") if scans else None,
-                    keep=_keep(preprocess), report_dir=report_dir)
+                    keep=preprocess_keep(preprocess), report_dir=report_dir)
     p = write_json(diag, json_path)
     print_diagnosis(diag)
     click.echo(f"wrote {p} ({time.time() - t0:.1f} s)")

@@ -12,7 +12,7 @@ import click
 from ..campaign._campaign import load_campaign
 from ..fit._fit import fit_campaign, write_fit
 from ..fit._joint import fit_joint, print_joint_summary, write_joint_fit
-from ..preprocess._preprocess import PreprocessConfig, preprocess_campaign
+from ..preprocess._preprocess import PreprocessConfig, preprocess_campaign, preprocess_keep
 from ..report._report import write_report
 from ..simulate._simulate import parse_effects, simulate_campaign
 from ..surface._disturbed import detect_disturbed_campaign, keep_function, without_disturbed
@@ -20,7 +20,6 @@ from ..surface._surface import SurfaceConfig, point_spacing, surface_from_fit_di
 from ._base import (  # noqa: F401
     _console,
     _fmt,
-    _keep_fn,
     _parse_fixes,
     _pm,
     _scale_unit,
@@ -140,7 +139,7 @@ def fit(campaign, out_dir, model, scans, fixes, robust_k, per_cycle, batch, prep
     camp = load_campaign(campaign)
     fixed = _parse_fixes(fixes)
     scan_ids = scans.split(",") if scans else None
-    keep = _keep_fn(preprocess, camp)
+    keep = preprocess_keep(preprocess, camp)
     if joint:
         try:
             jf = fit_joint(camp, model, shared=tuple(n.strip() for n in shared.split(",") if n.strip()),
@@ -205,7 +204,7 @@ def demo(out_dir, seed, full):
         click.echo("simulating the demo campaign (position r23, two cycles) ...")
         simulate_campaign(camp_dir, preset="demo", seed=seed)
     camp = load_campaign(camp_dir)
-    keep = _keep_fn(True, camp)
+    keep = preprocess_keep(True, camp)
     fits, surfaces = {}, {}
     for model in ("simplified", "extended"):
         cf = fit_campaign(camp, model, keep=keep)

@@ -16,7 +16,7 @@ One step of the loop (``physics.md``, "Statistics"):
    (per face) and within-panel structure on the dish (after panel planes) are measured.
 2. *Explain.* One augmented model per scan holds every catalog parameter not yet in the model,
    free at value 0 (instrument parameters, the shift with the window found, the oscillation with
-   the period found, drift, Zernike modes); :func:`~hartrao_jax._ghm.normal_equations` gives its
+   the period found, drift, Zernike modes); :func:`~hartrao_jax.solver.normal_equations` gives its
    normal equations at the current solution, with one offset per panel (common to all scans)
    as nuisance. The scans' equations are summed into one joint system (separate object
    parameters per scan, instrument parameters shared by all scans, motion per scan, Zernike

@@ -6,7 +6,7 @@ Matched filter
 For every width ``w`` of :data:`WIDTHS_M` and every centre ``c`` of a grid of the aperture
 plane (cells of ``w / 4``), the residual normal deviations ``r_i`` of the points near ``c`` are
 fitted by ``a g_i + b`` with ``g_i = exp(-|p_i - c|^2 / 2 w^2)`` (the catalog's
-:func:`~hartrao_jax._physics.local_deformation` of unit amplitude) and a local constant ``b``,
+:func:`~hartrao_jax.physics.local_deformation` of unit amplitude) and a local constant ``b``,
 by least squares weighted with a broad Gaussian window of ``3 w``: a smooth misfit of the whole
 surface does not count, only what is compact at the scale ``w``. All sums are Gaussian
 convolutions of the binned counts and residuals, so one width costs a few image filters.

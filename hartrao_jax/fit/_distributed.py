@@ -42,7 +42,7 @@ from ..campaign._campaign import load_campaign, read_scan
 from ..campaign._safeio import OutputDir
 from ..geometry._geometry import pointing_gravity
 from ..model._model import parse_model
-from ..preprocess._preprocess import PreprocessConfig, keep_mask_fn
+from ..preprocess._preprocess import preprocess_keep
 from ._align import Alignment, MIN_TILT_RAD, mount_heading
 from ._fit import CampaignFit, FIT_SCHEMA, ScanFit, fit_position, fit_scan, position_record, scan_record, sigma_vector, write_residuals
 from ._joint import JointFit, ScanProblem, bucket_size, check_shared, group_of, joint_json, joint_scan_fit, schur_iterate
@@ -208,16 +208,6 @@ class ScanSummary:
     extra: dict = field(default_factory=dict)
 
 
-def _keep_fn(preprocess: bool, campaign):
-    if not preprocess:
-        return None
-    try:
-        pass
-    except ImportError:
-        return None
-    return keep_mask_fn(PreprocessConfig(), campaign)
-
-
 def task_fit_scan(root: str, scan_id: str, model, fixed: dict | None, robust_k: float | None,
                   preprocess: bool, heading_hint_rad: float | None):
     """Worker: read, preprocess and fit one scan; the :class:`ScanFit` stays on the worker."""
@@ -230,7 +220,7 @@ def task_fit_scan(root: str, scan_id: str, model, fixed: dict | None, robust_k: 
     camp = _campaign(root)
     meta = camp.scan(scan_id)
     data = read_scan(camp, meta)
-    keep_fn = _keep_fn(preprocess, camp)
+    keep_fn = preprocess_keep(preprocess, camp)
     keep = keep_fn(meta, data) if keep_fn is not None else None
     fit = fit_scan(camp, meta, model, data=data, keep=keep, fixed=fixed,
                    robust_k=robust_k, heading_hint_rad=heading_hint_rad)  # padded rows
@@ -252,7 +242,7 @@ def task_fit_position(root: str, scan_ids: Sequence[str], model, fixed: dict | N
     t0 = time.perf_counter()
     camp = _campaign(root)
     metas = [camp.scan(i) for i in scan_ids]
-    pf = fit_position(camp, metas, model, keep=_keep_fn(preprocess, camp), fixed=fixed,
+    pf = fit_position(camp, metas, model, keep=preprocess_keep(preprocess, camp), fixed=fixed,
                       robust_k=robust_k, heading_hint_rad=heading_hint_rad)
     seconds = time.perf_counter() - t0
     out = []

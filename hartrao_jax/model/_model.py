@@ -4,7 +4,7 @@ A model is data (an ``eqx.Module``) and callable as the Gauss-Helmert condition
 ``F(l, x, c)`` with ``l = (r, phi, theta)`` raw observations, ``x`` the free unknowns in the
 order of ``model.free`` and ``c = (time_s, known_deviation_m)`` per-point constants.
 
-The condition chains the catalog of :mod:`hartrao_jax._physics`: instrument corrections (seed
+The condition chains the catalog of :mod:`hartrao_jax.physics`: instrument corrections (seed
 eq. 9), polar to Cartesian (eq. 2), motion of the scanner, scanner to telescope frame (eq. 6)
 and the paraboloid with modelled deviations (eq. 5).
 """

@@ -436,7 +436,7 @@ def local_deformation(x: ArrayLike, y: ArrayLike, x0_m: ArrayLike, y0_m: ArrayLi
     (reflector frame, m) from the centre ``(x0_m, y0_m)``; ``amplitude_m`` is ``a`` (+ towards
     the focus: a bump; - a dent), ``width_m`` is ``w`` (the Gaussian's standard deviation, m).
     Actuators pushed, a damaged or loose panel, a load. The simulator builds it into the
-    surface, the fitter models it (``bump_*`` parameters of :mod:`hartrao_jax._model`) and the
+    surface, the fitter models it (``bump_*`` parameters of :mod:`hartrao_jax.model`) and the
     diagnosis searches for it, all through this function.
     """
     dx = jnp.asarray(x) - x0_m

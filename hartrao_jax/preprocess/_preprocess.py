@@ -1262,3 +1262,9 @@ __all__ = [
     "preprocess_json", "preprocess_scan", "preprocess_table", "reflector_distance_range",
     "write_masks", "write_preprocess_json", "write_preprocess_result",
 ]
+
+
+def preprocess_keep(preprocess: bool = True, campaign: Campaign | None = None):
+    """The default preprocessing's keep mask for ``fit_campaign(keep=...)``, or None when
+    ``preprocess`` is off (the one switch the CLI, the Dask tasks and the surface share)."""
+    return keep_mask_fn(PreprocessConfig(), campaign) if preprocess else None

@@ -47,7 +47,6 @@ from ..solver._ghm import gauss_helmert, normal_equations
 from ..fit._joint import ScanProblem, bucket_size, chunk_for, condition_number
 from ..model._model import make_model, parameter_unit
 from ..physics._catalog import INSTRUMENT
-from ..campaign._campaign import ScanData
 from ..campaign._safeio import write_file_atomic, write_json_atomic
 from ..fit._fit import scan_arrays
 

@@ -1,6 +1,6 @@
 """Simulator: ray casting of the scanner's raw angular grid onto the reflector (the test oracle).
 
-The truth of every scan is a :class:`~hartrao_jax._model.ParaboloidModel` with no free unknowns,
+The truth of every scan is a :class:`~hartrao_jax.model.ParaboloidModel` with no free unknowns,
 built in the *fitted* frame (the telescope frame rotated about Z by ``-kappa``, seed eq. 6). For
 every ray of the raw angular grid the raw range ``r`` is solved by Newton's method so that the
 model's condition ``F((r, phi, theta), [], (time_s, deviation_m)) = 0``: instrument parameters,

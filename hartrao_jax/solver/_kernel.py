@@ -1,6 +1,6 @@
 """The Gauss-Helmert iteration kernel: ONE linearisation per point and iteration.
 
-Used by :func:`hartrao_jax._ghm.gauss_helmert`. Two measures make autodiff as fast as
+Used by :func:`hartrao_jax.solver.gauss_helmert`. Two measures make autodiff as fast as
 hand-derived derivatives on XLA-CPU (``benchmarks/results/kernels.md``):
 
 * :func:`materialize_trig` rewrites the per-point condition's jaxpr so that ``sin``/``cos``/

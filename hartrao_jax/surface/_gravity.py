@@ -89,8 +89,8 @@ class ScanSample:
 def samples_from_fit(cf, *, with_points: bool = True, modes: Sequence[int] = (),
                      aperture_radius_m: float | None = None, shared: Sequence[str] | None = None,
                      sigma_l: np.ndarray | None = None) -> list[ScanSample]:
-    """Samples from a :class:`~hartrao_jax._fit.CampaignFit` or a joint fit
-    (:class:`~hartrao_jax._joint.JointFit`).
+    """Samples from a :class:`~hartrao_jax.fit.CampaignFit` or a joint fit
+    (:class:`~hartrao_jax.fit._joint.JointFit`).
 
     With ``modes`` (and the scans' points) each sample also gets its :func:`mode_response`;
     ``shared``: parameters estimated jointly with other scans, held fixed in it (default: the
@@ -798,8 +798,8 @@ def gravity_model(
 ) -> GravityModel:
     """Estimate the gravity model from per-scan fits.
 
-    ``source``: a :class:`~hartrao_jax._fit.CampaignFit`, a joint fit
-    (:class:`~hartrao_jax._joint.JointFit` or its ``campaign_fit()``: both carry the shared
+    ``source``: a :class:`~hartrao_jax.fit.CampaignFit`, a joint fit
+    (:class:`~hartrao_jax.fit._joint.JointFit` or its ``campaign_fit()``: both carry the shared
     calibration), a results directory
     (``fit.json`` + ``residuals/``), or a list of :class:`ScanSample`. ``temperature``: add
     ``df/dT (T - 15 C)`` to the focal-length model (needs the scans' temperatures).

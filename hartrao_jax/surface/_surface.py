@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -52,7 +52,7 @@ from ..campaign._campaign import load_campaign
 from ..campaign._safeio import OutputDir, verify_result_dir
 from ..fit._align import mount_heading
 from ..fit._fit import fit_campaign, fit_scan, panel_predictions, read_residuals, write_fit
-from ..preprocess._preprocess import PreprocessConfig, keep_mask_fn
+from ..preprocess._preprocess import preprocess_keep
 from ._disturbed import cut_keep, detect_disturbed_campaign, detect_disturbed_residuals
 
 log = logging.getLogger("hartrao_jax")
@@ -728,14 +728,6 @@ def surface_from_fit_dir(fit_dir, config: SurfaceConfig | None = None, *, campai
 # --------------------------------------------------------------------------------------------
 
 
-def _preprocess_keep(campaign) -> Callable | None:
-    try:
-        pass
-    except ImportError:
-        return None
-    return keep_mask_fn(PreprocessConfig(), campaign)
-
-
 def surface_campaign(campaign, config: SurfaceConfig | None = None, out_dir=None, *,
                      fit_dir=None, preprocess: bool = True, disturbed: str | None = None,
                      progress: bool = False, write_fit_dir: bool = True) -> SurfaceResult:
@@ -764,7 +756,7 @@ def surface_campaign(campaign, config: SurfaceConfig | None = None, out_dir=None
         res = surface_from_fit_dir(fit_dir, cfg, campaign=campaign, keep=keep,
                                    exclude=bad if disturbed == "exclude" else ())
     else:
-        base = _preprocess_keep(campaign) if preprocess else None
+        base = preprocess_keep(preprocess, campaign)
         cf = fit_campaign(campaign, cfg.model, keep=base, progress=progress)
         reports = detect_disturbed_campaign(cf)
         bad = {r.scan: r for r in reports}
@@ -875,8 +867,6 @@ def write_surface(out_dir, result: SurfaceResult, *, cycles: bool = True) -> Pat
                         "phi_rad": c.phi_rad,
                     }))
         return od.commit(surface_json(result), indent=1)
-
-
 
 
 def read_surface(out_dir) -> SurfaceResult:

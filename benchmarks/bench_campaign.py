@@ -111,8 +111,8 @@ def _keep(camp, preprocess: bool):
 
 
 def stage_fit_local(a) -> None:
-    from hartrao_jax.campaign._campaign import load_campaign
     from hartrao_jax._config import enable_compilation_cache
+    from hartrao_jax.campaign._campaign import load_campaign
     from hartrao_jax.fit._fit import fit_campaign, write_fit
 
     enable_compilation_cache()
@@ -178,8 +178,8 @@ def stage_fit_local(a) -> None:
 
 
 def stage_fit_dask(a) -> None:
-    from hartrao_jax.campaign._campaign import load_campaign
     from hartrao_jax._config import enable_compilation_cache
+    from hartrao_jax.campaign._campaign import load_campaign
     from hartrao_jax.fit._distributed import close_client, fit_dask, start_client
 
     enable_compilation_cache()
@@ -212,8 +212,8 @@ def stage_simulate_full(a) -> None:
 
 
 def stage_stream(a) -> None:
-    from hartrao_jax.campaign._campaign import load_campaign
     from hartrao_jax._config import enable_compilation_cache
+    from hartrao_jax.campaign._campaign import load_campaign
     from hartrao_jax.fit._stream import stream_fit_scan
 
     enable_compilation_cache()

@@ -43,10 +43,19 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 import numpy as np  # noqa: E402
-
 from _common import (  # noqa: E402
-    NAMES, SIGMA, TRUTH, X0, hand_linearize, machine_info, make_scan, md_table, peak_rss_mib,
-    rss_mib, stream_bandwidth, write_results,
+    NAMES,
+    SIGMA,
+    TRUTH,
+    X0,
+    hand_linearize,
+    machine_info,
+    make_scan,
+    md_table,
+    peak_rss_mib,
+    rss_mib,
+    stream_bandwidth,
+    write_results,
 )
 
 NOYNN = "--xla_cpu_experimental_ynn_fusion_type="
@@ -79,13 +88,12 @@ def _result(x, t_first, t_run, iterations, n, passes, extra=None):
 def work_jax(method: str, l: np.ndarray, repeat: int):
     """Compile time by ahead-of-time lowering + compilation (independent of run-time noise),
     then ``repeat`` timed fits (best kept)."""
+    import _kernels as K
     import jax
     import jax.numpy as jnp
 
     import hartrao_jax
     from hartrao_jax import _ghm, make_model
-
-    import _kernels as K
 
     n = l.shape[0]
     model = make_model("extended")

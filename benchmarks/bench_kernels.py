@@ -36,9 +36,14 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 import numpy as np  # noqa: E402
-
 from _common import (  # noqa: E402
-    SIGMA, X0, hand_linearize, machine_info, make_scan, md_table, write_results,
+    SIGMA,
+    X0,
+    hand_linearize,
+    machine_info,
+    make_scan,
+    md_table,
+    write_results,
 )
 
 
@@ -50,13 +55,12 @@ def count_ops(txt: str) -> dict:
 
 
 def run_variants(n: int, rounds: int, variants: list[dict]) -> list[dict]:
+    import _kernels as K
     import jax
     import jax.numpy as jnp
 
     import hartrao_jax  # noqa: F401  (float64)
     from hartrao_jax import _ghm, make_model
-
-    import _kernels as K
 
     model = make_model("extended")
     hand = K.make_hand_linearize(hand_linearize)

@@ -123,7 +123,11 @@ def run_one(n: int, baseline: bool) -> dict:
     import tracemalloc
 
     from hartrao_jax.surface._surface import (
-        PanelLayout, SurfaceConfig, cycle_average, panel_mask, panel_statistics,
+        PanelLayout,
+        SurfaceConfig,
+        cycle_average,
+        panel_mask,
+        panel_statistics,
     )
 
     lay = PanelLayout.default()

@@ -1,19 +1,19 @@
 """Campaign I/O: ``campaign.toml`` and its scan tables (Parquet, E57), readers of PTX/XYZ/E57
 exports with telescope presets, validation, crash-safe output, the observing schedule."""
 
+from ._campaign import default_campaign, iter_scan_chunks, load_campaign, read_scan, write_campaign
 from ._format import (
     Campaign,
     CampaignError,
-    cartesian_to_raw,
-    minimum_points,
-    require_points,
     ScanData,
     ScanMeta,
     Scanner,
     Site,
     Telescope,
+    cartesian_to_raw,
+    minimum_points,
+    require_points,
 )
-from ._campaign import default_campaign, iter_scan_chunks, load_campaign, read_scan, write_campaign
 from ._import import import_file, read_ptx, read_xyz, telescope_preset
 from ._safeio import OutputDir, verify_result_dir, write_json_atomic
 from ._schedule import campaign_plan, plan_positions

@@ -19,32 +19,33 @@ from collections.abc import Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
+
 from ._e57 import iter_e57_columns, write_e57
 from ._format import (  # noqa: F401  (re-exported: the campaign API)
-    _check_angles,
-    _concat,
-    _first_line,
     _RANGE_TEXT,
-    _sum_dropped,
-    _tuple,
     ANGLE_TOL_RAD,
-    Campaign,
-    CampaignError,
-    cartesian_to_raw,
     COLUMNS,
     DEFAULT_INTENSITY,
     DROP_REASONS,
     FORMAT,
     MAX_RANGE_M,
-    minimum_points,
     PHI_RANGE,
     POINTS_PER_PARAMETER,
-    require_points,
+    Campaign,
+    CampaignError,
     ScanData,
     ScanMeta,
     Scanner,
     Site,
     Telescope,
+    _check_angles,
+    _concat,
+    _first_line,
+    _sum_dropped,
+    _tuple,
+    cartesian_to_raw,
+    minimum_points,
+    require_points,
 )
 
 log = logging.getLogger(__name__)

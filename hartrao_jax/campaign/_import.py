@@ -60,7 +60,6 @@ from typing import BinaryIO
 
 import numpy as np
 
-from ._format import cartesian_to_raw
 from ._campaign import (
     Campaign,
     CampaignError,
@@ -69,9 +68,14 @@ from ._campaign import (
     Scanner,
     Site,
     Telescope,
+    _scanner,
+    _site,
+    _Table,
+    _telescope,
+    read_scan_e57,
     write_campaign,
 )
-from ._campaign import _Table, _scanner, _site, _telescope, read_scan_e57
+from ._format import cartesian_to_raw
 
 log = logging.getLogger(__name__)
 

@@ -9,13 +9,14 @@ from __future__ import annotations
 import functools
 import logging
 import sys
+
 import click
-from ._checks import OneLineGroup
+
 from .._config import enable_compilation_cache, enable_x64
 from ..campaign._campaign import CampaignError
 from ..model._model import ModelError, parameter_unit
 from ..simulate._simulate import EffectError
-from ._checks import parse_fixes, validate_command
+from ._checks import OneLineGroup, parse_fixes, validate_command
 
 
 class UserError(Exception):

@@ -9,17 +9,19 @@ from pathlib import Path
 
 import click
 
-from ..campaign._safeio import strict_json, write_json_atomic
-from ..preprocess._preprocess import preprocess_keep
-from ._base import UserError, _console, _parse_fixes, command, main
 from ..campaign._campaign import load_campaign
+from ..campaign._safeio import strict_json, write_json_atomic
 from ..campaign._schedule import TOURS, campaign_plan, check_plan, plan_table
 from ..fit._distributed import close_client, fit_dask, start_client
 from ..fit._fit import fit_campaign
 from ..fit._joint import fit_joint, print_joint_summary, write_joint_fit
 from ..fit._stream import stream_document, stream_fit_campaign, stream_fit_scan
-from ..sensitivity._sensitivity import finite_difference, sensitivity as run, sensitivity_table, write_sensitivity
+from ..physics._catalog import CALIBRATION_OPTION
+from ..preprocess._preprocess import preprocess_keep
+from ..sensitivity._sensitivity import finite_difference, sensitivity_table, write_sensitivity
+from ..sensitivity._sensitivity import sensitivity as run
 from ..surface._gravity import print_gravity_summary, write_gravity
+from ._base import UserError, _console, _parse_fixes, command, main
 
 
 def _names(text: str | None) -> tuple[str, ...]:
@@ -51,7 +53,7 @@ def schedule(tours, json_file):
 @click.argument("campaign", type=click.Path(exists=True))
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False))
 @click.option("--model", default="extended", show_default=True)
-@click.option("--shared", default="x4,x6,x7", show_default=True,
+@click.option("--shared", default=CALIBRATION_OPTION, show_default=True,
               help="Calibration parameters estimated once per group.")
 @click.option("--group", type=click.Choice(["night", "campaign"]), default="night",
               show_default=True, help="Share per night (tour) or over the whole campaign.")
@@ -108,7 +110,7 @@ def gravity(results_dir, out_dir, modes, temperature, step_deg, figures):
 @click.option("--json", "json_file", required=True, type=click.Path(dir_okay=False))
 @click.option("--model", default="extended", show_default=True,
               help="Model of the fit the derivatives are taken at.")
-@click.option("--params", default="x4,x6,x7", show_default=True,
+@click.option("--params", default=CALIBRATION_OPTION, show_default=True,
               help="Calibration parameters held fixed (at their estimates, or --fix values).")
 @click.option("--fix", "fixes", multiple=True, metavar="NAME=VALUE")
 @click.option("--scans", default=None, help="Comma-separated scan ids (default: all).")
@@ -163,7 +165,7 @@ def sensitivity(campaign, json_file, model, params, fixes, scans, joint, batch, 
 @click.option("--preprocess/--no-preprocess", default=True, show_default=True)
 @click.option("--joint/--no-joint", default=False, show_default=True,
               help="Joint adjustment with shared calibration (Schur complement on the workers).")
-@click.option("--shared", default="x4,x6,x7", show_default=True)
+@click.option("--shared", default=CALIBRATION_OPTION, show_default=True)
 @click.option("--group", type=click.Choice(["night", "campaign"]), default="night",
               show_default=True)
 @click.option("--per-cycle", is_flag=True,

@@ -25,8 +25,7 @@ from typing import Any
 
 import click
 
-from ..campaign._campaign import CampaignError
-from ..campaign._campaign import load_campaign, minimum_points
+from ..campaign._campaign import CampaignError, load_campaign, minimum_points
 from ..campaign._safeio import check_output_path, verify_result_dir
 from ..model._model import known_parameter, parse_model
 from ..simulate._simulate import PRESETS

@@ -9,12 +9,13 @@ import time
 
 import click
 
-from ._base import UserError, _console, command, main
 from ..diagnose._diagnose import DiagnoseConfig, write_json
-from ..report._diagnosis import diagnose_with_report
 from ..physics._catalog import EFFECTS
 from ..preprocess._preprocess import preprocess_keep
-from ..prove._prove import CASES, detectability as mda, run_prove
+from ..prove._prove import CASES, run_prove
+from ..prove._prove import detectability as mda
+from ..report._diagnosis import diagnose_with_report
+from ._base import UserError, _console, command, main
 
 
 def print_diagnosis(diag) -> None:

@@ -12,12 +12,20 @@ import click
 from ..campaign._campaign import load_campaign
 from ..fit._fit import fit_campaign, write_fit
 from ..fit._joint import fit_joint, print_joint_summary, write_joint_fit
+from ..physics._catalog import CALIBRATION, CALIBRATION_OPTION
 from ..preprocess._preprocess import PreprocessConfig, preprocess_campaign, preprocess_keep
 from ..report._report import write_report
 from ..simulate._simulate import parse_effects, simulate_campaign
 from ..surface._disturbed import detect_disturbed_campaign, keep_function, without_disturbed
-from ..surface._surface import SurfaceConfig, point_spacing, surface_from_fit_dir, write_surface, write_surface_json
+from ..surface._surface import (
+    SurfaceConfig,
+    point_spacing,
+    surface_from_fit_dir,
+    write_surface,
+    write_surface_json,
+)
 from ._base import (  # noqa: F401
+    UserError,
     _console,
     _fmt,
     _parse_fixes,
@@ -27,7 +35,6 @@ from ._base import (  # noqa: F401
     command,
     main,
     print_fit_table,
-    UserError,
 )
 
 log = logging.getLogger("hartrao_jax")
@@ -125,7 +132,7 @@ def preprocess(campaign, out_dir, d_min_m, d_max_m, patch_size_m, epsilon_m, see
               help="Detect disturbed scans and drop only the affected phi range, then refit.")
 @click.option("--joint", is_flag=True,
               help="Calibration shared by the scans of a night (--group) solved by Schur complement.")
-@click.option("--shared", default="x4,x6,x7", show_default=True,
+@click.option("--shared", default=CALIBRATION_OPTION, show_default=True,
               help="With --joint: the calibration parameters shared across scans.")
 @click.option("--group", type=click.Choice(["night", "campaign"]), default="night",
               show_default=True, help="With --joint: share per night (tour) or campaign.")
@@ -309,7 +316,7 @@ def _print_truth_comparison(cf, truth: dict) -> None:
         tr = dict(scans.get(sid, {}))
         tr.update(tr.get("model_parameters", {}))
         for n, v, sg in est:
-            tv = tr.get(n, 0.0 if n in ("x4", "x6", "x7") else None)
+            tv = tr.get(n, 0.0 if n in CALIBRATION else None)
             if isinstance(tv, (int, float)):
                 t.add_row(unit, n, f"{tv:.7g}", f"{v:.7g}", f"{sg:.2g}", f"{(v - tv) / sg:+.2f}")
     _console().print(t)

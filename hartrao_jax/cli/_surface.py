@@ -7,10 +7,10 @@ from pathlib import Path
 
 import click
 
-from ._base import UserError, command, main
 from ..campaign._campaign import load_campaign
 from ..report._report import write_report
 from ..surface._surface import SurfaceConfig, surface_campaign
+from ._base import UserError, command, main
 
 
 @main.command()

@@ -59,21 +59,43 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
-from ..campaign._campaign import Campaign, ScanData, ScanMeta, load_campaign
-from ..geometry._geometry import face_of, panel_ids, paraboloid_normal_scale
-from ..solver._ghm import normal_equations
-from ..model._model import (DRIFT, OSC_FREQUENCY, OSCILLATION, SHIFT, ZERNIKE_PREFIX, make_model, parse_model)
-from ..physics._catalog import EFFECTS, INSTRUMENT, inseparable_pairs
-from ._recording import capabilities, skipped_searches, two_face_parameters
-from ..campaign._campaign import read_scan, require_points
+from ..campaign._campaign import (
+    Campaign,
+    ScanData,
+    ScanMeta,
+    load_campaign,
+    read_scan,
+    require_points,
+)
 from ..campaign._safeio import write_json_atomic
 from ..fit._align import mount_heading
 from ..fit._fit import finish_scan_fit, prepare_scan, scan_arrays
-from ..geometry._geometry import pointing_gravity, rot_z
-from ..model._model import parameter_unit
+from ..geometry._geometry import (
+    face_of,
+    panel_ids,
+    paraboloid_normal_scale,
+    pointing_gravity,
+    rot_z,
+)
+from ..model._model import (
+    DRIFT,
+    OSC_FREQUENCY,
+    OSCILLATION,
+    SHIFT,
+    ZERNIKE_PREFIX,
+    make_model,
+    parameter_unit,
+    parse_model,
+)
+from ..physics._catalog import EFFECTS, INSTRUMENT, inseparable_pairs
+from ..solver._ghm import normal_equations
 from ._covariates import compare
 from ._local import local_step
+from ._recording import capabilities, skipped_searches, two_face_parameters
 from ._state import (  # noqa: F401
+    ZERNIKE_TESTED,
+    DiagnoseConfig,
+    Finding,
     _adjust,
     _Context,
     _evaluate,
@@ -92,9 +114,6 @@ from ._state import (  # noqa: F401
     _scan_model,
     _set_known,
     _Spec,
-    DiagnoseConfig,
-    Finding,
-    ZERNIKE_TESTED,
 )
 
 log = logging.getLogger("hartrao_jax")

@@ -24,9 +24,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ._locate import NOT_DISTINGUISHABLE, covered_ids, scan_point, search
-from ..model._model import bump_names
 from ..geometry._geometry import polar_to_cartesian
+from ..model._model import bump_names
+from ._locate import NOT_DISTINGUISHABLE, covered_ids, scan_point, search
 from ._state import Finding, _global_sigma0, _refit_all, _restore, _rms, _save
 
 ALPHA_LOCAL = 1e-3  # of the maximum over the reflector's placements

@@ -8,16 +8,16 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from ..campaign._campaign import Campaign, ScanData, ScanMeta
 from ..geometry._geometry import panel_geometry
-from ..solver._ghm import gauss_helmert, robust_gauss_helmert
-from ..model._model import (OSCILLATION, SHIFT, ZERNIKE_PREFIX, make_model)
-from ..solver._ghm import GHResult
-
+from ..model._model import OSCILLATION, SHIFT, ZERNIKE_PREFIX, make_model
+from ..solver._ghm import GHResult, gauss_helmert, robust_gauss_helmert
 
 ZERNIKE_TESTED: tuple[int, ...] = (5, 6, 7, 8, 9, 10, 11)  # Noll; defocus (4) is the focal length
 

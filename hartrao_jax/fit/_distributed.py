@@ -37,15 +37,36 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
 from .._config import enable_compilation_cache, enable_x64
 from ..campaign._campaign import load_campaign, read_scan
 from ..campaign._safeio import OutputDir
 from ..geometry._geometry import pointing_gravity
 from ..model._model import parse_model
 from ..preprocess._preprocess import preprocess_keep
-from ._align import Alignment, MIN_TILT_RAD, mount_heading
-from ._fit import CampaignFit, FIT_SCHEMA, ScanFit, fit_position, fit_scan, position_record, scan_record, sigma_vector, write_residuals
-from ._joint import JointFit, ScanProblem, bucket_size, check_shared, group_of, joint_json, joint_scan_fit, schur_iterate
+from ._align import MIN_TILT_RAD, Alignment, mount_heading
+from ._fit import (
+    FIT_SCHEMA,
+    CampaignFit,
+    ScanFit,
+    fit_position,
+    fit_scan,
+    position_record,
+    scan_record,
+    sigma_vector,
+    write_residuals,
+)
+from ._joint import (
+    DEFAULT_SHARED,
+    JointFit,
+    ScanProblem,
+    bucket_size,
+    check_shared,
+    group_of,
+    joint_json,
+    joint_scan_fit,
+    schur_iterate,
+)
 
 log = logging.getLogger("hartrao_jax")
 
@@ -389,7 +410,7 @@ def fit_dask(
     preprocess: bool = True,
     out_dir=None,
     joint: bool = False,
-    shared: Sequence[str] = ("x4", "x6", "x7"),
+    shared: Sequence[str] = DEFAULT_SHARED,
     group: str = "night",
     keep_futures: bool = False,
     per_cycle: bool = False,

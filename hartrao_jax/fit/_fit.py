@@ -16,24 +16,40 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from ._align import Alignment, mount_heading, north_alignment
 from ..campaign._campaign import Campaign, ScanData, ScanMeta, read_scan
-from ..geometry._geometry import face_of, paraboloid_deviation, pointing_elevation_deg, pointing_gravity, rot_z
-from ..solver._ghm import GHResult, gauss_helmert_batch, robust_gauss_helmert
-from ..preprocess._initial import (
-    choose_initial_values,
-    InitialValues,
-    geometry_window,
-)
-from ..model._model import N_CONSTS, ZERNIKE_PREFIX, ParaboloidModel, make_model, parameter_unit
-from ..physics._catalog import INSTRUMENT
 from ..campaign._campaign import _concat as concat_scans
 from ..campaign._safeio import OutputDir, write_file_atomic
-from ..geometry._geometry import panel_cells
-from ..model._model import parse_model
-from ..solver._ghm import gauss_helmert
+from ..geometry._geometry import (
+    face_of,
+    panel_cells,
+    paraboloid_deviation,
+    pointing_elevation_deg,
+    pointing_gravity,
+    rot_z,
+)
+from ..model._model import (
+    N_CONSTS,
+    ZERNIKE_PREFIX,
+    ParaboloidModel,
+    make_model,
+    parameter_unit,
+    parse_model,
+)
+from ..physics._catalog import INSTRUMENT
+from ..preprocess._initial import (
+    InitialValues,
+    choose_initial_values,
+    geometry_window,
+)
+from ..solver._ghm import (
+    GHResult,
+    bucket_size,
+    gauss_helmert,
+    gauss_helmert_batch,
+    robust_gauss_helmert,
+)
 from ..solver._mixed import gauss_helmert_mixed, unidentifiable
-from ..solver._ghm import bucket_size
+from ._align import Alignment, mount_heading, north_alignment
 
 log = logging.getLogger("hartrao_jax")
 

@@ -42,6 +42,19 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..campaign._campaign import Campaign, ScanMeta
+from ..campaign._safeio import OutputDir
+from ..model._model import parameter_unit
+from ..physics._catalog import CALIBRATION, OBJECT_PARAMETERS
+from ..solver._ghm import (
+    GHResult,
+    _chunked,
+    _pass_residuals,
+    _unchunk,
+    bucket_size,
+    chunk_for,
+    normal_equations,
+)
+from ._align import mount_heading
 from ._fit import (
     CampaignFit,
     ScanFit,
@@ -52,23 +65,10 @@ from ._fit import (
     sigma_vector,
     write_residuals,
 )
-from ..solver._ghm import (
-    GHResult,
-    _chunked,
-    _pass_residuals,
-    _unchunk,
-    bucket_size,
-    chunk_for,
-    normal_equations,
-)
-from ..model._model import parameter_unit
-from ..physics._catalog import OBJECT_PARAMETERS
-from ..campaign._safeio import OutputDir
-from ._align import mount_heading
 
 log = logging.getLogger("hartrao_jax")
 
-DEFAULT_SHARED = ("x4", "x6", "x7")
+DEFAULT_SHARED = CALIBRATION
 GROUPS = ("night", "campaign")
 
 

@@ -65,16 +65,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..campaign._campaign import Campaign, ScanMeta, iter_scan_chunks
-from ._fit import _x0, sigma_vector
+from ..campaign._campaign import Campaign, ScanMeta, iter_scan_chunks, load_campaign
 from ..geometry._geometry import pointing_gravity
+from ..model._model import N_CONSTS, make_model, parameter_unit
 from ..preprocess._initial import InitialValues, geometry_window, initial_values
 from ..solver._kernel import _solve, linearize_rev, make_pass
-from ..model._model import N_CONSTS, make_model
-from ..campaign._campaign import load_campaign
-from ..model._model import parameter_unit
 from ._distributed import worker_setup
-from ._fit import _progress
+from ._fit import _progress, _x0, sigma_vector
 
 log = logging.getLogger("hartrao_jax")
 

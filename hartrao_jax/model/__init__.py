@@ -1,5 +1,5 @@
 """A model: catalog names plus fixed values -> the condition ``F(l, x)`` for one point."""
 
-from ._model import make_model, ModelError, ParaboloidModel, parameter_unit, parse_model
+from ._model import ModelError, ParaboloidModel, make_model, parameter_unit, parse_model
 
 __all__ = ["make_model", "ModelError", "ParaboloidModel", "parameter_unit", "parse_model"]

@@ -23,6 +23,7 @@ from ..physics._catalog import (
     EXTENDED,
     INSTRUMENT,
     OBJECT_PARAMETERS,
+    PARAMETER_UNITS,
     SIMPLIFIED,
     apply_pose,
     correct_observations,
@@ -33,7 +34,6 @@ from ..physics._catalog import (
     paraboloid_condition,
     zernike_deviation,
 )
-from ..physics._catalog import PARAMETER_UNITS
 
 SHIFT = ("shift_x", "shift_y", "shift_z")  # m, telescope frame, during the shift window
 OSCILLATION = ("osc_sx", "osc_cx", "osc_sy", "osc_cy")  # rad: sin/cos amplitudes about x, y

@@ -2,13 +2,13 @@
 (parameters, units, family, faces, defaults)."""
 
 from ._catalog import (
-    Effect,
     EFFECTS,
     EXTENDED,
-    inseparable_pairs,
     INSTRUMENT,
-    paraboloid_condition,
     SIMPLIFIED,
+    Effect,
+    inseparable_pairs,
+    paraboloid_condition,
 )
 
 __all__ = [

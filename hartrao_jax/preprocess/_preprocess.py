@@ -100,11 +100,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ..campaign._campaign import Campaign, ScanData, ScanMeta, read_scan
+from ..campaign._campaign import Campaign, ScanData, ScanMeta, default_campaign, read_scan
+from ..campaign._safeio import OutputDir, write_file_atomic
 from ..geometry._geometry import pointing_gravity, polar_to_cartesian
 from ._initial import InitialValues, choose_initial_values
-from ..campaign._campaign import default_campaign
-from ..campaign._safeio import OutputDir, write_file_atomic
 
 log = logging.getLogger("hartrao_jax")
 

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 from scipy import stats
+
 from .._config import enable_compilation_cache
 from ..diagnose._diagnose import diagnose
 from ..model._model import parameter_unit

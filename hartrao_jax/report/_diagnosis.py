@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from collections.abc import Sequence
 from pathlib import Path
+
 import numpy as np
 
 from ..diagnose._diagnose import Diagnosis, _json_default, diagnose

@@ -34,15 +34,18 @@ from typing import Any
 
 import numpy as np
 
-from ..campaign._campaign import CampaignError
-from ..surface._surface import (
-    PanelLayout, PositionSurface, SurfaceResult, point_spacing, read_surface,
-    surface_from_fit_dir,
-)
-from ..campaign._campaign import load_campaign
+from ..campaign._campaign import CampaignError, load_campaign
 from ..campaign._safeio import verify_result_dir, write_bytes_atomic, write_text_atomic
 from ..surface._disturbed import detect_disturbed_residuals
-from ..surface._surface import read_residuals
+from ..surface._surface import (
+    PanelLayout,
+    PositionSurface,
+    SurfaceResult,
+    point_spacing,
+    read_residuals,
+    read_surface,
+    surface_from_fit_dir,
+)
 
 log = logging.getLogger("hartrao_jax")
 

@@ -41,18 +41,17 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 
-from ..fit._fit import CampaignFit, ScanFit, sigma_vector
-from ..geometry._geometry import face_of, panel_ids, paraboloid_deviation
-from ..solver._ghm import gauss_helmert, normal_equations
-from ..fit._joint import ScanProblem, bucket_size, chunk_for, condition_number
-from ..model._model import make_model, parameter_unit
-from ..physics._catalog import INSTRUMENT
 from ..campaign._safeio import write_file_atomic, write_json_atomic
-from ..fit._fit import scan_arrays
+from ..fit._fit import CampaignFit, ScanFit, scan_arrays, sigma_vector
+from ..fit._joint import ScanProblem, bucket_size, chunk_for, condition_number
+from ..geometry._geometry import face_of, panel_ids, paraboloid_deviation
+from ..model._model import make_model, parameter_unit
+from ..physics._catalog import CALIBRATION, INSTRUMENT
+from ..solver._ghm import gauss_helmert, normal_equations
 
 SENSITIVITY_SCHEMA = "hartrao-sensitivity/1"
 ARCSEC = math.pi / (180 * 3600)
-DEFAULT_PARAMS = ("x4", "x6", "x7")
+DEFAULT_PARAMS = CALIBRATION
 DESIGN_STEPS_RAD = (0.00063, 0.001, 0.0016, 0.003, 0.006, 0.01, 0.02, 0.03)
 
 

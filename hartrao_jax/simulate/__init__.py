@@ -2,9 +2,9 @@
 
 from ._simulate import (
     CLASSES,
+    PRESETS,
     EffectError,
     parse_effects,
-    PRESETS,
     simulate_campaign,
     simulate_scan,
 )

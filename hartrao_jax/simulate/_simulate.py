@@ -41,6 +41,8 @@ import numpy as np
 from jaxtyping import Array
 
 from ..campaign._campaign import Campaign, ScanData, ScanMeta, default_campaign, write_campaign
+from ..campaign._safeio import write_json_atomic
+from ..campaign._schedule import CAMPAIGN_STEP_RAD, PRESET_TOURS, plan_positions
 from ..geometry._geometry import (
     decompose_zyx,
     panel_geometry,
@@ -62,8 +64,6 @@ from ..physics._catalog import (
     thermal_focal_length,
     zernike_deviation,
 )
-from ..campaign._schedule import CAMPAIGN_STEP_RAD, PRESET_TOURS, plan_positions
-from ..campaign._safeio import write_json_atomic
 
 TRUTH_SCHEMA = "hartrao-truth/1"
 EXACT_M = 1e-9  # |condition| (m) every reflector point satisfies at the truth, before noise

@@ -2,13 +2,13 @@
 (Schur complement, variance components) and identifiability."""
 
 from ._ghm import (
+    GHResult,
     gauss_helmert,
     gauss_helmert_batch,
-    GHResult,
     normal_equations,
     robust_gauss_helmert,
 )
-from ._mixed import gauss_helmert_mixed, MixedResult, unidentifiable
+from ._mixed import MixedResult, gauss_helmert_mixed, unidentifiable
 
 __all__ = [
     "gauss_helmert",

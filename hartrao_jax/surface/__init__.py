@@ -2,15 +2,15 @@
 the gravity model over elevation."""
 
 from ._disturbed import detect_disturbed_campaign
+from ._gravity import GravityModel, gravity_model, write_gravity
 from ._local import find_local_deformations
 from ._surface import (
-    surface_campaign,
-    surface_from_fit_dir,
     SurfaceConfig,
     SurfaceResult,
+    surface_campaign,
+    surface_from_fit_dir,
     write_surface,
 )
-from ._gravity import gravity_model, GravityModel, write_gravity
 
 __all__ = [
     "detect_disturbed_campaign",

@@ -39,15 +39,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..geometry._geometry import noll_to_nm
-from ..physics._catalog import DEFAULT_ZERNIKE_MODES
 from ..campaign._campaign import default_campaign, load_campaign
 from ..campaign._safeio import OutputDir, verify_result_dir, write_file_atomic
 from ..campaign._schedule import DEC_LIMITS_DEG, HA_LIMIT_DEG
 from ..fit._fit import scan_arrays, sigma_vector
-from ..solver._ghm import bucket_size
-from ..geometry._geometry import panel_cells, panel_ids
+from ..geometry._geometry import noll_to_nm, panel_cells, panel_ids
 from ..model._model import N_CONSTS, make_model
+from ..physics._catalog import DEFAULT_ZERNIKE_MODES
+from ..solver._ghm import bucket_size
 
 log = logging.getLogger("hartrao_jax")
 

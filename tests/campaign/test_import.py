@@ -9,7 +9,6 @@ import pytest
 from helpers import real_gbt_file
 
 from hartrao_jax.campaign._campaign import CampaignError, load_campaign, read_scan
-from hartrao_jax.cli._import import import_command
 from hartrao_jax.campaign._import import (
     DEFAULT_INTENSITY,
     LEICA_EXPORT_SCANNER,
@@ -24,6 +23,7 @@ from hartrao_jax.campaign._import import (
     telescope_preset,
     to_scan_data,
 )
+from hartrao_jax.cli._import import import_command
 
 HEADER = """{cols}
 {rows}

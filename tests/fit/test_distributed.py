@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 import hartrao_jax  # noqa: F401  (float64)
-from hartrao_jax.campaign._campaign import read_scan
 from hartrao_jax._config import enable_compilation_cache
-from hartrao_jax.fit._fit import fit_campaign, fit_json, fit_scan, prepare_scan
+from hartrao_jax.campaign._campaign import read_scan
 from hartrao_jax.campaign._schedule import find_position
-from hartrao_jax.simulate._simulate import simulate_campaign
+from hartrao_jax.fit._fit import fit_campaign, fit_json, fit_scan, prepare_scan
 from hartrao_jax.fit._stream import peak_rss_gib, stream_fit_scan
+from hartrao_jax.simulate._simulate import simulate_campaign
 
 enable_compilation_cache()
 
@@ -89,8 +89,8 @@ def test_stream_stalled_round_checks_rejections_early(scatter_campaign, tmp_path
     max_iter; the last round, with nothing left to reject, still runs to max_iter. Same
     rejections and estimates as the in-memory robust fit, in fewer iterations."""
     from hartrao_jax.fit._fit import _x0, scan_arrays, sigma_vector
-    from hartrao_jax.solver._ghm import gauss_helmert
     from hartrao_jax.model._model import make_model
+    from hartrao_jax.solver._ghm import gauss_helmert
 
     camp = scatter_campaign
     meta = camp.scan("r23c1")

@@ -93,7 +93,11 @@ def test_kappa_at_zenith_from_quadrupod_shadows():
 def test_geometry_window_leaves_out_the_scanners_pole():
     """Points within 1e-3 rad of the pole (x6/sin(theta), x7/tan(theta) singular) are not
     adjusted, on both faces; all others inside the window are."""
-    from hartrao_jax.preprocess._initial import POLE_EXCLUSION_RAD, geometry_window, initial_distance
+    from hartrao_jax.preprocess._initial import (
+        POLE_EXCLUSION_RAD,
+        geometry_window,
+        initial_distance,
+    )
 
     x = {"tx": 0.0, "ty": 0.0, "tz": 0.0, "rx": 0.0, "ry": 0.0, "f": 10.9816}
     theta = np.array([2e-4, 9e-4, 1.1e-3, 0.5, np.pi - 5e-4, np.pi + 5e-4, 2 * np.pi - 2e-4,

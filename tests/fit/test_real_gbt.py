@@ -7,9 +7,9 @@ from helpers import needs_real_gbt as needs_real
 from helpers import paraboloid_points, real_gbt_file
 
 from hartrao_jax import gauss_helmert, make_model
+from hartrao_jax.campaign._import import import_file
 from hartrao_jax.fit._fit import fit_scan
 from hartrao_jax.geometry._geometry import cartesian_to_raw, rot_x, rot_y, rot_z
-from hartrao_jax.campaign._import import import_file
 from hartrao_jax.preprocess._initial import patch_initial_values, quadric_initial_values
 from hartrao_jax.surface._local import find_local_deformations
 

@@ -12,7 +12,6 @@ import pytest
 
 from hartrao_jax.campaign._campaign import ScanData, ScanMeta, default_campaign
 from hartrao_jax.geometry._geometry import cartesian_to_raw, face_of, polar_to_cartesian
-from hartrao_jax.solver._ghm import gauss_helmert
 from hartrao_jax.preprocess._preprocess import (
     PREPROCESS_SCHEMA,
     REASONS,
@@ -25,6 +24,7 @@ from hartrao_jax.preprocess._preprocess import (
     preprocess_scan,
 )
 from hartrao_jax.simulate._simulate import CLASSES, SimConfig, simulate_campaign, simulate_scan
+from hartrao_jax.solver._ghm import gauss_helmert
 
 STEP = 0.015  # rad: coarse, fast
 SCATTER = ("cone", "quadrupod", "background", "mixed")

@@ -11,10 +11,10 @@ import pytest
 
 import hartrao_jax  # noqa: F401  (float64)
 from hartrao_jax._config import enable_compilation_cache
+from hartrao_jax.campaign._schedule import find_position
 from hartrao_jax.fit._fit import fit_campaign, scan_arrays
 from hartrao_jax.geometry._geometry import panel_ids, paraboloid_deviation
 from hartrao_jax.model._model import make_model
-from hartrao_jax.campaign._schedule import find_position
 from hartrao_jax.sensitivity._sensitivity import (
     ARCSEC,
     finite_difference,

@@ -123,8 +123,8 @@ def test_extra_deviation_enters_the_truth():
 
 def test_fit_recovers_truth(demo_c1):
     """The fitter's extended model on the simulator's output: unbiased to a few sigma."""
-    from hartrao_jax.solver._ghm import gauss_helmert
     from hartrao_jax.model._model import make_model
+    from hartrao_jax.solver._ghm import gauss_helmert
 
     data, lab, truth = demo_c1
     refl = lab["cls"] == 0

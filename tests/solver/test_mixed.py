@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import F_TRUE, POSE, SIGMA, paraboloid_points
 
 from hartrao_jax.geometry._geometry import cartesian_to_raw, panel_cells, scanner_to_telescope
+from hartrao_jax.model._model import make_model
 from hartrao_jax.solver._ghm import gauss_helmert
 from hartrao_jax.solver._mixed import gauss_helmert_mixed, unidentifiable
-from hartrao_jax.model._model import make_model
-
-from helpers import F_TRUE, POSE, SIGMA, paraboloid_points
 
 EDGES = (1.6, 3.2, 4.8, 6.4, 8.0, 9.6, 11.2, 12.95)
 COUNTS = (15, 24, 30, 36, 42, 48, 60)

@@ -8,6 +8,8 @@ import math
 import numpy as np
 import pytest
 
+from hartrao_jax.fit._fit import fit_campaign, fit_scan, write_fit
+from hartrao_jax.simulate._simulate import simulate_campaign
 from hartrao_jax.surface._disturbed import (
     DisturbedConfig,
     cut_keep,
@@ -20,8 +22,6 @@ from hartrao_jax.surface._disturbed import (
     line_width,
     without_disturbed,
 )
-from hartrao_jax.fit._fit import fit_campaign, fit_scan, write_fit
-from hartrao_jax.simulate._simulate import simulate_campaign
 
 PHI0 = 123.4  # deg, where the simulated disturbance starts (cycle 1 of position "a")
 STEP = 0.012

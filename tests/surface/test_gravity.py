@@ -11,18 +11,6 @@ import pytest
 
 import hartrao_jax  # noqa: F401  (float64)
 from hartrao_jax._config import enable_compilation_cache
-from hartrao_jax.geometry._geometry import gravity_in_telescope, telescope_axes_hadec, zernike
-from hartrao_jax.surface._gravity import (
-    ScanSample,
-    gravity_grid,
-    gravity_model,
-    ruze_gain,
-    samples_from_fit,
-    write_gravity,
-    zernike_np,
-    zernike_projection,
-)
-from hartrao_jax.physics._catalog import DEFAULT_ZERNIKE_MODES
 from hartrao_jax.campaign._schedule import (
     LATITUDE_DEG,
     TOURS,
@@ -33,6 +21,18 @@ from hartrao_jax.campaign._schedule import (
     plan_positions,
     tour_plan,
     within_limits,
+)
+from hartrao_jax.geometry._geometry import gravity_in_telescope, telescope_axes_hadec, zernike
+from hartrao_jax.physics._catalog import DEFAULT_ZERNIKE_MODES
+from hartrao_jax.surface._gravity import (
+    ScanSample,
+    gravity_grid,
+    gravity_model,
+    ruze_gain,
+    samples_from_fit,
+    write_gravity,
+    zernike_np,
+    zernike_projection,
 )
 
 enable_compilation_cache()

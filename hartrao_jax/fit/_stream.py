@@ -69,7 +69,7 @@ from ..campaign._campaign import Campaign, ScanMeta, iter_scan_chunks, load_camp
 from ..geometry._geometry import pointing_gravity
 from ..model._model import N_CONSTS, make_model, parameter_unit
 from ..preprocess._initial import InitialValues, geometry_window, initial_values
-from ..solver._kernel import _solve, linearize_rev, make_pass
+from ..solver._kernel import linearize_rev, make_pass, solve_scaled
 from ._distributed import worker_setup
 from ._fit import _progress, _x0, sigma_vector
 
@@ -249,7 +249,7 @@ def _sample(campaign, meta, rows_per_chunk: int, n_rows: int, n_sample: int, see
 def _solve_step(N, nv, wmw):
     """``dx = -N^-1 n`` (as :func:`._kernel.gh_one_pass`), ``N^-1``, the convergence measure
     ``max |dx_j| / sqrt((N^-1)_jj)`` and the weighted square sum after the step."""
-    dx, Ninv = _solve(N, -nv)
+    dx, Ninv = solve_scaled(N, -nv)
     d = jnp.diagonal(Ninv)
     ratio = jnp.max(jnp.abs(dx) / jnp.sqrt(jnp.where(d > 0, d, 1.0)))
     return dx, Ninv, ratio, wmw + dx @ nv

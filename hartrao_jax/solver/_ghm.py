@@ -39,7 +39,24 @@ from ._kernel import gh_one_pass, linearize_rev, point_weights
 Condition = Callable[[Float[Array, "3"], Float[Array, " u"], Float[Array, " k"]], Float[Array, ""]]
 
 
-class GHResult(eqx.Module):
+class AbstractAdjustment(eqx.Module):
+    """What every adjustment result offers from its covariance ``cov`` of the unknowns
+    (:class:`GHResult`, :class:`~hartrao_jax.solver.MixedResult`); subclasses declare ``cov``
+    (no field here, so that each keeps its own field order)."""
+
+    @property
+    def sigma(self) -> Float[Array, " u"]:
+        """Standard deviations of the unknowns."""
+        return jnp.sqrt(jnp.diagonal(self.cov, axis1=-2, axis2=-1))
+
+    @property
+    def correlation(self) -> Float[Array, "u u"]:
+        """Correlation matrix of the unknowns."""
+        s = self.sigma
+        return self.cov / (s[..., :, None] * s[..., None, :])
+
+
+class GHResult(AbstractAdjustment):
     """Result of a Gauss-Helmert adjustment (all arrays; batched results carry a leading axis).
 
     Attributes:
@@ -68,17 +85,6 @@ class GHResult(eqx.Module):
     redundancy: Int[Array, ""]
     iterations: Int[Array, ""]
     converged: Bool[Array, ""]
-
-    @property
-    def sigma(self) -> Float[Array, " u"]:
-        """Standard deviations of the unknowns."""
-        return jnp.sqrt(jnp.diagonal(self.cov, axis1=-2, axis2=-1))
-
-    @property
-    def correlation(self) -> Float[Array, "u u"]:
-        """Correlation matrix of the unknowns."""
-        s = self.sigma
-        return self.cov / (s[..., :, None] * s[..., None, :])
 
 
 def _linearize(condition: Condition, l0, x, c):

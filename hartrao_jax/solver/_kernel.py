@@ -172,8 +172,9 @@ def linearize_rev(condition, l, x, c, on=None):
 # --------------------------------------------------------------------------------------------
 
 
-def _solve(N, rhs):
-    """``N^-1 rhs`` and ``N^-1`` with Jacobi scaling and Cholesky (as ``_ghm._solve_normal``)."""
+def solve_scaled(N, rhs):
+    """``N^-1 rhs`` and ``N^-1`` with Jacobi scaling and Cholesky (symmetric positive definite
+    ``N``; the mixed model's reduced normal equations use it too)."""
     d = 1.0 / jnp.sqrt(jnp.where(jnp.diagonal(N) > 0, jnp.diagonal(N), 1.0))
     Ns = N * d[:, None] * d[None, :]
     L = jnp.linalg.cholesky(Ns)
@@ -296,7 +297,7 @@ def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *,
     def step(state):
         x, dx_prev, store, it, _, _, _ = state
         N, nv, store = one_pass(x, dx_prev, store)
-        dx, Ninv = _solve(N, -nv)
+        dx, Ninv = solve_scaled(N, -nv)
         ratio = jnp.max(jnp.abs(dx) / jnp.sqrt(jnp.where(jnp.diagonal(Ninv) > 0, jnp.diagonal(Ninv), 1.0)))
         return x + dx, dx, store, it + 1, N, Ninv, ratio < tol
 

@@ -49,14 +49,15 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
-from ._kernel import materialize_trig, point_weights
+from ._ghm import AbstractAdjustment
+from ._kernel import materialize_trig, point_weights, solve_scaled
 
 #: Smallest variance a component may take (relative to its start value): a component the data do
 #: not support tends to zero, which the iteration reaches only asymptotically.
 _FLOOR = 1e-8
 
 
-class MixedResult(eqx.Module):
+class MixedResult(AbstractAdjustment):
     """Result of :func:`gauss_helmert_mixed` (SI units; ``k`` components per cell).
 
     Attributes:
@@ -97,15 +98,6 @@ class MixedResult(eqx.Module):
     iterations: Int[Array, ""]
     converged: Bool[Array, ""]
 
-    @property
-    def sigma(self) -> Float[Array, " u"]:
-        return jnp.sqrt(jnp.diagonal(self.cov))
-
-    @property
-    def correlation(self) -> Float[Array, "u u"]:
-        s = self.sigma
-        return self.cov / (s[:, None] * s[None, :])
-
 
 def _linearize(condition, dev_column, on, l0, x, c):
     """``F``, ``a = dF/dx``, ``b = dF/dl`` and ``e = dF/dc[dev_column]`` of one point; sin/cos
@@ -124,16 +116,6 @@ def _chunks(arrays, chunk):
     out = [jnp.pad(a, [(0, pad)] + [(0, 0)] * (a.ndim - 1), mode="edge").reshape(
         (nc, chunk) + a.shape[1:]) for a in arrays]
     return out, pad
-
-
-def _scaled_solve(N, rhs):
-    """``N^-1 rhs`` and ``N^-1`` with Jacobi scaling (symmetric positive definite ``N``)."""
-    d = 1.0 / jnp.sqrt(jnp.where(jnp.diagonal(N) > 0, jnp.diagonal(N), 1.0))
-    Ns = N * d[:, None] * d[None, :]
-    L = jnp.linalg.cholesky(Ns)
-    Li = jax.scipy.linalg.solve_triangular(L, jnp.eye(N.shape[0], dtype=N.dtype), lower=True)
-    Qs = Li.T @ Li
-    return (Qs @ (rhs * d)) * d, Qs * d[:, None] * d[None, :]
 
 
 def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U):
@@ -190,7 +172,7 @@ def _reduce(N, nv, S, sg, tg, U, x, lam, ridge_idx, ridge_lam):
     if ridge_idx.shape[0]:
         Nr = Nr.at[ridge_idx, ridge_idx].add(ridge_lam)
         nr = nr.at[ridge_idx].add(ridge_lam * x[ridge_idx])
-    dx, Qxx = _scaled_solve(Nr, -nr)
+    dx, Qxx = solve_scaled(Nr, -nr)
     dU = -jnp.einsum("gkl,gl->gk", Dinv, rhs_u + jnp.einsum("gli,i->gl", sg, dx))
     del k
     return dx, dU, Qxx, Dinv

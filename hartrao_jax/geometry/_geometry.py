@@ -13,6 +13,8 @@ Everything differentiable is written in ``jax.numpy``; panel bookkeeping is NumP
 
 from __future__ import annotations
 
+from math import factorial
+
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
@@ -151,10 +153,17 @@ def pointing_elevation_deg(meta, telescope, site) -> float:
 # --------------------------------------------------------------------------------------------
 
 
+def polar_components(r: ArrayLike, phi: ArrayLike, theta: ArrayLike, xp=jnp):
+    """Seed eq. (2) as three arrays ``x, y, z`` = ``r sin(theta) sin(phi)``, ``r sin(theta)
+    cos(phi)``, ``r cos(theta)``; ``xp`` is ``jax.numpy`` (default) or ``numpy``
+    (preprocessing of whole scans), one formula for both."""
+    st = xp.sin(theta)
+    return r * st * xp.sin(phi), r * st * xp.cos(phi), r * xp.cos(theta)
+
+
 def polar_to_cartesian(r: ArrayLike, phi: ArrayLike, theta: ArrayLike) -> Array:
     """Seed eq. (2): ``(r sin(theta) sin(phi), r sin(theta) cos(phi), r cos(theta))``, last axis 3."""
-    st = jnp.sin(theta)
-    return jnp.stack([r * st * jnp.sin(phi), r * st * jnp.cos(phi), r * jnp.cos(theta)], axis=-1)
+    return jnp.stack(polar_components(r, phi, theta), axis=-1)
 
 
 def face_of(theta: ArrayLike) -> np.ndarray:
@@ -303,20 +312,20 @@ def noll_to_nm(j: int) -> tuple[int, int]:
     return n, m
 
 
-def zernike(j: int, u: ArrayLike, psi: ArrayLike) -> Array:
+def zernike(j: int, u: ArrayLike, psi: ArrayLike, xp=jnp) -> Array:
     """Noll-indexed Zernike polynomial ``Z_j`` at normalised radius ``u`` in [0, 1] and azimuth psi.
 
-    Normalised to unit rms over the unit disk (``Z_1 = 1``).
+    Normalised to unit rms over the unit disk (``Z_1 = 1``). ``xp`` is the array namespace:
+    ``jax.numpy`` (default) or ``numpy`` (the gravity model's grids), one formula for both.
     """
-    from math import factorial
-
     n, m = noll_to_nm(j)
     ma = abs(m)
-    R = jnp.zeros_like(jnp.asarray(u, dtype=float))
+    u = xp.asarray(u, dtype=float)
+    R = xp.zeros_like(u)
     for s in range((n - ma) // 2 + 1):
         c = (-1) ** s * factorial(n - s) / (factorial(s) * factorial((n + ma) // 2 - s) * factorial((n - ma) // 2 - s))
-        R = R + c * jnp.asarray(u, dtype=float) ** (n - 2 * s)
+        R = R + c * u ** (n - 2 * s)
     if m == 0:
         return np.sqrt(n + 1.0) * R
-    ang = jnp.cos(ma * psi) if m > 0 else jnp.sin(ma * psi)
+    ang = xp.cos(ma * psi) if m > 0 else xp.sin(ma * psi)
     return np.sqrt(2.0 * (n + 1.0)) * R * ang

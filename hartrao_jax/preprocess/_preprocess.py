@@ -102,7 +102,7 @@ from jaxtyping import Array, Float
 
 from ..campaign._campaign import Campaign, ScanData, ScanMeta, default_campaign, read_scan
 from ..campaign._safeio import OutputDir, write_file_atomic
-from ..geometry._geometry import pointing_gravity, polar_to_cartesian
+from ..geometry._geometry import pointing_gravity, polar_components, polar_to_cartesian
 from ._initial import InitialValues, choose_initial_values
 
 log = logging.getLogger("hartrao_jax")
@@ -291,16 +291,8 @@ def _pose(x: Mapping[str, float] | InitialValues) -> tuple[np.ndarray, np.ndarra
 
 
 def _cartesian(r: np.ndarray, phi: np.ndarray, theta: np.ndarray):
-    """Seed eq. (2) in NumPy as three arrays ``x, y, z`` (equals ``polar_to_cartesian``)."""
-    st = np.sin(theta)
-    st *= r
-    x = np.sin(phi)
-    x *= st
-    y = np.cos(phi)
-    y *= st
-    z = np.cos(theta)
-    z *= r
-    return x, y, z
+    """Seed eq. (2) in NumPy as three arrays ``x, y, z`` (the geometry's formula)."""
+    return polar_components(r, phi, theta, xp=np)
 
 
 def _flat_coordinates(xs, x: Mapping[str, float]):

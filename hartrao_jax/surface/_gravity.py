@@ -43,7 +43,7 @@ from ..campaign._campaign import default_campaign, load_campaign
 from ..campaign._safeio import OutputDir, verify_result_dir, write_file_atomic
 from ..campaign._schedule import DEC_LIMITS_DEG, HA_LIMIT_DEG
 from ..fit._fit import scan_arrays, sigma_vector
-from ..geometry._geometry import noll_to_nm, panel_cells, panel_ids
+from ..geometry._geometry import panel_cells, panel_ids, zernike
 from ..model._model import N_CONSTS, make_model
 from ..physics._catalog import DEFAULT_ZERNIKE_MODES
 from ..solver._ghm import bucket_size
@@ -330,20 +330,8 @@ def _response_from_table(t, used, X, rec: dict, names: Sequence[str], shared: di
 
 
 def zernike_np(j: int, u: np.ndarray, psi: np.ndarray) -> np.ndarray:
-    """NumPy twin of :func:`._geometry.zernike` (Noll index, unit rms over the unit disk)."""
-    n, m = noll_to_nm(j)
-    ma = abs(m)
-    u = np.asarray(u, float)
-    R = np.zeros_like(u)
-    for s in range((n - ma) // 2 + 1):
-        c = (-1) ** s * math.factorial(n - s) / (
-            math.factorial(s) * math.factorial((n + ma) // 2 - s)
-            * math.factorial((n - ma) // 2 - s))
-        R = R + c * u ** (n - 2 * s)
-    if m == 0:
-        return math.sqrt(n + 1.0) * R
-    ang = np.cos(ma * psi) if m > 0 else np.sin(ma * psi)
-    return math.sqrt(2.0 * (n + 1.0)) * R * ang
+    """:func:`~hartrao_jax.geometry.zernike` evaluated with NumPy (Noll index, unit rms)."""
+    return zernike(j, u, psi, xp=np)
 
 
 def gravity_grid(ha_deg: np.ndarray, dec_deg: np.ndarray, latitude_deg: float):

@@ -14,14 +14,15 @@ from ..campaign._safeio import strict_json, write_json_atomic
 from ..campaign._schedule import TOURS, campaign_plan, check_plan, plan_table
 from ..fit._distributed import close_client, fit_dask, start_client
 from ..fit._fit import fit_campaign
-from ..fit._joint import fit_joint, print_joint_summary, write_joint_fit
+from ..fit._joint import fit_joint, write_joint_fit
 from ..fit._stream import stream_document, stream_fit_campaign, stream_fit_scan
 from ..physics._catalog import CALIBRATION_OPTION
 from ..preprocess._preprocess import preprocess_keep
 from ..sensitivity._sensitivity import finite_difference, sensitivity_table, write_sensitivity
 from ..sensitivity._sensitivity import sensitivity as run
-from ..surface._gravity import print_gravity_summary, write_gravity
+from ..surface._gravity import write_gravity
 from ._base import UserError, _console, _parse_fixes, command, main
+from ._tables import print_gravity_summary, print_joint_summary
 
 
 def _names(text: str | None) -> tuple[str, ...]:

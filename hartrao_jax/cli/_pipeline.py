@@ -11,7 +11,7 @@ import click
 
 from ..campaign._campaign import load_campaign
 from ..fit._fit import fit_campaign, write_fit
-from ..fit._joint import fit_joint, print_joint_summary, write_joint_fit
+from ..fit._joint import fit_joint, write_joint_fit
 from ..physics._catalog import CALIBRATION, CALIBRATION_OPTION
 from ..preprocess._preprocess import PreprocessConfig, preprocess_campaign, preprocess_keep
 from ..report._report import write_report
@@ -36,6 +36,7 @@ from ._base import (  # noqa: F401
     main,
     print_fit_table,
 )
+from ._tables import print_joint_summary
 
 log = logging.getLogger("hartrao_jax")
 

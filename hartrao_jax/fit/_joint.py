@@ -641,34 +641,10 @@ def write_joint_fit(out_dir, jf: JointFit, *, residuals: bool = True) -> Path:
         return od.commit(doc)
 
 
-def print_joint_summary(jf: JointFit, console=None) -> None:
-    """Shared estimates, precision gain and correlation drop on the terminal."""
-    from rich.console import Console
-    from rich.table import Table
-
-    console = console or Console()
-    t = Table(title=f"shared calibration ({jf.group})")
-    for c in ("group", "parameter", "value", "sigma", "sigma joint/per scan", "ideal"):
-        t.add_column(c, justify="right")
-    gain = jf.precision_gain()
-    for g, est in jf.shared_estimates().items():
-        for n, (v, s) in est.items():
-            scale, unit = (206264.806, '"') if parameter_unit(n) == "rad" else (1e3, " mm")
-            gg = gain["shared"][n][g]
-            t.add_row(g, n, f"{v * scale:.3f}{unit}", f"{s * scale:.3f}{unit}",
-                      f"{gg['gain']:.3f}", f"{gg['ideal_gain']:.3f}")
-    console.print(t)
-    cd = jf.correlation_drop()["max_abs_corr_f_calibration"]
-    console.print(f"max |corr(f, calibration)|: per scan median {cd['per_scan']['median']:.3f} "
-                  f"(max {cd['per_scan']['max']:.3f}) -> joint median {cd['joint']['median']:.3f} "
-                  f"(max {cd['joint']['max']:.3f}); sigma(f) joint/per scan median "
-                  f"{gain['f']['gain_median']:.3f}; sigma0 {jf.sigma0:.4f}")
-
-
 __all__ = [
     "DEFAULT_SHARED", "JointBackend", "JointFit", "LocalBackend", "ScanProblem", "SchurSolution",
     "bucket_size", "check_shared", "condition_number", "fit_joint", "group_of", "joint_json",
-    "joint_scan_fit", "joint_scan_fits", "print_joint_summary", "problems_from_fits",
+    "joint_scan_fit", "joint_scan_fits", "problems_from_fits",
     "residual_update",
     "schur_iterate", "write_joint_fit",
 ]

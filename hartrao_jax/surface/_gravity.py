@@ -975,28 +975,8 @@ def write_gravity(results_dir, out_dir=None, *, modes: Sequence[int] = DEFAULT_Z
     return p, gm
 
 
-def print_gravity_summary(gm: GravityModel, console=None) -> None:
-    from rich.console import Console
-    from rich.table import Table
-
-    console = console or Console()
-    t = Table(title=f"gravity model over {len(gm.positions)} positions")
-    for c in ("term", "value", "sigma", "sigma (scaled)"):
-        t.add_column(c, justify="right")
-    for n, b, s, ss in zip(gm.focal.names, gm.focal.beta, gm.focal.sigma, gm.focal.sigma_scaled):
-        t.add_row(f"f: {n}", f"{b * 1e3:.4f} mm", f"{s * 1e3:.4f} mm", f"{ss * 1e3:.4f} mm")
-    for j, z in zip(gm.modes, gm.zernike):
-        for n, b, s, ss in zip(z.names[1:], z.beta[1:], z.sigma[1:], z.sigma_scaled[1:]):
-            t.add_row(f"Z{j}: {n}", f"{b * 1e6:.1f} um", f"{s * 1e6:.1f} um", f"{ss * 1e6:.1f} um")
-    console.print(t)
-    te = gm.test
-    console.print(f"f depends on g_z only? F = {te['F']:.2f} (dof {te['F_dof']}), "
-                  f"p = {te['p_value_F']:.3g}; chi2 difference {te['chi2_difference']:.1f}, "
-                  f"p = {te['p_value_chi2']:.3g}")
-
-
 __all__ = ["FOCUS_MODES", "GRAVITY_SCHEMA", "GravityModel", "LinearFit", "ScanSample",
            "corrected_modes", "gravity_grid", "gravity_model", "mode_response",
-           "nested_test", "plot_gravity", "print_gravity_summary", "ruze_gain",
+           "nested_test", "plot_gravity", "ruze_gain",
            "samples_from_dir", "samples_from_fit", "weighted_lsq", "write_gravity",
            "surface_rms", "zernike_np", "zernike_projection"]

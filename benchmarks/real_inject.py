@@ -44,13 +44,8 @@ FILES = {"scan10": "scan10_random_sample.csv", "bump1": "bump1_high_sample.csv"}
 def _normals_and_residuals(camp):
     """Start fit of the recording: per point the residual along the normal (m), its aperture
     position (m), the unit normal towards the focus in the file frame, used mask."""
-    from hartrao_jax.diagnose._diagnose import (
-        DiagnoseConfig,
-        _Context,
-        _evaluate,
-        _Spec,
-        _start_scans,
-    )
+    from hartrao_jax.diagnose._diagnose import _start_scans
+    from hartrao_jax.diagnose._state import DiagnoseConfig, _Context, _evaluate, _Spec
     from hartrao_jax.geometry._geometry import rot_z, scanner_to_telescope
 
     ctx = _Context(camp, DiagnoseConfig())
@@ -157,7 +152,7 @@ def _header_rows(path) -> int:
 
 def _end_to_end(rec, xyz, sc, n_file, cxy, a, w, out):
     from hartrao_jax.campaign._import import import_file
-    from hartrao_jax.diagnose._diagnose import DiagnoseConfig, diagnose
+    from hartrao_jax.diagnose import DiagnoseConfig, diagnose
 
     # the imported rows keep the file's order: row -> point (only imported rows are moved)
     rows = np.asarray(sc.data.row)

@@ -9,7 +9,7 @@ import time
 
 import click
 
-from ..diagnose._diagnose import DiagnoseConfig, write_json
+from ..diagnose import DiagnoseConfig, write_json
 from ..physics._catalog import EFFECTS
 from ..preprocess._preprocess import preprocess_keep
 from ..prove._prove import CASES, run_prove

@@ -44,12 +44,11 @@ Units: metres, radians, seconds; ``_deg`` keys are degrees.
 
 from __future__ import annotations
 
-import functools
 import logging
 import math
 import time
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -67,7 +66,6 @@ from ..campaign._campaign import (
     read_scan,
     require_points,
 )
-from ..campaign._safeio import write_json_atomic
 from ..fit._align import mount_heading
 from ..fit._fit import finish_scan_fit, prepare_scan, scan_arrays
 from ..geometry._geometry import (
@@ -78,21 +76,41 @@ from ..geometry._geometry import (
     rot_z,
 )
 from ..model._model import (
-    DRIFT,
     OSC_FREQUENCY,
     OSCILLATION,
     SHIFT,
-    ZERNIKE_PREFIX,
     make_model,
     parameter_unit,
     parse_model,
 )
-from ..physics._catalog import EFFECTS, INSTRUMENT, inseparable_pairs
-from ..solver._ghm import normal_equations
-from ._covariates import compare
+from ..physics._catalog import EFFECTS, INSTRUMENT
+from ._explain import (
+    _Candidate,
+    _candidates,
+    _inseparable,
+    _Joint,
+    _local_candidates,
+    _log_sf,
+    _Test,
+    _want,
+)
+from ._find import (
+    COVARIATES,
+    _covariate_cv,
+    _covariate_tests,
+    _covariate_values,
+    _dish_test,
+    _locate_time,
+    _panel_cells,
+    _panel_columns,
+    _periodogram_points,
+)
 from ._local import local_step
 from ._recording import capabilities, skipped_searches, two_face_parameters
-from ._state import (  # noqa: F401
+from ._result import (
+    Diagnosis,
+)
+from ._state import (
     ZERNIKE_TESTED,
     DiagnoseConfig,
     Finding,
@@ -118,14 +136,7 @@ from ._state import (  # noqa: F401
 
 log = logging.getLogger("hartrao_jax")
 
-DIAGNOSIS_SCHEMA = "hartrao-diagnosis/1"
 
-MOTION: dict[str, tuple[str, ...]] = {
-    # a steady rotation of the scanner about x or y moves the far points like a translation:
-    # within one scan the drift rotations are inseparable from the drift translations
-    "impulsive_shift": SHIFT, "oscillation": OSCILLATION, "drift": DRIFT[:3],
-}
-COVARIATES = ("theta", "range", "incidence_angle", "intensity", "rho", "psi", "time")
 
 
 
@@ -235,394 +246,30 @@ def _start_scans(ctx: _Context, start: tuple[str, ...], keep,
 # ============================================================================================
 
 
-def _time_bins(sc: _Scan, cfg: DiagnoseConfig):
-    u = sc.used & (sc.m > 0)
-    t = sc.data.time_s
-    nb = int(np.clip(u.sum() // cfg.min_points_per_bin, 16, cfg.max_time_bins))
-    t0, t1 = float(t[u].min()), float(t[u].max())
-    edges = np.linspace(t0, t1 + 1e-9 * max(1.0, abs(t1)), nb + 1)
-    b = np.clip(np.searchsorted(edges, t, side="right") - 1, 0, nb - 1)
-    q = np.where(u, 1.0 / np.where(sc.m > 0, sc.m, 1.0), 0.0)
-    a = sc.probe
-    Nb = np.zeros((nb, 5, 5))
-    nbv = np.zeros((nb, 5))
-    qa = a * q[:, None]
-    for i in range(5):
-        nbv[:, i] = np.bincount(b, qa[:, i] * sc.F, minlength=nb)
-        for j in range(i, 5):
-            Nb[:, i, j] = Nb[:, j, i] = np.bincount(b, qa[:, i] * a[:, j], minlength=nb)
-    return edges, b, Nb, nbv
 
 
-def _box_search(edges, Nb, nbv, cfg: DiagnoseConfig):
-    """Best window of a translation (impulsive shift) over the time bins: ``(i, j, T, profile)``.
-
-    ``T = n_W^T S_W^-1 n_W`` with ``S_W = N_W - N_W N^-1 N_W`` (the constant translation is
-    the object parameters'). Windows up to ``max_window_fraction`` of the scan.
-    """
-    B = len(nbv)
-    Nt, nt = Nb[:, :3, :3], nbv[:, :3]
-    CN = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(Nt, 0)])
-    Cn = np.concatenate([np.zeros((1, 3)), np.cumsum(nt, 0)])
-    Ntot = CN[-1]
-    Ninv = np.linalg.pinv(Ntot)
-    best = (0, 1, 0.0)
-    Lmax = max(1, int(cfg.max_window_fraction * B))
-    profile = np.zeros(B)
-    eye = 1e-9 * np.trace(Ntot) / 3 * np.eye(3)
-    for L in range(1, Lmax + 1):
-        NW = CN[L:] - CN[:-L]
-        nW = Cn[L:] - Cn[:-L]
-        S = NW - NW @ Ninv @ NW + eye
-        ok = np.trace(NW, axis1=1, axis2=2) > 0
-        T = np.zeros(len(nW))
-        if ok.any():
-            sol = np.linalg.solve(S[ok], nW[ok][..., None])[..., 0]
-            T[ok] = np.sum(nW[ok] * sol, 1)
-        k = int(np.argmax(T))
-        if T[k] > best[2]:
-            best = (k, k + L, float(T[k]))
-        np.maximum.at(profile, np.arange(len(T)), T)
-    return best[0], best[1], best[2], profile, Lmax
 
 
-def _refine_window(sc: _Scan, edges, i: int, j: int, Ntot, T0: float, n_cand: int = 48):
-    """Window edges at the resolution of the points' times (within one bin of the coarse
-    edges), by the same statistic on cumulative sums over the time-sorted points."""
-    u = sc.used & (sc.m > 0)
-    t = sc.data.time_s[u]
-    order = np.argsort(t, kind="stable")
-    t = t[order]
-    a = sc.probe[u][order, :3]
-    q = 1.0 / sc.m[u][order]
-    F = sc.F[u][order]
-    qa = a * q[:, None]
-    CN = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(qa[:, :, None] * a[:, None, :], 0)])
-    Cn = np.concatenate([np.zeros((1, 3)), np.cumsum(qa * F[:, None], 0)])
-    Ninv = np.linalg.pinv(Ntot)
-
-    def cands(k):
-        lo, hi = edges[max(k - 1, 0)], edges[min(k + 1, len(edges) - 1)]
-        idx = np.arange(np.searchsorted(t, lo), np.searchsorted(t, hi, side="right") + 1)
-        idx = np.clip(idx, 0, len(t))
-        if len(idx) > n_cand:
-            idx = idx[np.linspace(0, len(idx) - 1, n_cand).astype(int)]
-        return np.unique(idx)
-
-    s_idx, e_idx = cands(i), cands(j)
-    S0, E0 = np.meshgrid(s_idx, e_idx, indexing="ij")
-    ok = E0 > S0
-    if not ok.any():
-        return (float(edges[i]), float(edges[j] - edges[i])), T0
-    S0, E0 = S0[ok], E0[ok]
-    NW = CN[E0] - CN[S0]
-    nW = Cn[E0] - Cn[S0]
-    Sm = NW - NW @ Ninv @ NW + 1e-9 * np.trace(Ntot) / 3 * np.eye(3)
-    T = np.sum(nW * np.linalg.solve(Sm, nW[..., None])[..., 0], 1)
-    k = int(np.argmax(T))
-    if T[k] <= T0:
-        return (float(edges[i]), float(edges[j] - edges[i])), T0
-    s0, e0 = int(S0[k]), int(E0[k])
-    start = 0.5 * (t[s0 - 1] + t[s0]) if s0 > 0 else t[0] - 1e-9
-    end = 0.5 * (t[e0 - 1] + t[e0]) if e0 < len(t) else t[-1] + 1e-9
-    return (float(start), float(end - start)), float(T[k])
 
 
-def _periodogram(edges, Nb, nbv, cfg: DiagnoseConfig):
-    """Score statistic of a rotation ``a sin(wt) + b cos(wt)`` about scanner x and y vs period.
-
-    Returns ``(periods, T)``; the constant rotation (object parameters) is eliminated.
-    """
-    B = len(nbv)
-    tb = 0.5 * (edges[:-1] + edges[1:])
-    span = edges[-1] - edges[0]
-    Nr, nr = Nb[:, 3:, 3:], nbv[:, 3:]
-    live = np.trace(Nr, axis1=1, axis2=2) > 0
-    tb, Nr, nr = tb[live], Nr[live], nr[live]
-    fmin = 2.0 / span
-    fmax = 0.25 * B / span  # half the bins' Nyquist frequency
-    if fmax <= fmin:
-        return np.zeros(0), np.zeros(0)
-    nf = int(min(4000, max(50, 4 * (fmax - fmin) * span)))
-    freqs = np.linspace(fmin, fmax, nf)
-    Ntot = Nr.sum(0)
-    Ntot_inv = np.linalg.pinv(Ntot)
-    T = np.zeros(nf)
-    for lo in range(0, nf, 256):
-        f = freqs[lo: lo + 256]
-        ph = 2 * np.pi * f[:, None] * tb[None, :]
-        H = np.stack([np.sin(ph), np.cos(ph)], -1)  # (F, B, 2)
-        M = np.einsum("fbp,fbq,bij->fpiqj", H, H, Nr).reshape(len(f), 4, 4)
-        K = np.einsum("fbp,bij->fpij", H, Nr).reshape(len(f), 4, 2)
-        u = np.einsum("fbp,bi->fpi", H, nr).reshape(len(f), 4)
-        S = M - K @ Ntot_inv @ np.swapaxes(K, 1, 2)
-        S = S + 1e-12 * np.trace(S, axis1=1, axis2=2)[:, None, None] * np.eye(4)
-        sol = np.linalg.solve(S, u[..., None])[..., 0]
-        T[lo: lo + 256] = np.sum(u * sol, 1)
-    return 1.0 / freqs, T
 
 
-def _periodogram_points(sc: _Scan, freqs: np.ndarray, F: np.ndarray | None = None) -> np.ndarray:
-    """The periodogram statistic at a few frequencies from the points' own times (exact);
-    ``F``: misclosures to use instead of the scan's."""
-    u = sc.used & (sc.m > 0)
-    t = sc.data.time_s[u]
-    a = sc.probe[u][:, 3:]
-    q = 1.0 / sc.m[u]
-    F = (sc.F if F is None else F)[u]
-    qa = a * q[:, None]
-    N0 = qa.T @ a
-    N0i = np.linalg.pinv(N0)
-    out = np.zeros(len(freqs))
-    for k, f in enumerate(freqs):
-        ph = 2 * np.pi * f * t
-        h = np.stack([np.sin(ph), np.cos(ph)], 1)
-        C = (h[:, :, None] * a[:, None, :]).reshape(len(t), 4)  # (sin, cos) x (x, y)
-        qC = C * q[:, None]
-        M = qC.T @ C
-        K = qC.T @ a
-        uu = qC.T @ F
-        S = M - K @ N0i @ K.T
-        out[k] = float(uu @ np.linalg.solve(S + 1e-12 * np.trace(S) * np.eye(4), uu))
-    return out
 
 
-def _locate_time(sc: _Scan, cfg: DiagnoseConfig) -> None:
-    """Window of the strongest box (change points) and the strongest period of one scan."""
-    edges, b, Nb, nbv = _time_bins(sc, cfg)
-    i, j, T, profile, Lmax = _box_search(edges, Nb, nbv, cfg)
-    sc.window_s, sc.window_stat = _refine_window(sc, edges, i, j, Nb[:, :3, :3].sum(0), T)
-    periods, P = _periodogram(edges, Nb, nbv, cfg)
-    if len(P):
-        k = int(np.argmax(P))
-        # zoom on the peak with the points' own times
-        f0 = 1.0 / periods[k]
-        df = abs(1.0 / periods[min(k + 1, len(P) - 1)] - 1.0 / periods[max(k - 1, 0)]) / 2
-        fz = f0 + np.linspace(-1.5, 1.5, 31) * df
-        Pz = _periodogram_points(sc, fz)
-        j = int(np.argmax(Pz))
-        fbest = fz[j]
-        if 0 < j < len(Pz) - 1:  # parabolic refinement in frequency
-            den = Pz[j - 1] - 2 * Pz[j] + Pz[j + 1]
-            if den < 0:
-                fbest = fz[j] + 0.5 * (Pz[j - 1] - Pz[j + 1]) / den * (fz[1] - fz[0])
-        sc.period_s, sc.period_stat = float(1.0 / fbest), float(max(Pz[j], P[k]))
-    B = len(nbv)
-    sc.search = {
-        "edges": edges, "box_profile": profile, "n_windows": B * Lmax,
-        "periods": periods, "periodogram": P, "n_periods": max(1, len(P)),
-        "translation": _bin_solutions(Nb[:, :3, :3], nbv[:, :3]),
-    }
 
 
-def _bin_solutions(N, n):
-    """Per-bin least-squares estimates (regularised), for plots."""
-    tr = np.trace(N, axis1=1, axis2=2)[:, None, None]
-    reg = 1e-6 * np.where(tr > 0, tr, 1.0) * np.eye(N.shape[-1])
-    return -np.linalg.solve(N + reg, n[..., None])[..., 0]
 
 
-def _covariate_values(sc: _Scan) -> dict[str, np.ndarray]:
-    th = np.mod(sc.data.theta_rad, 2 * np.pi)
-    return {
-        "theta": np.where(th > np.pi, 2 * np.pi - th, th),
-        "range": sc.data.range_m,
-        "incidence_angle": sc.incidence,
-        "intensity": sc.data.intensity.astype(float),
-        "rho": sc.rho,
-        "psi": sc.psi,
-        "time": sc.data.time_s,
-        "phi": sc.data.phi_rad,
-    }
 
 
-def _covariate_tests(ctx: _Context, scans: Sequence[_Scan], sigma0: float, names=COVARIATES,
-                     skip=frozenset()):
-    """Binned structure of the range-equivalent mismatch along each covariate, all scans jointly.
-
-    The alternative is a range error per (scan, face, quantile bin of the covariate). One plane
-    per panel (offset and two tilts, common to all scans) is eliminated, so panel-level
-    reflector deviations do not show as covariate structure. Returns ``{covariate: dict(T, dof,
-    ids (per scan), est (range error per bin, m), se (m), per_scan)}``; the object parameters
-    are not eliminated (conservative).
-    """
-    cfg = ctx.config
-    nb = cfg.covariate_bins
-    G = ctx.n_panels
-    per_scan = 2 * nb
-    out = {}
-    base = []
-    Mgg = np.zeros((G, 3, 3))
-    ug = np.zeros((G, 3))
-    for sc in scans:
-        u = sc.used & (sc.m > 0)
-        q = np.where(u, 1.0 / np.where(sc.m > 0, sc.m, 1.0), 0.0)
-        pp = u & (sc.panel >= 0)
-        D = _panel_columns(ctx, sc) * sc.s_rho[:, None]  # d condition / d plane parameters
-        base.append((sc, u, q, pp, D, _covariate_values(sc)))
-        for a in range(3):
-            ug[:, a] += np.bincount(sc.panel[pp], (q * D[:, a] * sc.F)[pp], minlength=G)
-            for b in range(3):
-                Mgg[:, a, b] += np.bincount(sc.panel[pp], (q * D[:, a] * D[:, b])[pp],
-                                            minlength=G)
-    Mi = np.linalg.pinv(Mgg, rcond=1e-10)
-    for name in names:
-        if name in skip:
-            continue
-        B = per_scan * len(scans)
-        Mbb = np.zeros(B)
-        ub = np.zeros(B)
-        Mbg = np.zeros((B * G, 3))
-        ids_all = []
-        for k, (sc, u, q, pp, D, vals) in enumerate(base):
-            v = vals[name]
-            ids = np.full(len(v), -1)
-            for fc in (1, 2):
-                sel = u & (sc.face == fc)
-                if sel.sum() < 4 * nb:
-                    continue
-                qs = np.quantile(v[sel], np.linspace(0, 1, nb + 1)[1:-1])
-                ids[sel] = (fc - 1) * nb + np.searchsorted(qs, v[sel], side="right")
-            ids_all.append(ids)
-            ok = ids >= 0
-            gid = k * per_scan + ids[ok]
-            Mbb += np.bincount(gid, (q * sc.b0**2)[ok], minlength=B)
-            ub += np.bincount(gid, (q * sc.b0 * sc.F)[ok], minlength=B)
-            okp = ok & pp
-            cell = (k * per_scan + ids[okp]) * G + sc.panel[okp]
-            for a in range(3):
-                Mbg[:, a] += np.bincount(cell, (q * sc.b0 * D[:, a])[okp], minlength=B * G)
-        live = Mbb > 0
-        if live.sum() < 2:
-            continue
-        Mbg = Mbg.reshape(B, G, 3)
-        W = np.einsum("bgi,gij->bgj", Mbg, Mi)
-        Sm = np.diag(Mbb) - np.einsum("bgj,cgj->bc", W, Mbg)
-        m = ub - np.einsum("bgj,gj->b", W, ug)
-        Sm, m = Sm[np.ix_(live, live)], m[live]
-        w, V = np.linalg.eigh(0.5 * (Sm + Sm.T))
-        # the near-null directions are a common range offset of the bins against the panel
-        # planes (x10 against the surface): confounded, left out
-        keep = w > 1e-6 * w.max()
-        proj = V[:, keep].T @ m
-        T = float(np.sum(proj**2 / w[keep])) / sigma0**2
-        est = np.zeros(B)
-        est[live] = V[:, keep] @ (proj / w[keep])
-        planes = np.einsum("gij,gj->gi", Mi, ug - np.einsum("bgi,b->gi", Mbg, est))
-        raw = est.copy()
-        # a common range offset of all bins is absorbed by the surface (x10 is confounded):
-        # report the bins' contrast, per scan and face, with the information of each bin
-        for k in range(len(scans)):
-            for fc in range(2):
-                sl = slice(k * per_scan + fc * nb, k * per_scan + (fc + 1) * nb)
-                wl = Mbb[sl]
-                if wl.sum() > 0:
-                    est[sl] -= np.sum(wl * est[sl]) / wl.sum()
-        se = np.where(live, sigma0 / np.sqrt(np.where(live, Mbb, 1.0)), 0.0)
-        out[name] = {"T": T, "dof": int(keep.sum()), "ids": ids_all, "est": est, "se": se,
-                     "per_scan": per_scan, "raw": raw, "planes": planes}
-    return out
 
 
-def _covariate_cv(S: Sequence[_Scan], spec: _Spec, only=None) -> dict:
-    """Cross-validated comparison of the covariates (:func:`._covariates.compare`) on the
-    range-equivalent mismatch of the points in use, all scans together."""
-
-    names = [n for n in ("range", "incidence_angle", "intensity", "time", "theta", "phi", "rho",
-                         "psi") if n not in spec.no_covariates and (only is None or n in only
-                                                                     or n == "phi")]
-    vals = {n: [] for n in names}
-    res = []
-    for sc in S:
-        u = sc.used & (sc.m > 0)
-        cv = _covariate_values(sc)
-        for n in names:
-            vals[n].append(np.asarray(cv[n], float)[u])
-        res.append(sc.mismatch_range_m[u])
-    if not res:
-        return {}
-    return compare({n: np.concatenate(v) for n, v in vals.items()}, np.concatenate(res))
 
 
-def _panel_cells(ctx: _Context, sc: _Scan) -> np.ndarray:
-    """Sub-cell of each point within its panel (``panel * nr * na + cell``; -1: none)."""
-    nr, na = ctx.config.panel_cells
-    p = sc.panel
-    ok = p >= 0
-    k = np.where(ok, p, 0)
-    g = ctx.geo
-    fr = np.clip((sc.rho - g["rho_in"][k]) / (g["rho_out"][k] - g["rho_in"][k]), 0, 0.999999)
-    dpsi = np.mod(sc.psi - g["psi_start"][k], 2 * np.pi)
-    fa = np.clip(dpsi / (g["psi_end"][k] - g["psi_start"][k]), 0, 0.999999)
-    cell = (fr * nr).astype(int) * na + (fa * na).astype(int)
-    return np.where(ok, k * nr * na + cell, -1)
 
 
-def _panel_columns(ctx: _Context, sc: _Scan) -> np.ndarray:
-    """Normal-deviation columns of a panel plane (offset, radial tilt, tangential tilt)."""
-    k = np.where(sc.panel >= 0, sc.panel, 0)
-    g = ctx.geo
-    dpsi = np.mod(sc.psi - g["psi_c"][k] + np.pi, 2 * np.pi) - np.pi
-    return np.column_stack([np.ones_like(sc.rho), sc.rho - g["rho_c"][k], g["rho_c"][k] * dpsi])
 
 
-def _dish_test(ctx: _Context, scans: Sequence[_Scan], sigma0: float):
-    """Within-panel structure common to all scans: cell offsets after one plane per panel.
-
-    Returns per panel ``(T, dof)``, the per-cell deviation estimates (m) and the cell ids.
-    """
-    nr, na = ctx.config.panel_cells
-    C = nr * na
-    G = ctx.n_panels
-    # normal-deviation regression: condition change = s * dev, so dev column = -s (F = ... + dev s)
-    Mcc = np.zeros(G * C)
-    Mcp = np.zeros((G * C, 3))
-    Mpp = np.zeros((G, 3, 3))
-    uc = np.zeros(G * C)
-    up = np.zeros((G, 3))
-    cells = []
-    for sc in scans:
-        u = sc.used & (sc.m > 0) & (sc.panel >= 0)
-        q = np.where(u, 1.0 / np.where(sc.m > 0, sc.m, 1.0), 0.0)
-        cell = _panel_cells(ctx, sc)
-        cells.append(cell)
-        P = _panel_columns(ctx, sc)
-        s = sc.s_rho
-        r = -sc.F / s  # mismatch along the normal
-        w = q * s * s
-        ci, pi_ = cell[u], sc.panel[u]
-        Mcc += np.bincount(ci, w[u], minlength=G * C)
-        uc += np.bincount(ci, (w * r)[u], minlength=G * C)
-        for a in range(3):
-            Mcp[:, a] += np.bincount(ci, (w * P[:, a])[u], minlength=G * C)
-            up[:, a] += np.bincount(pi_, (w * r * P[:, a])[u], minlength=G)
-            for b in range(3):
-                Mpp[:, a, b] += np.bincount(pi_, (w * P[:, a] * P[:, b])[u], minlength=G)
-    Tg = np.zeros(G)
-    dof = np.zeros(G, int)
-    est = np.zeros(G * C)
-    for g in range(G):
-        sl = slice(g * C, (g + 1) * C)
-        live = Mcc[sl] > 0
-        if live.sum() <= 3:
-            continue
-        mcc = Mcc[sl][live]
-        mcp = Mcp[sl][live]
-        ucg = uc[sl][live]
-        # cells (indicators) reduced by the plane: S = diag(mcc) - mcp Mpp^-1 mcp^T
-        Pinv = np.linalg.pinv(Mpp[g])
-        S = np.diag(mcc) - mcp @ Pinv @ mcp.T
-        m = ucg - mcp @ Pinv @ up[g]
-        w_, V = np.linalg.eigh(S)
-        keep = w_ > 1e-6 * w_.max()
-        proj = V[:, keep].T @ m
-        Tg[g] = float(np.sum(proj**2 / w_[keep])) / sigma0**2
-        dof[g] = int(keep.sum())
-        sol = V[:, keep] @ (proj / w_[keep])
-        e = np.zeros(C)
-        e[live] = sol
-        est[sl] = e
-    return Tg, dof, est, cells
 
 
 # ============================================================================================
@@ -630,339 +277,24 @@ def _dish_test(ctx: _Context, scans: Sequence[_Scan], sigma0: float):
 # ============================================================================================
 
 
-@dataclass
-class _Candidate:
-    """A catalog effect (or a group of parameters) to test, in joint indices."""
-
-    effect: str
-    family: str
-    idx: np.ndarray  # joint indices of its (local) parameters
-    H: np.ndarray  # (len(idx), q): the tested parameters -> local columns
-    names: list[str]  # names of the tested parameters
-    scans: list[str]
-    penalty: float = 1.0  # Bonferroni factor of searches (windows, periods)
-    info: dict = field(default_factory=dict)
-    per_scan: np.ndarray | None = None  # H of the per-scan alternative (shared candidates)
 
 
-@dataclass
-class _Test:
-    cand: _Candidate
-    T: float
-    dof: int
-    p: float
-    z: float
-    effect_m: float
-    estimate: np.ndarray
-    sigma: np.ndarray
-    correlation: float
-    with_: list[str]
-    corr_with: list[float]
-    confounded: bool
-    T_diff: float = 0.0
-    dof_diff: int = 0
-    notes: list[str] = field(default_factory=list)
-    S: np.ndarray | None = None  # Schur complement of the tested parameters (x, panels out)
-    Draw: np.ndarray | None = None  # their normal matrix alone
-    cov: np.ndarray | None = None  # covariance of the one-step estimate
 
 
-def _z_of(T: float, dof: int) -> float:
-    """Equivalent standard-normal score of a chi-square value (Wilson-Hilferty)."""
-    if dof <= 0:
-        return 0.0
-    k = float(dof)
-    return ((max(T, 0.0) / k) ** (1 / 3) - (1 - 2 / (9 * k))) / math.sqrt(2 / (9 * k))
 
 
-def _p_of(T: float, dof: int) -> float:
-    return float(stats.chi2.sf(max(T, 0.0), max(dof, 1)))
 
 
-class _Joint:
-    """The scans' normal equations summed into one system, panel offsets eliminated."""
-
-    def __init__(self, ctx: _Context, scans: Sequence[_Scan], spec: _Spec, candidates_local):
-        self.ctx = ctx
-        self.scans = scans
-        cfg = ctx.config
-        G = ctx.n_panels
-        # ---- joint layout: x blocks per scan, accepted shared, then per-scan candidate slots
-        self.labels: list[str] = []
-        self.xidx: dict[str, np.ndarray] = {}
-        maps = []
-        self.local_names = {}
-        for sc in scans:
-            model = _scan_model(sc, spec, ctx.aperture)
-            x_names = list(model.free)
-            self.xidx[sc.id] = np.arange(len(self.labels), len(self.labels) + len(x_names))
-            self.labels += [f"{n}@{sc.id}" for n in x_names]
-            maps.append(x_names)
-        # accepted shared parameters (instrument; Zernike through gravity)
-        self.shared_names = list(spec.shared)
-        zern_acc = spec.zern_C is not None
-        self.sidx = np.arange(len(self.labels), len(self.labels) + len(self.shared_names)
-                              + (3 * len(ZERNIKE_TESTED) if zern_acc else 0))
-        self.labels += self.shared_names
-        if zern_acc:
-            self.labels += [f"C{j}{a}" for j in ZERNIKE_TESTED for a in "xyz"]
-        # candidate slots: per scan
-        self.cidx: dict[tuple[str, str], int] = {}
-        for sc in scans:
-            for n in candidates_local[sc.id]:
-                self.cidx[(sc.id, n)] = len(self.labels)
-                self.labels.append(f"{n}@{sc.id}")
-        D = len(self.labels)
-        self.D = D
-        N = np.zeros((D, D))
-        n = np.zeros(D)
-        wMw = 0.0
-        S = np.zeros(G)
-        sg = np.zeros((G, D))
-        tg = np.zeros(G)
-        self.n_used = 0
-        self.sum_q = 0.0
-        t0 = time.time()
-        for sc, x_names in zip(scans, maps):
-            cands = candidates_local[sc.id]
-            extra = list(self.shared_names) + (
-                [f"{ZERNIKE_PREFIX}{j}" for j in ZERNIKE_TESTED] if zern_acc else [])
-            extra += [c for c in cands if c not in extra]
-            mot = spec.motion.get(sc.id, {})
-            model = _scan_model(sc, spec, ctx.aperture, extra=extra,
-                                window_s=None if mot.get("window_s") else sc.window_s,
-                                period_s=None if mot.get("period_s") else sc.period_s)
-            fixed = _fixed(sc, spec)
-            prev = dict(zip(sc.names, sc.x))
-            x = np.array([prev.get(k, fixed.get(k, 0.0)) for k in model.free])
-            P = np.zeros((len(model.free), D))
-            for i, name in enumerate(model.free):
-                if name in x_names:
-                    P[i, self.xidx[sc.id][x_names.index(name)]] = 1.0
-                elif name in self.shared_names:
-                    P[i, self.sidx[self.shared_names.index(name)]] = 1.0
-                elif zern_acc and name.startswith(ZERNIKE_PREFIX) and int(
-                        name[len(ZERNIKE_PREFIX):]) in ZERNIKE_TESTED:
-                    k = ZERNIKE_TESTED.index(int(name[len(ZERNIKE_PREFIX):]))
-                    base = self.sidx[len(self.shared_names) + 3 * k]
-                    P[i, base: base + 3] = sc.g
-                else:
-                    P[i, self.cidx[(sc.id, name)]] = 1.0
-            w = (sc.used & (sc.m > 0)).astype(float)
-            npad = _npad(len(w))
-            ne = normal_equations(model, _pad(sc.l, npad), x, ctx.sigma,
-                                  _pad(sc.consts(), npad), _pad(w, npad, 0.0), _pad(sc.v, npad),
-                                  groups=_pad(np.where(sc.panel >= 0, sc.panel, -1), npad, -1),
-                                  n_groups=G, offset_column=2)
-            Ns, ns = np.asarray(ne.N), np.asarray(ne.n)
-            N += P.T @ Ns @ P
-            n += P.T @ ns
-            wMw += float(ne.wMw)
-            S += np.asarray(ne.S)
-            sg += np.asarray(ne.s) @ P
-            tg += np.asarray(ne.t)
-            self.n_used += int(w.sum())
-            self.sum_q += float(np.sum(w / np.where(sc.m > 0, sc.m, 1.0)))
-        log.debug("joint normal equations: %d unknowns, %.1f s", D, time.time() - t0)
-        self.N_raw, self.n_raw, self.wMw_raw = N, n, wMw
-        live = S > 0
-        Si = np.where(live, 1.0 / np.where(live, S, 1.0), 0.0)
-        self.G_live = int(live.sum())
-        self.N = N - (sg.T * Si) @ sg
-        self.n = n - sg.T @ (Si * tg)
-        self.wMw = wMw - float(np.sum(Si * tg**2))
-        self.group = (S, sg, tg)
-        self.group_count = np.zeros(G)
-        for sc in scans:
-            ok = sc.used & (sc.panel >= 0)
-            self.group_count += np.bincount(sc.panel[ok], minlength=G)
-        # ---- null system: x blocks and accepted shared
-        self.I0 = np.concatenate([*self.xidx.values(), self.sidx]).astype(int)
-        K = self.N[np.ix_(self.I0, self.I0)]
-        self.K_scale = 1.0 / np.sqrt(np.where(np.diag(K) > 0, np.diag(K), 1.0))
-        Ks = K * self.K_scale[:, None] * self.K_scale[None, :]
-        self.K_inv = np.linalg.pinv(Ks, rcond=1e-13) * self.K_scale[:, None] * self.K_scale[None, :]
-        n0 = self.n[self.I0]
-        self.omega0 = self.wMw - float(n0 @ self.K_inv @ n0)
-        self.dof0 = self.n_used - len(self.I0) - self.G_live
-        self.sigma0 = math.sqrt(max(self.omega0, 1e-300) / max(self.dof0, 1))
-        # null without panel elimination (for the panel test)
-        Kr = self.N_raw[np.ix_(self.I0, self.I0)]
-        Kr_s = Kr * self.K_scale[:, None] * self.K_scale[None, :]
-        Kr_inv = np.linalg.pinv(Kr_s, rcond=1e-13) * self.K_scale[:, None] * self.K_scale[None, :]
-        n0r = self.n_raw[self.I0]
-        self.omega0_raw = self.wMw_raw - float(n0r @ Kr_inv @ n0r)
-        self.cfg = cfg
-
-    # ----------------------------------------------------------------------------------
-    def null_step(self) -> np.ndarray:
-        """Increment of all null unknowns (x blocks, accepted shared) with panels eliminated."""
-        d = np.zeros(self.D)
-        d[self.I0] = -self.K_inv @ self.n[self.I0]
-        return d
-
-    def panel_step(self, dz: np.ndarray) -> np.ndarray:
-        """Panel offsets (m, normal) of the joint solution given the other increments ``dz``."""
-        S, sg, tg = self.group
-        live = S > 0
-        return np.where(live, -(tg + sg @ dz) / np.where(live, S, 1.0), 0.0)
-
-    def test(self, cand: _Candidate, sigma0: float | None = None) -> _Test:
-        """Score statistic, one-step estimate, effect size and correlation of a candidate."""
-        cfg = self.cfg
-        s0 = sigma0 or self.sigma0
-        H = cand.H
-        J = cand.idx
-        B = self.N[np.ix_(self.I0, J)] @ H
-        Z = self.K_inv @ B
-        S = H.T @ self.N[np.ix_(J, J)] @ H - B.T @ Z
-        m = H.T @ self.n[J] - Z.T @ self.n[self.I0]
-        Draw = H.T @ self.N_raw[np.ix_(J, J)] @ H
-        S = 0.5 * (S + S.T)
-        # canonical directions: S v = lam Draw v; lam = 1 - rho^2
-        d = np.sqrt(np.where(np.diag(Draw) > 0, np.diag(Draw), 1.0))
-        Dn = Draw / np.outer(d, d)
-        Sn = S / np.outer(d, d)
-        L = np.linalg.cholesky(Dn + 1e-14 * np.eye(len(Dn)))
-        Li = np.linalg.inv(L)
-        lam, V = np.linalg.eigh(Li @ Sn @ Li.T)
-        U = (Li.T @ V) / d[:, None]  # directions in parameter space with U^T Draw U = I
-        lam = np.clip(lam, 0.0, 1.0)
-        thr = 1.0 - cfg.confounded_correlation**2
-        # one parameter: confounded beyond the threshold is not tested; several (motion,
-        # gravity): every numerically identifiable direction is kept (large variances show the
-        # weak ones), so estimates and covariances stay comparable with any truth
-        keep = lam > (thr if len(lam) == 1 else 1e-10)
-        rho = float(math.sqrt(max(0.0, 1.0 - lam.min()))) if len(lam) else 0.0
-        proj = U[:, keep].T @ m
-        T = float(np.sum(proj**2 / lam[keep])) / s0**2 if keep.any() else 0.0
-        dof = int(keep.sum())
-        delta = -U[:, keep] @ (proj / lam[keep]) if keep.any() else np.zeros(len(m))
-        cov = ((U[:, keep] / lam[keep]) @ U[:, keep].T * s0**2 if keep.any()
-               else np.zeros((len(m),) * 2))
-        sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
-        effect = math.sqrt(max(T - dof, 0.0) * s0**2 / max(self.sum_q, 1e-300))
-        # correlation of each tested parameter with the null unknowns (for "with")
-        with_, cw = [], []
-        if len(m) == 1:
-            # corr(e, x_i) = -Z_i / sqrt(S (K^-1)_ii + Z_i^2)  (inverse of the bordered matrix)
-            kd = np.maximum(np.diag(self.K_inv), 0.0)
-            Sv = max(float(S[0, 0]), 0.0)
-            corr = -Z[:, 0] / np.sqrt(Sv * kd + Z[:, 0] ** 2 + 1e-300)
-            order = np.argsort(-np.abs(corr))
-            for i in order:
-                name = self.labels[self.I0[i]].split("@")[0]
-                if name in with_:
-                    continue
-                if (abs(corr[i]) >= 0.5 and len(with_) < 3) or not with_:
-                    with_.append(name)
-                    cw.append(float(corr[i]))
-        p = _p_of(T, dof)
-        return _Test(cand, T, dof, p, _z_of(T, dof), effect, delta, sig, rho, with_, cw,
-                     confounded=dof < len(m) if len(m) == 1 else dof == 0, S=S, Draw=Draw,
-                     cov=cov)
-
-    def scan_difference(self, cand: _Candidate, test: _Test) -> tuple[float, int]:
-        """``T`` of freeing a shared candidate per scan, beyond the shared value."""
-        if cand.per_scan is None or cand.per_scan.shape[1] <= cand.H.shape[1]:
-            return 0.0, 0
-        alt = _Candidate(cand.effect, cand.family, cand.idx, cand.per_scan, cand.names, cand.scans)
-        t = self.test(alt, test_sigma0 := self.sigma0)
-        del test_sigma0
-        return max(0.0, t.T - test.T), t.dof - test.dof
 
 
-@functools.lru_cache(maxsize=1)
-def _inseparable_table() -> dict[frozenset, float]:
-    """Every pair of instrument parameters with the same correction shape (computed once)."""
-    return {frozenset((a, b)): c for a, b, c in inseparable_pairs(list(INSTRUMENT))}
 
 
-def _inseparable(names: tuple[str, ...]) -> tuple:
-    """The inseparable pairs among ``names`` (as :func:`inseparable_pairs`)."""
-    tab = _inseparable_table()
-    inst = [n for n in names if n in INSTRUMENT]
-    return tuple((a, b, tab[frozenset((a, b))]) for i, a in enumerate(inst) for b in inst[i + 1:]
-                 if frozenset((a, b)) in tab)
 
 
-def _local_candidates(ctx: _Context, scans: Sequence[_Scan], spec: _Spec) -> dict[str, list[str]]:
-    """Per scan: the catalog parameters not in the model, free at value 0 in the test."""
-    cfg = ctx.config
-    wanted = set(cfg.effects) if cfg.effects else None
-    in_model = set(spec.start) | set(spec.shared)
-    inst = []
-    for k in INSTRUMENT:
-        if k in in_model or (wanted is not None and k not in wanted) or k in spec.skip:
-            continue
-        if _inseparable(tuple(sorted(in_model)) + (k,)):
-            continue  # same shape as a model parameter: reported as confounded elsewhere
-        inst.append(k)
-    positions = {sc.meta.position for sc in scans}
-    gs = np.array([sc.g for sc in scans])
-    grav = (len(positions) >= 2 and spec.zern_C is None and np.linalg.matrix_rank(
-        gs - gs.mean(0), tol=1e-3) >= 1 and (wanted is None or "gravity_deformation" in wanted))
-    out = {}
-    for sc in scans:
-        mot = spec.motion.get(sc.id, {})
-        names = list(inst)
-        if grav:
-            names += [f"{ZERNIKE_PREFIX}{j}" for j in ZERNIKE_TESTED]
-        if spec.times:  # motion lives in time: no recorded times, no motion candidates
-            if "window_s" not in mot and sc.window_s and _want(wanted, "impulsive_shift"):
-                names += list(SHIFT)
-            if "period_s" not in mot and sc.period_s and _want(wanted, "oscillation"):
-                names += list(OSCILLATION)
-            if not any(n in DRIFT for n in mot.get("names", ())) and _want(wanted, "drift"):
-                names += list(MOTION["drift"])
-        out[sc.id] = names
-    return out
 
 
-def _want(wanted, eid):
-    return wanted is None or eid in wanted
 
 
-def _candidates(joint: _Joint, scans: Sequence[_Scan], local: dict[str, list[str]]):
-    """The candidates of the joint system: shared instrument, per-scan motion, gravity."""
-    out: list[_Candidate] = []
-    ids = [sc.id for sc in scans]
-    first = local[ids[0]]
-    for k in INSTRUMENT:
-        if k not in first:
-            continue
-        idx = np.array([joint.cidx[(s, k)] for s in ids])
-        out.append(_Candidate(k, "instrument", idx, np.ones((len(ids), 1)), [k], ids,
-                              per_scan=np.eye(len(ids))))
-    for sc in scans:
-        for eff, pnames in MOTION.items():
-            present = [n for n in pnames if n in local[sc.id]]
-            if not present:
-                continue
-            idx = np.array([joint.cidx[(sc.id, n)] for n in present])
-            penalty = 1.0
-            info = {}
-            if eff == "impulsive_shift":
-                penalty = float(sc.search.get("n_windows", 1))
-                info = {"window_s": sc.window_s, "search_T": sc.window_stat}
-            elif eff == "oscillation":
-                penalty = float(sc.search.get("n_periods", 1))
-                info = {"period_s": sc.period_s, "search_T": sc.period_stat}
-            out.append(_Candidate(eff, "motion", idx, np.eye(len(idx)), present, [sc.id],
-                                  penalty=penalty, info=info))
-    zern = [f"{ZERNIKE_PREFIX}{j}" for j in ZERNIKE_TESTED]
-    if all(z in first for z in zern):
-        idx, rows = [], []
-        for sc in scans:
-            for z in zern:
-                idx.append(joint.cidx[(sc.id, z)])
-                k = zern.index(z)
-                row = np.zeros(3 * len(zern))
-                row[3 * k: 3 * k + 3] = sc.g
-                rows.append(row)
-        out.append(_Candidate("gravity_deformation", "reflector", np.array(idx), np.array(rows),
-                              [f"C{j}{a}" for j in ZERNIKE_TESTED for a in "xyz"], ids))
-    return out
 
 
 # ============================================================================================
@@ -972,61 +304,6 @@ def _candidates(joint: _Joint, scans: Sequence[_Scan], local: dict[str, list[str
 
 
 
-@dataclass
-class Diagnosis:
-    """Result of :func:`diagnose`; ``to_json()`` gives the ``hartrao-diagnosis/1`` document."""
-
-    campaign: str
-    start_model: list[str]
-    final_model: list[str]
-    sigma0_start: float
-    sigma0_final: float
-    rms_start_m: float
-    rms_final_m: float
-    findings: list[Finding]
-    confounded: list[dict]
-    comparison: list[dict]
-    candidates: list[dict]
-    timing_s: dict[str, float]
-    notes: list[str] = field(default_factory=list)
-    scans_final: dict[str, dict] = field(default_factory=dict)
-    history: list[dict] = field(default_factory=list)
-    detectability: list[dict] = field(default_factory=list)
-    skipped: list[dict] = field(default_factory=list)  # searches the recording cannot support
-    not_identifiable: list[dict] = field(default_factory=list)
-    local_search: list[dict] = field(default_factory=list)  # local-deformation searches
-    layout: str = ""  # panels of the telescope's layout, or the stated grid
-    covariates: dict = field(default_factory=dict)  # cross-validated covariate comparison
-    extents: dict = field(default_factory=dict)  # scan id -> map extent (m), for figures
-
-    def to_json(self) -> dict:
-        return {
-            "schema": DIAGNOSIS_SCHEMA,
-            "campaign": self.campaign,
-            "start_model": self.start_model,
-            "final_model": self.final_model,
-            "sigma0_start": _num(self.sigma0_start),
-            "sigma0_final": _num(self.sigma0_final),
-            "rms_start_m": _num(self.rms_start_m),
-            "rms_final_m": _num(self.rms_final_m),
-            "findings": [f.to_json() for f in self.findings],
-            "confounded": self.confounded,
-            "comparison": self.comparison,
-            "last_candidates": self.candidates,
-            "scans": self.scans_final,
-            "detectability": self.detectability,
-            "timing_s": self.timing_s,
-            "notes": self.notes,
-            "skipped": self.skipped,
-            "not_identifiable": self.not_identifiable,
-            "local_deformation_search": [
-                {k: v for k, v in d.items() if not k.startswith("_")} for d in self.local_search],
-            "layout": self.layout,
-            "covariate_comparison": self.covariates,
-        }
-
-    def effects(self) -> list[str]:
-        return [f.effect for f in self.findings]
 
 
 
@@ -1036,17 +313,6 @@ class Diagnosis:
 # ============================================================================================
 
 
-def _log_sf(T: float, dof: int) -> float:
-    """Natural log of the chi-square survival function, accurate far in the tail."""
-    from scipy import special
-
-    T = max(float(T), 0.0)
-    k = max(int(dof), 1)
-    p = float(special.gammaincc(k / 2.0, T / 2.0))
-    if p > 1e-300:
-        return math.log(p)
-    a, x = k / 2.0, T / 2.0  # asymptotic upper incomplete gamma: x^(a-1) e^-x / Gamma(a)
-    return (a - 1) * math.log(x) - x - special.gammaln(a) + math.log1p((a - 1) / x)
 
 
 # ============================================================================================
@@ -2263,20 +1529,8 @@ def _fmt(name: str, v: float, s: float) -> str:
 # ============================================================================================
 
 
-def write_json(diag: Diagnosis, path: str | Path) -> Path:
-    """Write the ``hartrao-diagnosis/1`` document (strict JSON, temporary name + rename)."""
-
-    return write_json_atomic(path, diag.to_json(), indent=2, default=_json_default)
 
 
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.bool_):
-        return bool(o)
-    raise TypeError(type(o))
 
 
 

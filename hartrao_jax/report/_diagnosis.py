@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..diagnose._diagnose import Diagnosis, _json_default, diagnose
+from ..diagnose._diagnose import diagnose
+from ..diagnose._result import Diagnosis, _json_default
 from ._report import diagnosis_local_figures
 
 

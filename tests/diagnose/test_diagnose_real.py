@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from hartrao_jax.campaign._import import import_file
-from hartrao_jax.diagnose._diagnose import DiagnoseConfig, diagnose
+from hartrao_jax.diagnose import DiagnoseConfig, diagnose
 from hartrao_jax.diagnose._recording import two_face_parameters
 
 REAL = Path(os.environ.get("HARTRAO_REAL_DATA",

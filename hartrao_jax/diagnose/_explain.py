@@ -1,0 +1,424 @@
+"""Explain: which catalog effects account for the mismatch. The joint system of all scans
+augmented by candidate columns, score tests with their p-values, separability of candidates."""
+
+from __future__ import annotations
+
+import functools
+import logging
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats
+
+from ..model._model import (
+    DRIFT,
+    OSCILLATION,
+    SHIFT,
+    ZERNIKE_PREFIX,
+)
+from ..physics._catalog import INSTRUMENT, inseparable_pairs
+from ..solver._ghm import normal_equations
+from ._find import (  # noqa: F401
+    COVARIATES,
+    _bin_solutions,
+    _box_search,
+    _covariate_cv,
+    _covariate_tests,
+    _covariate_values,
+    _dish_test,
+    _locate_time,
+    _panel_cells,
+    _panel_columns,
+    _periodogram,
+    _periodogram_points,
+    _refine_window,
+    _time_bins,
+)
+from ._result import (  # noqa: F401
+    Diagnosis,
+    _json_default,
+    write_json,
+)
+from ._state import (  # noqa: F401
+    ZERNIKE_TESTED,
+    DiagnoseConfig,
+    Finding,
+    _adjust,
+    _Context,
+    _evaluate,
+    _fixed,
+    _global_sigma0,
+    _npad,
+    _num,
+    _pad,
+    _panel_known,
+    _refit,
+    _refit_all,
+    _restore,
+    _rms,
+    _save,
+    _Scan,
+    _scan_model,
+    _set_known,
+    _Spec,
+)
+
+log = logging.getLogger("hartrao_jax")
+
+
+MOTION: dict[str, tuple[str, ...]] = {
+    # a steady rotation of the scanner about x or y moves the far points like a translation:
+    # within one scan the drift rotations are inseparable from the drift translations
+    "impulsive_shift": SHIFT, "oscillation": OSCILLATION, "drift": DRIFT[:3],
+}
+
+
+@dataclass
+class _Candidate:
+    """A catalog effect (or a group of parameters) to test, in joint indices."""
+
+    effect: str
+    family: str
+    idx: np.ndarray  # joint indices of its (local) parameters
+    H: np.ndarray  # (len(idx), q): the tested parameters -> local columns
+    names: list[str]  # names of the tested parameters
+    scans: list[str]
+    penalty: float = 1.0  # Bonferroni factor of searches (windows, periods)
+    info: dict = field(default_factory=dict)
+    per_scan: np.ndarray | None = None  # H of the per-scan alternative (shared candidates)
+
+
+@dataclass
+class _Test:
+    cand: _Candidate
+    T: float
+    dof: int
+    p: float
+    z: float
+    effect_m: float
+    estimate: np.ndarray
+    sigma: np.ndarray
+    correlation: float
+    with_: list[str]
+    corr_with: list[float]
+    confounded: bool
+    T_diff: float = 0.0
+    dof_diff: int = 0
+    notes: list[str] = field(default_factory=list)
+    S: np.ndarray | None = None  # Schur complement of the tested parameters (x, panels out)
+    Draw: np.ndarray | None = None  # their normal matrix alone
+    cov: np.ndarray | None = None  # covariance of the one-step estimate
+
+
+def _z_of(T: float, dof: int) -> float:
+    """Equivalent standard-normal score of a chi-square value (Wilson-Hilferty)."""
+    if dof <= 0:
+        return 0.0
+    k = float(dof)
+    return ((max(T, 0.0) / k) ** (1 / 3) - (1 - 2 / (9 * k))) / math.sqrt(2 / (9 * k))
+
+
+def _p_of(T: float, dof: int) -> float:
+    return float(stats.chi2.sf(max(T, 0.0), max(dof, 1)))
+
+
+class _Joint:
+    """The scans' normal equations summed into one system, panel offsets eliminated."""
+
+    def __init__(self, ctx: _Context, scans: Sequence[_Scan], spec: _Spec, candidates_local):
+        self.ctx = ctx
+        self.scans = scans
+        cfg = ctx.config
+        G = ctx.n_panels
+        # ---- joint layout: x blocks per scan, accepted shared, then per-scan candidate slots
+        self.labels: list[str] = []
+        self.xidx: dict[str, np.ndarray] = {}
+        maps = []
+        self.local_names = {}
+        for sc in scans:
+            model = _scan_model(sc, spec, ctx.aperture)
+            x_names = list(model.free)
+            self.xidx[sc.id] = np.arange(len(self.labels), len(self.labels) + len(x_names))
+            self.labels += [f"{n}@{sc.id}" for n in x_names]
+            maps.append(x_names)
+        # accepted shared parameters (instrument; Zernike through gravity)
+        self.shared_names = list(spec.shared)
+        zern_acc = spec.zern_C is not None
+        self.sidx = np.arange(len(self.labels), len(self.labels) + len(self.shared_names)
+                              + (3 * len(ZERNIKE_TESTED) if zern_acc else 0))
+        self.labels += self.shared_names
+        if zern_acc:
+            self.labels += [f"C{j}{a}" for j in ZERNIKE_TESTED for a in "xyz"]
+        # candidate slots: per scan
+        self.cidx: dict[tuple[str, str], int] = {}
+        for sc in scans:
+            for n in candidates_local[sc.id]:
+                self.cidx[(sc.id, n)] = len(self.labels)
+                self.labels.append(f"{n}@{sc.id}")
+        D = len(self.labels)
+        self.D = D
+        N = np.zeros((D, D))
+        n = np.zeros(D)
+        wMw = 0.0
+        S = np.zeros(G)
+        sg = np.zeros((G, D))
+        tg = np.zeros(G)
+        self.n_used = 0
+        self.sum_q = 0.0
+        t0 = time.time()
+        for sc, x_names in zip(scans, maps):
+            cands = candidates_local[sc.id]
+            extra = list(self.shared_names) + (
+                [f"{ZERNIKE_PREFIX}{j}" for j in ZERNIKE_TESTED] if zern_acc else [])
+            extra += [c for c in cands if c not in extra]
+            mot = spec.motion.get(sc.id, {})
+            model = _scan_model(sc, spec, ctx.aperture, extra=extra,
+                                window_s=None if mot.get("window_s") else sc.window_s,
+                                period_s=None if mot.get("period_s") else sc.period_s)
+            fixed = _fixed(sc, spec)
+            prev = dict(zip(sc.names, sc.x))
+            x = np.array([prev.get(k, fixed.get(k, 0.0)) for k in model.free])
+            P = np.zeros((len(model.free), D))
+            for i, name in enumerate(model.free):
+                if name in x_names:
+                    P[i, self.xidx[sc.id][x_names.index(name)]] = 1.0
+                elif name in self.shared_names:
+                    P[i, self.sidx[self.shared_names.index(name)]] = 1.0
+                elif zern_acc and name.startswith(ZERNIKE_PREFIX) and int(
+                        name[len(ZERNIKE_PREFIX):]) in ZERNIKE_TESTED:
+                    k = ZERNIKE_TESTED.index(int(name[len(ZERNIKE_PREFIX):]))
+                    base = self.sidx[len(self.shared_names) + 3 * k]
+                    P[i, base: base + 3] = sc.g
+                else:
+                    P[i, self.cidx[(sc.id, name)]] = 1.0
+            w = (sc.used & (sc.m > 0)).astype(float)
+            npad = _npad(len(w))
+            ne = normal_equations(model, _pad(sc.l, npad), x, ctx.sigma,
+                                  _pad(sc.consts(), npad), _pad(w, npad, 0.0), _pad(sc.v, npad),
+                                  groups=_pad(np.where(sc.panel >= 0, sc.panel, -1), npad, -1),
+                                  n_groups=G, offset_column=2)
+            Ns, ns = np.asarray(ne.N), np.asarray(ne.n)
+            N += P.T @ Ns @ P
+            n += P.T @ ns
+            wMw += float(ne.wMw)
+            S += np.asarray(ne.S)
+            sg += np.asarray(ne.s) @ P
+            tg += np.asarray(ne.t)
+            self.n_used += int(w.sum())
+            self.sum_q += float(np.sum(w / np.where(sc.m > 0, sc.m, 1.0)))
+        log.debug("joint normal equations: %d unknowns, %.1f s", D, time.time() - t0)
+        self.N_raw, self.n_raw, self.wMw_raw = N, n, wMw
+        live = S > 0
+        Si = np.where(live, 1.0 / np.where(live, S, 1.0), 0.0)
+        self.G_live = int(live.sum())
+        self.N = N - (sg.T * Si) @ sg
+        self.n = n - sg.T @ (Si * tg)
+        self.wMw = wMw - float(np.sum(Si * tg**2))
+        self.group = (S, sg, tg)
+        self.group_count = np.zeros(G)
+        for sc in scans:
+            ok = sc.used & (sc.panel >= 0)
+            self.group_count += np.bincount(sc.panel[ok], minlength=G)
+        # ---- null system: x blocks and accepted shared
+        self.I0 = np.concatenate([*self.xidx.values(), self.sidx]).astype(int)
+        K = self.N[np.ix_(self.I0, self.I0)]
+        self.K_scale = 1.0 / np.sqrt(np.where(np.diag(K) > 0, np.diag(K), 1.0))
+        Ks = K * self.K_scale[:, None] * self.K_scale[None, :]
+        self.K_inv = np.linalg.pinv(Ks, rcond=1e-13) * self.K_scale[:, None] * self.K_scale[None, :]
+        n0 = self.n[self.I0]
+        self.omega0 = self.wMw - float(n0 @ self.K_inv @ n0)
+        self.dof0 = self.n_used - len(self.I0) - self.G_live
+        self.sigma0 = math.sqrt(max(self.omega0, 1e-300) / max(self.dof0, 1))
+        # null without panel elimination (for the panel test)
+        Kr = self.N_raw[np.ix_(self.I0, self.I0)]
+        Kr_s = Kr * self.K_scale[:, None] * self.K_scale[None, :]
+        Kr_inv = np.linalg.pinv(Kr_s, rcond=1e-13) * self.K_scale[:, None] * self.K_scale[None, :]
+        n0r = self.n_raw[self.I0]
+        self.omega0_raw = self.wMw_raw - float(n0r @ Kr_inv @ n0r)
+        self.cfg = cfg
+
+    # ----------------------------------------------------------------------------------
+    def null_step(self) -> np.ndarray:
+        """Increment of all null unknowns (x blocks, accepted shared) with panels eliminated."""
+        d = np.zeros(self.D)
+        d[self.I0] = -self.K_inv @ self.n[self.I0]
+        return d
+
+    def panel_step(self, dz: np.ndarray) -> np.ndarray:
+        """Panel offsets (m, normal) of the joint solution given the other increments ``dz``."""
+        S, sg, tg = self.group
+        live = S > 0
+        return np.where(live, -(tg + sg @ dz) / np.where(live, S, 1.0), 0.0)
+
+    def test(self, cand: _Candidate, sigma0: float | None = None) -> _Test:
+        """Score statistic, one-step estimate, effect size and correlation of a candidate."""
+        cfg = self.cfg
+        s0 = sigma0 or self.sigma0
+        H = cand.H
+        J = cand.idx
+        B = self.N[np.ix_(self.I0, J)] @ H
+        Z = self.K_inv @ B
+        S = H.T @ self.N[np.ix_(J, J)] @ H - B.T @ Z
+        m = H.T @ self.n[J] - Z.T @ self.n[self.I0]
+        Draw = H.T @ self.N_raw[np.ix_(J, J)] @ H
+        S = 0.5 * (S + S.T)
+        # canonical directions: S v = lam Draw v; lam = 1 - rho^2
+        d = np.sqrt(np.where(np.diag(Draw) > 0, np.diag(Draw), 1.0))
+        Dn = Draw / np.outer(d, d)
+        Sn = S / np.outer(d, d)
+        L = np.linalg.cholesky(Dn + 1e-14 * np.eye(len(Dn)))
+        Li = np.linalg.inv(L)
+        lam, V = np.linalg.eigh(Li @ Sn @ Li.T)
+        U = (Li.T @ V) / d[:, None]  # directions in parameter space with U^T Draw U = I
+        lam = np.clip(lam, 0.0, 1.0)
+        thr = 1.0 - cfg.confounded_correlation**2
+        # one parameter: confounded beyond the threshold is not tested; several (motion,
+        # gravity): every numerically identifiable direction is kept (large variances show the
+        # weak ones), so estimates and covariances stay comparable with any truth
+        keep = lam > (thr if len(lam) == 1 else 1e-10)
+        rho = float(math.sqrt(max(0.0, 1.0 - lam.min()))) if len(lam) else 0.0
+        proj = U[:, keep].T @ m
+        T = float(np.sum(proj**2 / lam[keep])) / s0**2 if keep.any() else 0.0
+        dof = int(keep.sum())
+        delta = -U[:, keep] @ (proj / lam[keep]) if keep.any() else np.zeros(len(m))
+        cov = ((U[:, keep] / lam[keep]) @ U[:, keep].T * s0**2 if keep.any()
+               else np.zeros((len(m),) * 2))
+        sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        effect = math.sqrt(max(T - dof, 0.0) * s0**2 / max(self.sum_q, 1e-300))
+        # correlation of each tested parameter with the null unknowns (for "with")
+        with_, cw = [], []
+        if len(m) == 1:
+            # corr(e, x_i) = -Z_i / sqrt(S (K^-1)_ii + Z_i^2)  (inverse of the bordered matrix)
+            kd = np.maximum(np.diag(self.K_inv), 0.0)
+            Sv = max(float(S[0, 0]), 0.0)
+            corr = -Z[:, 0] / np.sqrt(Sv * kd + Z[:, 0] ** 2 + 1e-300)
+            order = np.argsort(-np.abs(corr))
+            for i in order:
+                name = self.labels[self.I0[i]].split("@")[0]
+                if name in with_:
+                    continue
+                if (abs(corr[i]) >= 0.5 and len(with_) < 3) or not with_:
+                    with_.append(name)
+                    cw.append(float(corr[i]))
+        p = _p_of(T, dof)
+        return _Test(cand, T, dof, p, _z_of(T, dof), effect, delta, sig, rho, with_, cw,
+                     confounded=dof < len(m) if len(m) == 1 else dof == 0, S=S, Draw=Draw,
+                     cov=cov)
+
+    def scan_difference(self, cand: _Candidate, test: _Test) -> tuple[float, int]:
+        """``T`` of freeing a shared candidate per scan, beyond the shared value."""
+        if cand.per_scan is None or cand.per_scan.shape[1] <= cand.H.shape[1]:
+            return 0.0, 0
+        alt = _Candidate(cand.effect, cand.family, cand.idx, cand.per_scan, cand.names, cand.scans)
+        t = self.test(alt, test_sigma0 := self.sigma0)
+        del test_sigma0
+        return max(0.0, t.T - test.T), t.dof - test.dof
+
+
+@functools.lru_cache(maxsize=1)
+def _inseparable_table() -> dict[frozenset, float]:
+    """Every pair of instrument parameters with the same correction shape (computed once)."""
+    return {frozenset((a, b)): c for a, b, c in inseparable_pairs(list(INSTRUMENT))}
+
+
+def _inseparable(names: tuple[str, ...]) -> tuple:
+    """The inseparable pairs among ``names`` (as :func:`inseparable_pairs`)."""
+    tab = _inseparable_table()
+    inst = [n for n in names if n in INSTRUMENT]
+    return tuple((a, b, tab[frozenset((a, b))]) for i, a in enumerate(inst) for b in inst[i + 1:]
+                 if frozenset((a, b)) in tab)
+
+
+def _local_candidates(ctx: _Context, scans: Sequence[_Scan], spec: _Spec) -> dict[str, list[str]]:
+    """Per scan: the catalog parameters not in the model, free at value 0 in the test."""
+    cfg = ctx.config
+    wanted = set(cfg.effects) if cfg.effects else None
+    in_model = set(spec.start) | set(spec.shared)
+    inst = []
+    for k in INSTRUMENT:
+        if k in in_model or (wanted is not None and k not in wanted) or k in spec.skip:
+            continue
+        if _inseparable(tuple(sorted(in_model)) + (k,)):
+            continue  # same shape as a model parameter: reported as confounded elsewhere
+        inst.append(k)
+    positions = {sc.meta.position for sc in scans}
+    gs = np.array([sc.g for sc in scans])
+    grav = (len(positions) >= 2 and spec.zern_C is None and np.linalg.matrix_rank(
+        gs - gs.mean(0), tol=1e-3) >= 1 and (wanted is None or "gravity_deformation" in wanted))
+    out = {}
+    for sc in scans:
+        mot = spec.motion.get(sc.id, {})
+        names = list(inst)
+        if grav:
+            names += [f"{ZERNIKE_PREFIX}{j}" for j in ZERNIKE_TESTED]
+        if spec.times:  # motion lives in time: no recorded times, no motion candidates
+            if "window_s" not in mot and sc.window_s and _want(wanted, "impulsive_shift"):
+                names += list(SHIFT)
+            if "period_s" not in mot and sc.period_s and _want(wanted, "oscillation"):
+                names += list(OSCILLATION)
+            if not any(n in DRIFT for n in mot.get("names", ())) and _want(wanted, "drift"):
+                names += list(MOTION["drift"])
+        out[sc.id] = names
+    return out
+
+
+def _want(wanted, eid):
+    return wanted is None or eid in wanted
+
+
+def _candidates(joint: _Joint, scans: Sequence[_Scan], local: dict[str, list[str]]):
+    """The candidates of the joint system: shared instrument, per-scan motion, gravity."""
+    out: list[_Candidate] = []
+    ids = [sc.id for sc in scans]
+    first = local[ids[0]]
+    for k in INSTRUMENT:
+        if k not in first:
+            continue
+        idx = np.array([joint.cidx[(s, k)] for s in ids])
+        out.append(_Candidate(k, "instrument", idx, np.ones((len(ids), 1)), [k], ids,
+                              per_scan=np.eye(len(ids))))
+    for sc in scans:
+        for eff, pnames in MOTION.items():
+            present = [n for n in pnames if n in local[sc.id]]
+            if not present:
+                continue
+            idx = np.array([joint.cidx[(sc.id, n)] for n in present])
+            penalty = 1.0
+            info = {}
+            if eff == "impulsive_shift":
+                penalty = float(sc.search.get("n_windows", 1))
+                info = {"window_s": sc.window_s, "search_T": sc.window_stat}
+            elif eff == "oscillation":
+                penalty = float(sc.search.get("n_periods", 1))
+                info = {"period_s": sc.period_s, "search_T": sc.period_stat}
+            out.append(_Candidate(eff, "motion", idx, np.eye(len(idx)), present, [sc.id],
+                                  penalty=penalty, info=info))
+    zern = [f"{ZERNIKE_PREFIX}{j}" for j in ZERNIKE_TESTED]
+    if all(z in first for z in zern):
+        idx, rows = [], []
+        for sc in scans:
+            for z in zern:
+                idx.append(joint.cidx[(sc.id, z)])
+                k = zern.index(z)
+                row = np.zeros(3 * len(zern))
+                row[3 * k: 3 * k + 3] = sc.g
+                rows.append(row)
+        out.append(_Candidate("gravity_deformation", "reflector", np.array(idx), np.array(rows),
+                              [f"C{j}{a}" for j in ZERNIKE_TESTED for a in "xyz"], ids))
+    return out
+
+
+def _log_sf(T: float, dof: int) -> float:
+    """Natural log of the chi-square survival function, accurate far in the tail."""
+    from scipy import special
+
+    T = max(float(T), 0.0)
+    k = max(int(dof), 1)
+    p = float(special.gammaincc(k / 2.0, T / 2.0))
+    if p > 1e-300:
+        return math.log(p)
+    a, x = k / 2.0, T / 2.0  # asymptotic upper incomplete gamma: x^(a-1) e^-x / Gamma(a)
+    return (a - 1) * math.log(x) - x - special.gammaln(a) + math.log1p((a - 1) / x)

@@ -1,0 +1,430 @@
+"""Locate: where and when the mismatch lives. Time (change points by box search, periodogram),
+covariates (temperature, elevation, intensity, range, ...) and the dish (panel cells)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from ._covariates import compare
+from ._result import (  # noqa: F401
+    Diagnosis,
+    _json_default,
+    write_json,
+)
+from ._state import (  # noqa: F401
+    ZERNIKE_TESTED,
+    DiagnoseConfig,
+    Finding,
+    _adjust,
+    _Context,
+    _evaluate,
+    _fixed,
+    _global_sigma0,
+    _npad,
+    _num,
+    _pad,
+    _panel_known,
+    _refit,
+    _refit_all,
+    _restore,
+    _rms,
+    _save,
+    _Scan,
+    _scan_model,
+    _set_known,
+    _Spec,
+)
+
+COVARIATES = ("theta", "range", "incidence_angle", "intensity", "rho", "psi", "time")
+
+
+def _time_bins(sc: _Scan, cfg: DiagnoseConfig):
+    u = sc.used & (sc.m > 0)
+    t = sc.data.time_s
+    nb = int(np.clip(u.sum() // cfg.min_points_per_bin, 16, cfg.max_time_bins))
+    t0, t1 = float(t[u].min()), float(t[u].max())
+    edges = np.linspace(t0, t1 + 1e-9 * max(1.0, abs(t1)), nb + 1)
+    b = np.clip(np.searchsorted(edges, t, side="right") - 1, 0, nb - 1)
+    q = np.where(u, 1.0 / np.where(sc.m > 0, sc.m, 1.0), 0.0)
+    a = sc.probe
+    Nb = np.zeros((nb, 5, 5))
+    nbv = np.zeros((nb, 5))
+    qa = a * q[:, None]
+    for i in range(5):
+        nbv[:, i] = np.bincount(b, qa[:, i] * sc.F, minlength=nb)
+        for j in range(i, 5):
+            Nb[:, i, j] = Nb[:, j, i] = np.bincount(b, qa[:, i] * a[:, j], minlength=nb)
+    return edges, b, Nb, nbv
+
+
+def _box_search(edges, Nb, nbv, cfg: DiagnoseConfig):
+    """Best window of a translation (impulsive shift) over the time bins: ``(i, j, T, profile)``.
+
+    ``T = n_W^T S_W^-1 n_W`` with ``S_W = N_W - N_W N^-1 N_W`` (the constant translation is
+    the object parameters'). Windows up to ``max_window_fraction`` of the scan.
+    """
+    B = len(nbv)
+    Nt, nt = Nb[:, :3, :3], nbv[:, :3]
+    CN = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(Nt, 0)])
+    Cn = np.concatenate([np.zeros((1, 3)), np.cumsum(nt, 0)])
+    Ntot = CN[-1]
+    Ninv = np.linalg.pinv(Ntot)
+    best = (0, 1, 0.0)
+    Lmax = max(1, int(cfg.max_window_fraction * B))
+    profile = np.zeros(B)
+    eye = 1e-9 * np.trace(Ntot) / 3 * np.eye(3)
+    for L in range(1, Lmax + 1):
+        NW = CN[L:] - CN[:-L]
+        nW = Cn[L:] - Cn[:-L]
+        S = NW - NW @ Ninv @ NW + eye
+        ok = np.trace(NW, axis1=1, axis2=2) > 0
+        T = np.zeros(len(nW))
+        if ok.any():
+            sol = np.linalg.solve(S[ok], nW[ok][..., None])[..., 0]
+            T[ok] = np.sum(nW[ok] * sol, 1)
+        k = int(np.argmax(T))
+        if T[k] > best[2]:
+            best = (k, k + L, float(T[k]))
+        np.maximum.at(profile, np.arange(len(T)), T)
+    return best[0], best[1], best[2], profile, Lmax
+
+
+def _refine_window(sc: _Scan, edges, i: int, j: int, Ntot, T0: float, n_cand: int = 48):
+    """Window edges at the resolution of the points' times (within one bin of the coarse
+    edges), by the same statistic on cumulative sums over the time-sorted points."""
+    u = sc.used & (sc.m > 0)
+    t = sc.data.time_s[u]
+    order = np.argsort(t, kind="stable")
+    t = t[order]
+    a = sc.probe[u][order, :3]
+    q = 1.0 / sc.m[u][order]
+    F = sc.F[u][order]
+    qa = a * q[:, None]
+    CN = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(qa[:, :, None] * a[:, None, :], 0)])
+    Cn = np.concatenate([np.zeros((1, 3)), np.cumsum(qa * F[:, None], 0)])
+    Ninv = np.linalg.pinv(Ntot)
+
+    def cands(k):
+        lo, hi = edges[max(k - 1, 0)], edges[min(k + 1, len(edges) - 1)]
+        idx = np.arange(np.searchsorted(t, lo), np.searchsorted(t, hi, side="right") + 1)
+        idx = np.clip(idx, 0, len(t))
+        if len(idx) > n_cand:
+            idx = idx[np.linspace(0, len(idx) - 1, n_cand).astype(int)]
+        return np.unique(idx)
+
+    s_idx, e_idx = cands(i), cands(j)
+    S0, E0 = np.meshgrid(s_idx, e_idx, indexing="ij")
+    ok = E0 > S0
+    if not ok.any():
+        return (float(edges[i]), float(edges[j] - edges[i])), T0
+    S0, E0 = S0[ok], E0[ok]
+    NW = CN[E0] - CN[S0]
+    nW = Cn[E0] - Cn[S0]
+    Sm = NW - NW @ Ninv @ NW + 1e-9 * np.trace(Ntot) / 3 * np.eye(3)
+    T = np.sum(nW * np.linalg.solve(Sm, nW[..., None])[..., 0], 1)
+    k = int(np.argmax(T))
+    if T[k] <= T0:
+        return (float(edges[i]), float(edges[j] - edges[i])), T0
+    s0, e0 = int(S0[k]), int(E0[k])
+    start = 0.5 * (t[s0 - 1] + t[s0]) if s0 > 0 else t[0] - 1e-9
+    end = 0.5 * (t[e0 - 1] + t[e0]) if e0 < len(t) else t[-1] + 1e-9
+    return (float(start), float(end - start)), float(T[k])
+
+
+def _periodogram(edges, Nb, nbv, cfg: DiagnoseConfig):
+    """Score statistic of a rotation ``a sin(wt) + b cos(wt)`` about scanner x and y vs period.
+
+    Returns ``(periods, T)``; the constant rotation (object parameters) is eliminated.
+    """
+    B = len(nbv)
+    tb = 0.5 * (edges[:-1] + edges[1:])
+    span = edges[-1] - edges[0]
+    Nr, nr = Nb[:, 3:, 3:], nbv[:, 3:]
+    live = np.trace(Nr, axis1=1, axis2=2) > 0
+    tb, Nr, nr = tb[live], Nr[live], nr[live]
+    fmin = 2.0 / span
+    fmax = 0.25 * B / span  # half the bins' Nyquist frequency
+    if fmax <= fmin:
+        return np.zeros(0), np.zeros(0)
+    nf = int(min(4000, max(50, 4 * (fmax - fmin) * span)))
+    freqs = np.linspace(fmin, fmax, nf)
+    Ntot = Nr.sum(0)
+    Ntot_inv = np.linalg.pinv(Ntot)
+    T = np.zeros(nf)
+    for lo in range(0, nf, 256):
+        f = freqs[lo: lo + 256]
+        ph = 2 * np.pi * f[:, None] * tb[None, :]
+        H = np.stack([np.sin(ph), np.cos(ph)], -1)  # (F, B, 2)
+        M = np.einsum("fbp,fbq,bij->fpiqj", H, H, Nr).reshape(len(f), 4, 4)
+        K = np.einsum("fbp,bij->fpij", H, Nr).reshape(len(f), 4, 2)
+        u = np.einsum("fbp,bi->fpi", H, nr).reshape(len(f), 4)
+        S = M - K @ Ntot_inv @ np.swapaxes(K, 1, 2)
+        S = S + 1e-12 * np.trace(S, axis1=1, axis2=2)[:, None, None] * np.eye(4)
+        sol = np.linalg.solve(S, u[..., None])[..., 0]
+        T[lo: lo + 256] = np.sum(u * sol, 1)
+    return 1.0 / freqs, T
+
+
+def _periodogram_points(sc: _Scan, freqs: np.ndarray, F: np.ndarray | None = None) -> np.ndarray:
+    """The periodogram statistic at a few frequencies from the points' own times (exact);
+    ``F``: misclosures to use instead of the scan's."""
+    u = sc.used & (sc.m > 0)
+    t = sc.data.time_s[u]
+    a = sc.probe[u][:, 3:]
+    q = 1.0 / sc.m[u]
+    F = (sc.F if F is None else F)[u]
+    qa = a * q[:, None]
+    N0 = qa.T @ a
+    N0i = np.linalg.pinv(N0)
+    out = np.zeros(len(freqs))
+    for k, f in enumerate(freqs):
+        ph = 2 * np.pi * f * t
+        h = np.stack([np.sin(ph), np.cos(ph)], 1)
+        C = (h[:, :, None] * a[:, None, :]).reshape(len(t), 4)  # (sin, cos) x (x, y)
+        qC = C * q[:, None]
+        M = qC.T @ C
+        K = qC.T @ a
+        uu = qC.T @ F
+        S = M - K @ N0i @ K.T
+        out[k] = float(uu @ np.linalg.solve(S + 1e-12 * np.trace(S) * np.eye(4), uu))
+    return out
+
+
+def _locate_time(sc: _Scan, cfg: DiagnoseConfig) -> None:
+    """Window of the strongest box (change points) and the strongest period of one scan."""
+    edges, b, Nb, nbv = _time_bins(sc, cfg)
+    i, j, T, profile, Lmax = _box_search(edges, Nb, nbv, cfg)
+    sc.window_s, sc.window_stat = _refine_window(sc, edges, i, j, Nb[:, :3, :3].sum(0), T)
+    periods, P = _periodogram(edges, Nb, nbv, cfg)
+    if len(P):
+        k = int(np.argmax(P))
+        # zoom on the peak with the points' own times
+        f0 = 1.0 / periods[k]
+        df = abs(1.0 / periods[min(k + 1, len(P) - 1)] - 1.0 / periods[max(k - 1, 0)]) / 2
+        fz = f0 + np.linspace(-1.5, 1.5, 31) * df
+        Pz = _periodogram_points(sc, fz)
+        j = int(np.argmax(Pz))
+        fbest = fz[j]
+        if 0 < j < len(Pz) - 1:  # parabolic refinement in frequency
+            den = Pz[j - 1] - 2 * Pz[j] + Pz[j + 1]
+            if den < 0:
+                fbest = fz[j] + 0.5 * (Pz[j - 1] - Pz[j + 1]) / den * (fz[1] - fz[0])
+        sc.period_s, sc.period_stat = float(1.0 / fbest), float(max(Pz[j], P[k]))
+    B = len(nbv)
+    sc.search = {
+        "edges": edges, "box_profile": profile, "n_windows": B * Lmax,
+        "periods": periods, "periodogram": P, "n_periods": max(1, len(P)),
+        "translation": _bin_solutions(Nb[:, :3, :3], nbv[:, :3]),
+    }
+
+
+def _bin_solutions(N, n):
+    """Per-bin least-squares estimates (regularised), for plots."""
+    tr = np.trace(N, axis1=1, axis2=2)[:, None, None]
+    reg = 1e-6 * np.where(tr > 0, tr, 1.0) * np.eye(N.shape[-1])
+    return -np.linalg.solve(N + reg, n[..., None])[..., 0]
+
+
+def _covariate_values(sc: _Scan) -> dict[str, np.ndarray]:
+    th = np.mod(sc.data.theta_rad, 2 * np.pi)
+    return {
+        "theta": np.where(th > np.pi, 2 * np.pi - th, th),
+        "range": sc.data.range_m,
+        "incidence_angle": sc.incidence,
+        "intensity": sc.data.intensity.astype(float),
+        "rho": sc.rho,
+        "psi": sc.psi,
+        "time": sc.data.time_s,
+        "phi": sc.data.phi_rad,
+    }
+
+
+def _covariate_tests(ctx: _Context, scans: Sequence[_Scan], sigma0: float, names=COVARIATES,
+                     skip=frozenset()):
+    """Binned structure of the range-equivalent mismatch along each covariate, all scans jointly.
+
+    The alternative is a range error per (scan, face, quantile bin of the covariate). One plane
+    per panel (offset and two tilts, common to all scans) is eliminated, so panel-level
+    reflector deviations do not show as covariate structure. Returns ``{covariate: dict(T, dof,
+    ids (per scan), est (range error per bin, m), se (m), per_scan)}``; the object parameters
+    are not eliminated (conservative).
+    """
+    cfg = ctx.config
+    nb = cfg.covariate_bins
+    G = ctx.n_panels
+    per_scan = 2 * nb
+    out = {}
+    base = []
+    Mgg = np.zeros((G, 3, 3))
+    ug = np.zeros((G, 3))
+    for sc in scans:
+        u = sc.used & (sc.m > 0)
+        q = np.where(u, 1.0 / np.where(sc.m > 0, sc.m, 1.0), 0.0)
+        pp = u & (sc.panel >= 0)
+        D = _panel_columns(ctx, sc) * sc.s_rho[:, None]  # d condition / d plane parameters
+        base.append((sc, u, q, pp, D, _covariate_values(sc)))
+        for a in range(3):
+            ug[:, a] += np.bincount(sc.panel[pp], (q * D[:, a] * sc.F)[pp], minlength=G)
+            for b in range(3):
+                Mgg[:, a, b] += np.bincount(sc.panel[pp], (q * D[:, a] * D[:, b])[pp],
+                                            minlength=G)
+    Mi = np.linalg.pinv(Mgg, rcond=1e-10)
+    for name in names:
+        if name in skip:
+            continue
+        B = per_scan * len(scans)
+        Mbb = np.zeros(B)
+        ub = np.zeros(B)
+        Mbg = np.zeros((B * G, 3))
+        ids_all = []
+        for k, (sc, u, q, pp, D, vals) in enumerate(base):
+            v = vals[name]
+            ids = np.full(len(v), -1)
+            for fc in (1, 2):
+                sel = u & (sc.face == fc)
+                if sel.sum() < 4 * nb:
+                    continue
+                qs = np.quantile(v[sel], np.linspace(0, 1, nb + 1)[1:-1])
+                ids[sel] = (fc - 1) * nb + np.searchsorted(qs, v[sel], side="right")
+            ids_all.append(ids)
+            ok = ids >= 0
+            gid = k * per_scan + ids[ok]
+            Mbb += np.bincount(gid, (q * sc.b0**2)[ok], minlength=B)
+            ub += np.bincount(gid, (q * sc.b0 * sc.F)[ok], minlength=B)
+            okp = ok & pp
+            cell = (k * per_scan + ids[okp]) * G + sc.panel[okp]
+            for a in range(3):
+                Mbg[:, a] += np.bincount(cell, (q * sc.b0 * D[:, a])[okp], minlength=B * G)
+        live = Mbb > 0
+        if live.sum() < 2:
+            continue
+        Mbg = Mbg.reshape(B, G, 3)
+        W = np.einsum("bgi,gij->bgj", Mbg, Mi)
+        Sm = np.diag(Mbb) - np.einsum("bgj,cgj->bc", W, Mbg)
+        m = ub - np.einsum("bgj,gj->b", W, ug)
+        Sm, m = Sm[np.ix_(live, live)], m[live]
+        w, V = np.linalg.eigh(0.5 * (Sm + Sm.T))
+        # the near-null directions are a common range offset of the bins against the panel
+        # planes (x10 against the surface): confounded, left out
+        keep = w > 1e-6 * w.max()
+        proj = V[:, keep].T @ m
+        T = float(np.sum(proj**2 / w[keep])) / sigma0**2
+        est = np.zeros(B)
+        est[live] = V[:, keep] @ (proj / w[keep])
+        planes = np.einsum("gij,gj->gi", Mi, ug - np.einsum("bgi,b->gi", Mbg, est))
+        raw = est.copy()
+        # a common range offset of all bins is absorbed by the surface (x10 is confounded):
+        # report the bins' contrast, per scan and face, with the information of each bin
+        for k in range(len(scans)):
+            for fc in range(2):
+                sl = slice(k * per_scan + fc * nb, k * per_scan + (fc + 1) * nb)
+                wl = Mbb[sl]
+                if wl.sum() > 0:
+                    est[sl] -= np.sum(wl * est[sl]) / wl.sum()
+        se = np.where(live, sigma0 / np.sqrt(np.where(live, Mbb, 1.0)), 0.0)
+        out[name] = {"T": T, "dof": int(keep.sum()), "ids": ids_all, "est": est, "se": se,
+                     "per_scan": per_scan, "raw": raw, "planes": planes}
+    return out
+
+
+def _covariate_cv(S: Sequence[_Scan], spec: _Spec, only=None) -> dict:
+    """Cross-validated comparison of the covariates (:func:`._covariates.compare`) on the
+    range-equivalent mismatch of the points in use, all scans together."""
+
+    names = [n for n in ("range", "incidence_angle", "intensity", "time", "theta", "phi", "rho",
+                         "psi") if n not in spec.no_covariates and (only is None or n in only
+                                                                     or n == "phi")]
+    vals = {n: [] for n in names}
+    res = []
+    for sc in S:
+        u = sc.used & (sc.m > 0)
+        cv = _covariate_values(sc)
+        for n in names:
+            vals[n].append(np.asarray(cv[n], float)[u])
+        res.append(sc.mismatch_range_m[u])
+    if not res:
+        return {}
+    return compare({n: np.concatenate(v) for n, v in vals.items()}, np.concatenate(res))
+
+
+def _panel_cells(ctx: _Context, sc: _Scan) -> np.ndarray:
+    """Sub-cell of each point within its panel (``panel * nr * na + cell``; -1: none)."""
+    nr, na = ctx.config.panel_cells
+    p = sc.panel
+    ok = p >= 0
+    k = np.where(ok, p, 0)
+    g = ctx.geo
+    fr = np.clip((sc.rho - g["rho_in"][k]) / (g["rho_out"][k] - g["rho_in"][k]), 0, 0.999999)
+    dpsi = np.mod(sc.psi - g["psi_start"][k], 2 * np.pi)
+    fa = np.clip(dpsi / (g["psi_end"][k] - g["psi_start"][k]), 0, 0.999999)
+    cell = (fr * nr).astype(int) * na + (fa * na).astype(int)
+    return np.where(ok, k * nr * na + cell, -1)
+
+
+def _panel_columns(ctx: _Context, sc: _Scan) -> np.ndarray:
+    """Normal-deviation columns of a panel plane (offset, radial tilt, tangential tilt)."""
+    k = np.where(sc.panel >= 0, sc.panel, 0)
+    g = ctx.geo
+    dpsi = np.mod(sc.psi - g["psi_c"][k] + np.pi, 2 * np.pi) - np.pi
+    return np.column_stack([np.ones_like(sc.rho), sc.rho - g["rho_c"][k], g["rho_c"][k] * dpsi])
+
+
+def _dish_test(ctx: _Context, scans: Sequence[_Scan], sigma0: float):
+    """Within-panel structure common to all scans: cell offsets after one plane per panel.
+
+    Returns per panel ``(T, dof)``, the per-cell deviation estimates (m) and the cell ids.
+    """
+    nr, na = ctx.config.panel_cells
+    C = nr * na
+    G = ctx.n_panels
+    # normal-deviation regression: condition change = s * dev, so dev column = -s (F = ... + dev s)
+    Mcc = np.zeros(G * C)
+    Mcp = np.zeros((G * C, 3))
+    Mpp = np.zeros((G, 3, 3))
+    uc = np.zeros(G * C)
+    up = np.zeros((G, 3))
+    cells = []
+    for sc in scans:
+        u = sc.used & (sc.m > 0) & (sc.panel >= 0)
+        q = np.where(u, 1.0 / np.where(sc.m > 0, sc.m, 1.0), 0.0)
+        cell = _panel_cells(ctx, sc)
+        cells.append(cell)
+        P = _panel_columns(ctx, sc)
+        s = sc.s_rho
+        r = -sc.F / s  # mismatch along the normal
+        w = q * s * s
+        ci, pi_ = cell[u], sc.panel[u]
+        Mcc += np.bincount(ci, w[u], minlength=G * C)
+        uc += np.bincount(ci, (w * r)[u], minlength=G * C)
+        for a in range(3):
+            Mcp[:, a] += np.bincount(ci, (w * P[:, a])[u], minlength=G * C)
+            up[:, a] += np.bincount(pi_, (w * r * P[:, a])[u], minlength=G)
+            for b in range(3):
+                Mpp[:, a, b] += np.bincount(pi_, (w * P[:, a] * P[:, b])[u], minlength=G)
+    Tg = np.zeros(G)
+    dof = np.zeros(G, int)
+    est = np.zeros(G * C)
+    for g in range(G):
+        sl = slice(g * C, (g + 1) * C)
+        live = Mcc[sl] > 0
+        if live.sum() <= 3:
+            continue
+        mcc = Mcc[sl][live]
+        mcp = Mcp[sl][live]
+        ucg = uc[sl][live]
+        # cells (indicators) reduced by the plane: S = diag(mcc) - mcp Mpp^-1 mcp^T
+        Pinv = np.linalg.pinv(Mpp[g])
+        S = np.diag(mcc) - mcp @ Pinv @ mcp.T
+        m = ucg - mcp @ Pinv @ up[g]
+        w_, V = np.linalg.eigh(S)
+        keep = w_ > 1e-6 * w_.max()
+        proj = V[:, keep].T @ m
+        Tg[g] = float(np.sum(proj**2 / w_[keep])) / sigma0**2
+        dof[g] = int(keep.sum())
+        sol = V[:, keep] @ (proj / w_[keep])
+        e = np.zeros(C)
+        e[live] = sol
+        est[sl] = e
+    return Tg, dof, est, cells

@@ -1,0 +1,108 @@
+"""The diagnosis result: `Diagnosis` (schema ``hartrao-diagnosis/1``) and its JSON file."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..campaign._safeio import write_json_atomic
+from ._state import (  # noqa: F401
+    ZERNIKE_TESTED,
+    DiagnoseConfig,
+    Finding,
+    _adjust,
+    _Context,
+    _evaluate,
+    _fixed,
+    _global_sigma0,
+    _npad,
+    _num,
+    _pad,
+    _panel_known,
+    _refit,
+    _refit_all,
+    _restore,
+    _rms,
+    _save,
+    _Scan,
+    _scan_model,
+    _set_known,
+    _Spec,
+)
+
+DIAGNOSIS_SCHEMA = "hartrao-diagnosis/1"
+
+
+@dataclass
+class Diagnosis:
+    """Result of :func:`diagnose`; ``to_json()`` gives the ``hartrao-diagnosis/1`` document."""
+
+    campaign: str
+    start_model: list[str]
+    final_model: list[str]
+    sigma0_start: float
+    sigma0_final: float
+    rms_start_m: float
+    rms_final_m: float
+    findings: list[Finding]
+    confounded: list[dict]
+    comparison: list[dict]
+    candidates: list[dict]
+    timing_s: dict[str, float]
+    notes: list[str] = field(default_factory=list)
+    scans_final: dict[str, dict] = field(default_factory=dict)
+    history: list[dict] = field(default_factory=list)
+    detectability: list[dict] = field(default_factory=list)
+    skipped: list[dict] = field(default_factory=list)  # searches the recording cannot support
+    not_identifiable: list[dict] = field(default_factory=list)
+    local_search: list[dict] = field(default_factory=list)  # local-deformation searches
+    layout: str = ""  # panels of the telescope's layout, or the stated grid
+    covariates: dict = field(default_factory=dict)  # cross-validated covariate comparison
+    extents: dict = field(default_factory=dict)  # scan id -> map extent (m), for figures
+
+    def to_json(self) -> dict:
+        return {
+            "schema": DIAGNOSIS_SCHEMA,
+            "campaign": self.campaign,
+            "start_model": self.start_model,
+            "final_model": self.final_model,
+            "sigma0_start": _num(self.sigma0_start),
+            "sigma0_final": _num(self.sigma0_final),
+            "rms_start_m": _num(self.rms_start_m),
+            "rms_final_m": _num(self.rms_final_m),
+            "findings": [f.to_json() for f in self.findings],
+            "confounded": self.confounded,
+            "comparison": self.comparison,
+            "last_candidates": self.candidates,
+            "scans": self.scans_final,
+            "detectability": self.detectability,
+            "timing_s": self.timing_s,
+            "notes": self.notes,
+            "skipped": self.skipped,
+            "not_identifiable": self.not_identifiable,
+            "local_deformation_search": [
+                {k: v for k, v in d.items() if not k.startswith("_")} for d in self.local_search],
+            "layout": self.layout,
+            "covariate_comparison": self.covariates,
+        }
+
+    def effects(self) -> list[str]:
+        return [f.effect for f in self.findings]
+
+
+def write_json(diag: Diagnosis, path: str | Path) -> Path:
+    """Write the ``hartrao-diagnosis/1`` document (strict JSON, temporary name + rename)."""
+
+    return write_json_atomic(path, diag.to_json(), indent=2, default=_json_default)
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.bool_):
+        return bool(o)
+    raise TypeError(type(o))

@@ -56,8 +56,20 @@ log = logging.getLogger("hartrao_jax")
 FIT_SCHEMA = "hartrao-fit/1"
 
 
+class Estimates:
+    """``sigma`` and ``estimates`` of a fit with ``names``, ``x`` and ``cov`` (scan, stream)."""
+
+    @property
+    def sigma(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.cov))
+
+    @property
+    def estimates(self) -> dict[str, tuple[float, float]]:
+        return {n: (float(self.x[i]), float(self.sigma[i])) for i, n in enumerate(self.names)}
+
+
 @dataclass
-class ScanFit:
+class ScanFit(Estimates):
     """The adjustment of one scan (NumPy; SI units).
 
     ``used`` marks the points of ``data`` that entered the final adjustment; ``deviation_m`` is
@@ -87,14 +99,6 @@ class ScanFit:
     gravity: np.ndarray
     elevation_deg: float
     notes: list[str] = field(default_factory=list)
-
-    @property
-    def sigma(self) -> np.ndarray:
-        return np.sqrt(np.diag(self.cov))
-
-    @property
-    def estimates(self) -> dict[str, tuple[float, float]]:
-        return {n: (float(self.x[i]), float(self.sigma[i])) for i, n in enumerate(self.names)}
 
     def value(self, name: str) -> float:
         """Estimated or fixed value of a parameter (0 for a parameter not in the model)."""
@@ -933,11 +937,15 @@ def write_fit(out_dir: str | Path, cf: CampaignFit, *, residuals: bool = True) -
     for rec, s in zip(doc.get("scans", []), cf.scans):
         if getattr(s, "data", None) is not None and "n_dropped" not in rec:
             rec["n_dropped"] = dict(s.data.dropped)
+    return write_fit_dir(out_dir, doc, cf.scans if residuals else ())
+
+
+def write_fit_dir(out_dir, doc: dict, scans: Sequence[ScanFit] = ()) -> Path:
+    """``residuals/<scan>.parquet`` of ``scans`` under temporary names, then ``fit.json``
+    (``doc``, strict, with the ``"files"`` manifest) last: the one commit of every fit."""
     with OutputDir(out_dir, "fit.json") as od:
-        if residuals:
-            for s in cf.scans:
-                od.write_with(f"residuals/{s.meta.id}.parquet",
-                              lambda t, s=s: write_residuals(t, s))
+        for s in scans:
+            od.write_with(f"residuals/{s.meta.id}.parquet", lambda t, s=s: write_residuals(t, s))
         return od.commit(doc)
 
 

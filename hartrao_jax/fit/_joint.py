@@ -42,7 +42,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..campaign._campaign import Campaign, ScanMeta
-from ..campaign._safeio import OutputDir
 from ..model._model import parameter_unit
 from ..physics._catalog import CALIBRATION, OBJECT_PARAMETERS
 from ..solver._ghm import (
@@ -63,7 +62,7 @@ from ._fit import (
     fit_json,
     scan_arrays,
     sigma_vector,
-    write_residuals,
+    write_fit_dir,
 )
 
 log = logging.getLogger("hartrao_jax")
@@ -632,13 +631,7 @@ def write_joint_fit(out_dir, jf: JointFit, *, residuals: bool = True) -> Path:
     last, strict, with the ``"files"`` manifest.
     """
 
-    doc = joint_json(jf)
-    with OutputDir(out_dir, "fit.json") as od:
-        if residuals:
-            for s in jf.scans:
-                od.write_with(f"residuals/{s.meta.id}.parquet",
-                              lambda t, s=s: write_residuals(t, s))
-        return od.commit(doc)
+    return write_fit_dir(out_dir, joint_json(jf), jf.scans if residuals else ())
 
 
 __all__ = [

@@ -71,7 +71,7 @@ from ..model._model import N_CONSTS, make_model, parameter_unit
 from ..preprocess._initial import InitialValues, geometry_window, initial_values
 from ..solver._kernel import linearize_rev, make_pass, solve_scaled
 from ._distributed import worker_setup
-from ._fit import _progress, _x0, sigma_vector
+from ._fit import Estimates, _progress, _x0, sigma_vector
 
 log = logging.getLogger("hartrao_jax")
 
@@ -179,7 +179,7 @@ class _NpyRows(_SlotFile):
 
 
 @dataclass
-class StreamFit:
+class StreamFit(Estimates):
     """Result of :func:`stream_fit_scan` (SI units). Per-point results under ``store``:
     ``v.npy`` (rows, 3) residuals, ``w.npy`` weights, ``e.npy`` standardized residuals
     (|k| sqrt(m) / sigma0), indexed by the file row.
@@ -212,14 +212,6 @@ class StreamFit:
     round_iterations: list = field(default_factory=list)
     ratios: list = field(default_factory=list)
     stalled_rounds: list = field(default_factory=list)
-
-    @property
-    def sigma(self) -> np.ndarray:
-        return np.sqrt(np.diag(self.cov))
-
-    @property
-    def estimates(self) -> dict[str, tuple[float, float]]:
-        return {n: (float(self.x[i]), float(self.sigma[i])) for i, n in enumerate(self.names)}
 
 
 def _count_rows(campaign: Campaign, meta: ScanMeta) -> int:

@@ -1,0 +1,6 @@
+"""``python -m hartrao_jax.cli``: the same as the ``hartrao-jax`` command."""
+
+from . import main
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -9,8 +9,8 @@ iteration the workers return their normal equations (9 x 9) and apply the step t
 residuals.
 
 Workers import JAX themselves and switch on float64 and the persistent compilation cache
-(:class:`JaxWorkerPlugin`); a :class:`~distributed.LocalCluster` is started with one thread per
-worker process and XLA limited to one intra-op thread, so ``n`` workers use ``n`` cores.
+(``JaxWorkerPlugin``, built on first use: ``distributed`` loads only for the Dask commands); a
+:class:`~distributed.LocalCluster` is started with one thread per worker process and XLA limited to one intra-op thread, so ``n`` workers use ``n`` cores.
 
 Two things made a worker 3.5 times slower per scan than the in-process fit, both fixed here:
 
@@ -95,19 +95,34 @@ def worker_setup() -> None:
         pass
 
 
-try:
-    from distributed.diagnostics.plugin import WorkerPlugin
-except ImportError:  # pragma: no cover - dask is an optional dependency
-    WorkerPlugin = object  # type: ignore[misc,assignment]
+def _plugin_class():
+    """The worker plugin class, built on first use: ``distributed`` (optional, heavy) is
+    imported only when a Dask command runs, never by ``import hartrao_jax``."""
+    global _JaxWorkerPlugin
+    if _JaxWorkerPlugin is None:
+        from distributed.diagnostics.plugin import WorkerPlugin
+
+        class JaxWorkerPlugin(WorkerPlugin):  # type: ignore[misc]
+            """Imports hartrao_jax in each worker (float64, compilation cache) before any task."""
+
+            name = "hartrao-jax"
+
+            def setup(self, worker):  # noqa: D401
+                worker_setup()
+
+        JaxWorkerPlugin.__module__ = __name__
+        JaxWorkerPlugin.__qualname__ = "JaxWorkerPlugin"  # pickled by reference (__getattr__)
+        _JaxWorkerPlugin = JaxWorkerPlugin
+    return _JaxWorkerPlugin
 
 
-class JaxWorkerPlugin(WorkerPlugin):  # type: ignore[misc]
-    """Imports hartrao_jax in each worker (float64, compilation cache) before any task."""
+_JaxWorkerPlugin = None
 
-    name = "hartrao-jax"
 
-    def setup(self, worker):  # noqa: D401
-        worker_setup()
+def __getattr__(name: str):
+    if name == "JaxWorkerPlugin":
+        return _plugin_class()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def start_client(scheduler: str | None = None, *, n_workers: int = 2, threads_per_worker: int = 1,
@@ -134,7 +149,7 @@ def start_client(scheduler: str | None = None, *, n_workers: int = 2, threads_pe
                                    processes=True, env=dict(WORKER_ENV), dashboard_address=None,
                                    memory_limit=memory_limit, silence_logs=logging.ERROR)
         client = Client(cluster)
-    client.register_plugin(JaxWorkerPlugin())
+    client.register_plugin(_plugin_class()())
     return client, cluster
 
 
@@ -549,6 +564,6 @@ def _joint_on_workers(client, root, campaign, metas, fits, summaries, names, sha
     return jf, doc
 
 
-__all__ = ["DaskBackend", "DaskFit", "JaxWorkerPlugin", "ScanSummary", "WORKER_ENV",
+__all__ = ["DaskBackend", "DaskFit", "ScanSummary", "WORKER_ENV",
            "close_client", "fit_dask", "fit_document", "release_compiled", "start_client",
            "thin_scan_fit", "worker_setup"]

@@ -10,7 +10,8 @@ residuals.
 
 Workers import JAX themselves and switch on float64 and the persistent compilation cache
 (``JaxWorkerPlugin``, built on first use: ``distributed`` loads only for the Dask commands); a
-:class:`~distributed.LocalCluster` is started with one thread per worker process and XLA limited to one intra-op thread, so ``n`` workers use ``n`` cores.
+:class:`~distributed.LocalCluster` is started with one thread per worker process and XLA
+limited to one intra-op thread, so ``n`` workers use ``n`` cores.
 
 Two things made a worker 3.5 times slower per scan than the in-process fit, both fixed here:
 

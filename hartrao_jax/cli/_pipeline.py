@@ -24,14 +24,10 @@ from ..surface._surface import (
     write_surface,
     write_surface_json,
 )
-from ._base import (  # noqa: F401
+from ._base import (
     UserError,
     _console,
-    _fmt,
     _parse_fixes,
-    _pm,
-    _scale_unit,
-    _user_errors,
     command,
     main,
     print_fit_table,

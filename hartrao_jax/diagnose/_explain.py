@@ -21,48 +21,14 @@ from ..model._model import (
 )
 from ..physics._catalog import INSTRUMENT, inseparable_pairs
 from ..solver._ghm import normal_equations
-from ._find import (  # noqa: F401
-    COVARIATES,
-    _bin_solutions,
-    _box_search,
-    _covariate_cv,
-    _covariate_tests,
-    _covariate_values,
-    _dish_test,
-    _locate_time,
-    _panel_cells,
-    _panel_columns,
-    _periodogram,
-    _periodogram_points,
-    _refine_window,
-    _time_bins,
-)
-from ._result import (  # noqa: F401
-    Diagnosis,
-    _json_default,
-    write_json,
-)
-from ._state import (  # noqa: F401
+from ._state import (
     ZERNIKE_TESTED,
-    DiagnoseConfig,
-    Finding,
-    _adjust,
     _Context,
-    _evaluate,
     _fixed,
-    _global_sigma0,
     _npad,
-    _num,
     _pad,
-    _panel_known,
-    _refit,
-    _refit_all,
-    _restore,
-    _rms,
-    _save,
     _Scan,
     _scan_model,
-    _set_known,
     _Spec,
 )
 

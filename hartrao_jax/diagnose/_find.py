@@ -8,32 +8,10 @@ from collections.abc import Sequence
 import numpy as np
 
 from ._covariates import compare
-from ._result import (  # noqa: F401
-    Diagnosis,
-    _json_default,
-    write_json,
-)
-from ._state import (  # noqa: F401
-    ZERNIKE_TESTED,
+from ._state import (
     DiagnoseConfig,
-    Finding,
-    _adjust,
     _Context,
-    _evaluate,
-    _fixed,
-    _global_sigma0,
-    _npad,
-    _num,
-    _pad,
-    _panel_known,
-    _refit,
-    _refit_all,
-    _restore,
-    _rms,
-    _save,
     _Scan,
-    _scan_model,
-    _set_known,
     _Spec,
 )
 

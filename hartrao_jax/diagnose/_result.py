@@ -8,28 +8,9 @@ from pathlib import Path
 import numpy as np
 
 from ..campaign._safeio import write_json_atomic
-from ._state import (  # noqa: F401
-    ZERNIKE_TESTED,
-    DiagnoseConfig,
+from ._state import (
     Finding,
-    _adjust,
-    _Context,
-    _evaluate,
-    _fixed,
-    _global_sigma0,
-    _npad,
     _num,
-    _pad,
-    _panel_known,
-    _refit,
-    _refit_all,
-    _restore,
-    _rms,
-    _save,
-    _Scan,
-    _scan_model,
-    _set_known,
-    _Spec,
 )
 
 DIAGNOSIS_SCHEMA = "hartrao-diagnosis/1"

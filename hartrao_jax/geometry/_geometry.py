@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ..campaign._campaign import cartesian_to_raw  # noqa: F401  (the recording's face rule)
+from ..campaign._format import cartesian_to_raw  # noqa: F401  (the recording's face rule)
 
 # --------------------------------------------------------------------------------------------
 # Rotations

@@ -12,13 +12,15 @@ import jax.numpy as jnp
 
 from hartrao_jax.solver._kernel import (  # noqa: F401
     _materialize,
-    _solve,
     _window,
     gh_one_pass,
     linearize_rev,
     make_pass,
     materialize_trig,
     sincos,
+)
+from hartrao_jax.solver._kernel import (
+    solve_scaled as _solve,
 )
 
 

@@ -93,7 +93,8 @@ def work_jax(method: str, l: np.ndarray, repeat: int):
     import jax.numpy as jnp
 
     import hartrao_jax
-    from hartrao_jax import _ghm, make_model
+    from hartrao_jax import make_model
+    from hartrao_jax.solver import _ghm
 
     n = l.shape[0]
     model = make_model("extended")

@@ -60,7 +60,8 @@ def run_variants(n: int, rounds: int, variants: list[dict]) -> list[dict]:
     import jax.numpy as jnp
 
     import hartrao_jax  # noqa: F401  (float64)
-    from hartrao_jax import _ghm, make_model
+    from hartrao_jax import make_model
+    from hartrao_jax.solver import _ghm
 
     model = make_model("extended")
     hand = K.make_hand_linearize(hand_linearize)

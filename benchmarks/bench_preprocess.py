@@ -241,9 +241,9 @@ def gh_comparison(n_rows: float, n_patches: int) -> dict:
     import jax.numpy as jnp
 
     import hartrao_jax  # noqa: F401
-    from hartrao_jax import _preprocess as pp
     from hartrao_jax.campaign._campaign import ScanMeta, default_campaign
     from hartrao_jax.geometry._geometry import polar_to_cartesian
+    from hartrao_jax.preprocess import _preprocess as pp
     from hartrao_jax.solver._ghm import gauss_helmert_batch
 
     class PlaneC(eqx.Module):
@@ -313,8 +313,8 @@ def worker(method: str, n_rows: float, calls: int = 3, xla_cache: str | None = N
     import jax
 
     import hartrao_jax  # noqa: F401
-    from hartrao_jax import _preprocess as pp
     from hartrao_jax.campaign._campaign import ScanMeta, default_campaign
+    from hartrao_jax.preprocess import _preprocess as pp
 
     data, cls, step = load_scan(n_rows)
     import dataclasses

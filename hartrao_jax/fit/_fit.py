@@ -645,8 +645,8 @@ def panel_predictions(p: PositionFit) -> list[dict]:
         sd = np.sqrt(np.clip(np.diag(sf.u_cov[g]), 0.0, None))
         out.append({"panel" if sf.cells.startswith("panels") else "cell": int(g),
                     "offset_m": _num(sf.u[g, 0]), "offset_sigma_m": _num(sd[0]),
-                    names[0]: _num(sf.u[g, 1]), names[0].replace("_rad", "_sigma_rad"): _num(sd[1]),
-                    names[1]: _num(sf.u[g, 2]), names[1].replace("_rad", "_sigma_rad"): _num(sd[2]),
+                    names[0]: _num(sf.u[g, 1]), names[0][:-4] + "_sigma_rad": _num(sd[1]),
+                    names[1]: _num(sf.u[g, 2]), names[1][:-4] + "_sigma_rad": _num(sd[2]),
                     "n": int(sf.n[g])})
     return out
 

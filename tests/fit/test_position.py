@@ -39,6 +39,8 @@ def test_fit_json_positions_carry_the_shared_estimates(positions):
     assert 0.8 < vc["noise"] < 1.25
     assert 0.5e-4 < vc["surface_m"] < 3e-4  # simulated 0.15 mm rms panels
     assert len(p["panels"]) > 200 and all(r["offset_sigma_m"] > 0 for r in p["panels"])
+    assert {"tilt_radial_rad", "tilt_radial_sigma_rad", "tilt_tangential_sigma_rad"} <= set(
+        p["panels"][0])
     scans = [s for s in doc["scans"] if s["position"] == "r23"]
     assert [s["cycle"] for s in scans] == [1, 2]
     for s in scans:  # the scans repeat the position's estimates, keep their own statistics

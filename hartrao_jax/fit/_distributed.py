@@ -369,9 +369,8 @@ def fit_document(campaign, names, summaries: Sequence[ScanSummary],
     (``positions``: the records of two-face position adjustments; None: per-cycle fits)."""
 
     thin = [thin_scan_fit(s, campaign.scan(s.id)) for s in summaries]
-    doc = {"schema": FIT_SCHEMA, "model": list(names)}
-    if positions is not None:
-        doc["adjustment"] = "two-face, surface random effect"
+    doc = {"schema": FIT_SCHEMA, "model": list(names),
+           "adjustment": "per cycle" if positions is None else "two-face, surface random effect"}
     doc.update({"campaign": str(campaign.root), "scans": [s.record for s in summaries],
                 "positions": list(positions) if positions is not None
                 else CampaignFit(campaign, tuple(names), thin).positions()})

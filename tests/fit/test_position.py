@@ -12,7 +12,7 @@ from hartrao_jax.fit._fit import fit_campaign, fit_json
 from hartrao_jax.simulate._simulate import simulate_campaign
 
 EFFECTS = {"x4": 1.5e-4, "x6": 3e-5, "x7": -4e-5, "panel_offset": 1.5e-4}
-STEP = 0.02  # coarse: ~3e4 points per cycle
+STEP = 0.03  # coarse: ~1.5e4 points per cycle
 
 
 @pytest.fixture(scope="module")

@@ -490,15 +490,9 @@ def fit_dask(
                 run_positions(rest, hint)
             ordered = [summaries[m.id] for m in metas]
             pos_order = list(dict.fromkeys(m.position for m in metas))
-            doc = fit_document(campaign, parse_model(model), ordered,
-                               [records[p] for p in pos_order])
-            if od is not None:
-                for m in metas:
-                    if (Path(out_dir) / "residuals" / f"{m.id}.parquet").is_file():
-                        od.adopt(f"residuals/{m.id}.parquet")
-                od.commit(doc)
-            n_w = len(client.scheduler_info().get("workers", {}))
-            return DaskFit(doc, ordered, time.perf_counter() - t0, n_w, None, None)
+            return _finish(client, od, out_dir, metas, ordered,
+                           fit_document(campaign, parse_model(model), ordered,
+                                        [records[p] for p in pos_order]), t0, None, None)
 
         def run(batch, hint):
             fut = client.map(task_fit_scan, [root] * len(batch), [m.id for m in batch],
@@ -522,17 +516,25 @@ def fit_dask(
         if joint:
             jf, doc = _joint_on_workers(client, root, campaign, metas, fits, ordered, names,
                                         shared, group, sigma_vector(campaign), hint, out_dir)
-        if od is not None:
-            for m in metas:
-                if (Path(out_dir) / "residuals" / f"{m.id}.parquet").is_file():
-                    od.adopt(f"residuals/{m.id}.parquet")
-            od.commit(doc)
-        n_w = len(client.scheduler_info().get("workers", {}))
-        return DaskFit(doc, ordered, time.perf_counter() - t0, n_w, jf,
+        return _finish(client, od, out_dir, metas, ordered, doc, t0, jf,
                        [fits[m.id] for m in metas] if keep_futures else None)
     finally:
         if own:
             close_client(client, cluster)
+
+
+def _finish(client, od, out_dir, metas, ordered, doc, t0, jf, futures) -> DaskFit:
+    """Commit the output directory (the residual tables the workers wrote, ``fit.json`` last)
+    and the :class:`DaskFit`."""
+    import time
+
+    if od is not None:
+        for m in metas:
+            if (Path(out_dir) / "residuals" / f"{m.id}.parquet").is_file():
+                od.adopt(f"residuals/{m.id}.parquet")
+        od.commit(doc)
+    n_w = len(client.scheduler_info().get("workers", {}))
+    return DaskFit(doc, ordered, time.perf_counter() - t0, n_w, jf, futures)
 
 
 def _joint_on_workers(client, root, campaign, metas, fits, summaries, names, shared, group, sigma_l,

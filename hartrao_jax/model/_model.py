@@ -31,6 +31,7 @@ from ..physics._catalog import (
     impulsive_shift,
     inseparable_pairs,
     local_deformation,
+    oscillation_sincos,
     paraboloid_condition,
     zernike_deviation,
 )
@@ -146,11 +147,11 @@ class ParaboloidModel(eqx.Module):
             disp = jnp.stack([p.get(n, 0.0) for n in SHIFT])
             d = d + impulsive_shift(t_s, self.shift_window_s[0], self.shift_window_s[1], disp)
         if any(n in p for n in OSCILLATION):
-            om = 2 * jnp.pi * t_s * (1.0 / self.osc_period_s + p.get(OSC_FREQUENCY, 0.0))
-            s, co = jnp.sin(om), jnp.cos(om)
-            wx = p.get("osc_sx", 0.0) * s + p.get("osc_cx", 0.0) * co
-            wy = p.get("osc_sy", 0.0) * s + p.get("osc_cy", 0.0) * co
-            w = w + jnp.stack([wx, wy, 0.0])
+            zero = jnp.zeros(())
+            w = w + oscillation_sincos(
+                t_s, 1.0 / self.osc_period_s + p.get(OSC_FREQUENCY, 0.0),
+                jnp.stack([p.get("osc_sx", zero), p.get("osc_sy", zero), zero]),
+                jnp.stack([p.get("osc_cx", zero), p.get("osc_cy", zero), zero]))
         if any(n in p for n in DRIFT):
             dw, dd = drift(
                 t_s,

@@ -336,6 +336,16 @@ def impulsive_shift(
     return on[..., None] * jnp.asarray(displacement_m)
 
 
+def oscillation_sincos(time_s: ArrayLike, frequency_hz: ArrayLike, sin_rad: ArrayLike,
+                       cos_rad: ArrayLike) -> Array:
+    """Rotation vector (rad, scanner frame) of a gimbal swinging periodically during the scan,
+    linear in its amplitudes: ``w(t) = s sin(2 pi f t) + c cos(2 pi f t)`` with ``s``, ``c``
+    (3,) the sine and cosine amplitudes about the scanner axes (the model estimates them)."""
+    om = 2 * jnp.pi * jnp.asarray(time_s) * frequency_hz
+    return (jnp.sin(om)[..., None] * jnp.asarray(sin_rad)
+            + jnp.cos(om)[..., None] * jnp.asarray(cos_rad))
+
+
 def oscillation(
     time_s: ArrayLike, period_s: ArrayLike, amplitude_rad: ArrayLike, phase_rad: ArrayLike,
     axis: ArrayLike,
@@ -343,11 +353,13 @@ def oscillation(
     """Rotation vector (rad, scanner frame) of a gimbal swinging periodically during the scan.
 
     ``w(t) = amplitude sin(2 pi t / period + phase) * axis`` with ``axis`` a unit vector of the
-    scanner frame (a gimbal swings about a horizontal axis: x or y).
+    scanner frame (a gimbal swings about a horizontal axis: x or y); the same swing as
+    :func:`oscillation_sincos` with ``s = amplitude cos(phase) axis``,
+    ``c = amplitude sin(phase) axis``.
     """
-    t = jnp.asarray(time_s)
-    s = amplitude_rad * jnp.sin(2 * jnp.pi * t / period_s + phase_rad)
-    return s[..., None] * jnp.asarray(axis, dtype=float)
+    a = jnp.asarray(axis, dtype=float)
+    return oscillation_sincos(time_s, 1.0 / period_s, amplitude_rad * jnp.cos(phase_rad) * a,
+                              amplitude_rad * jnp.sin(phase_rad) * a)
 
 
 def drift(time_s: ArrayLike, rate_m_s: ArrayLike, rate_rad_s: ArrayLike) -> tuple[Array, Array]:
@@ -446,17 +458,6 @@ def local_deformation(x: ArrayLike, y: ArrayLike, x0_m: ArrayLike, y0_m: ArrayLi
     dx = jnp.asarray(x) - x0_m
     dy = jnp.asarray(y) - y0_m
     return amplitude_m * jnp.exp(-(dx * dx + dy * dy) / (2.0 * width_m * width_m))
-
-
-def surface_height(rho: ArrayLike, f: ArrayLike, deviation_m: ArrayLike = 0.0) -> Array:
-    """Height Z (m) of the deformed reflector at radius rho: ``rho^2/4f + dev * sqrt(1+(rho/2f)^2)``.
-
-    A normal deviation ``dev`` raises the surface by ``dev`` along the normal to first order;
-    the same relation is used by the simulator (to build the surface) and by the fitter (to
-    model it), so the two agree exactly.
-    """
-    rho = jnp.asarray(rho)
-    return rho * rho / (4.0 * f) + deviation_m * paraboloid_normal_scale(rho, f)
 
 
 def paraboloid_condition(X: Array, f: ArrayLike, deviation_m: ArrayLike = 0.0) -> Array:

@@ -13,8 +13,9 @@ from hartrao_jax.physics._catalog import (
     inseparable_pairs,
     instrument_corrections,
     oscillation,
+    oscillation_sincos,
+    paraboloid_condition,
     panel_deviation,
-    surface_height,
 )
 
 
@@ -85,8 +86,21 @@ def test_panel_deviation_offset_and_tilt():
                                  np.array([0.0]), np.array([0.0]), rho_c, psi_c)[0]) == 0.0
 
 
-def test_surface_height_positive_deviation_is_towards_focus():
-    assert float(surface_height(5.0, 10.0, 0.001)) > float(surface_height(5.0, 10.0, 0.0))
+def test_positive_deviation_is_towards_focus():
+    # a point raised 1 mm along the normal: on the surface deviated by +1 mm, above (condition
+    # negative: towards the focus) the undeformed one
+    n = np.array([-5.0 / 20.0, 0.0, 1.0]) / np.sqrt(1 + (5.0 / 20.0) ** 2)
+    X = np.array([5.0, 0.0, 25.0 / 40.0]) + 0.001 * n
+    assert abs(float(paraboloid_condition(X, 10.0, 0.001))) < 1e-7
+    assert float(paraboloid_condition(X, 10.0, 0.0)) < -0.9e-3
+
+
+def test_oscillation_forms_agree():
+    t = np.linspace(0.0, 3.0, 7)
+    w = np.asarray(oscillation(t, 1.1, 2e-5, 0.7, [0, 1, 0]))
+    s, c = 2e-5 * np.cos(0.7), 2e-5 * np.sin(0.7)
+    w2 = np.asarray(oscillation_sincos(t, 1 / 1.1, [0, s, 0], [0, c, 0]))
+    np.testing.assert_allclose(w, w2, atol=1e-20)
 
 
 def test_catalog_has_every_effect_of_the_spec():

@@ -102,7 +102,12 @@ from jaxtyping import Array, Float
 
 from ..campaign._campaign import Campaign, ScanData, ScanMeta, default_campaign, read_scan
 from ..campaign._safeio import OutputDir, write_file_atomic
-from ..geometry._geometry import pointing_gravity, polar_components, polar_to_cartesian
+from ..geometry._geometry import (
+    pointing_gravity,
+    polar_components,
+    polar_to_cartesian,
+    scanner_to_telescope,
+)
 from ._initial import InitialValues, choose_initial_values
 
 log = logging.getLogger("hartrao_jax")
@@ -279,9 +284,8 @@ def _blocks(n: int, size: int = CHUNK):
 
 
 def _rot(rx: float, ry: float) -> np.ndarray:
-    """``Ry(ry) Rx(rx)`` as NumPy (equals ``_geometry.scanner_to_telescope``)."""
-    cx, sx, cy, sy = math.cos(rx), math.sin(rx), math.cos(ry), math.sin(ry)
-    return np.array([[cy, sy * sx, sy * cx], [0.0, cx, -sx], [-sy, cy * sx, cy * cx]])
+    """``Ry(ry) Rx(rx)`` (:func:`..geometry._geometry.scanner_to_telescope`) as NumPy."""
+    return np.asarray(scanner_to_telescope(rx, ry))
 
 
 def _pose(x: Mapping[str, float] | InitialValues) -> tuple[np.ndarray, np.ndarray, float]:

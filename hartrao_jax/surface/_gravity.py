@@ -37,13 +37,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from ..campaign._campaign import default_campaign, load_campaign
 from ..campaign._safeio import OutputDir, verify_result_dir, write_file_atomic
 from ..campaign._schedule import DEC_LIMITS_DEG, HA_LIMIT_DEG
 from ..fit._fit import scan_arrays, sigma_vector
-from ..geometry._geometry import panel_cells, panel_ids, zernike
+from ..geometry._geometry import panel_cells, panel_ids, telescope_axes_hadec, zernike
 from ..model._model import N_CONSTS, make_model
 from ..physics._catalog import DEFAULT_ZERNIKE_MODES
 from ..solver._ghm import bucket_size
@@ -337,22 +338,16 @@ def zernike_np(j: int, u: np.ndarray, psi: np.ndarray) -> np.ndarray:
 def gravity_grid(ha_deg: np.ndarray, dec_deg: np.ndarray, latitude_deg: float):
     """Unit gravity vectors (telescope frame) and elevations (deg) on an HA x DEC grid.
 
-    NumPy form of :func:`._geometry.telescope_axes_hadec` (``F = R(P, -h) R(E, lat - d)
-    [N, -E, U]``): returns ``G`` (len(dec), len(ha), 3) and ``el`` (len(dec), len(ha)).
+    :func:`..geometry._geometry.telescope_axes_hadec` over the grid (``F = R(P, -h)
+    R(E, lat - d) [N, -E, U]``): returns ``G`` (len(dec), len(ha), 3) and ``el``
+    (len(dec), len(ha)).
     """
-    def rot(axis, ang):
-        k = np.asarray(axis, float) / np.linalg.norm(axis)
-        K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-        a = np.asarray(ang, float)[..., None, None]
-        return np.eye(3) + np.sin(a) * K + (1.0 - np.cos(a)) * (K @ K)
-
     lat = math.radians(latitude_deg)
-    P = np.array([0.0, math.cos(lat), math.sin(lat)])
-    base = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # columns N, -E, U
     h = np.radians(np.asarray(ha_deg, float))[None, :]
     d = np.radians(np.asarray(dec_deg, float))[:, None]
     h, d = np.broadcast_arrays(h, d)
-    F = rot(P, -h) @ rot([1.0, 0.0, 0.0], lat - d) @ base
+    axes = jax.vmap(telescope_axes_hadec, in_axes=(0, 0, None))
+    F = np.asarray(axes(h.reshape(-1), d.reshape(-1), lat)).reshape(h.shape + (3, 3))
     G = -F[..., 2, :]  # F^T (0, 0, -1)
     el = np.degrees(np.arcsin(np.clip(F[..., 2, 2], -1.0, 1.0)))
     return G, el

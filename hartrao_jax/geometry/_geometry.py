@@ -213,23 +213,26 @@ def panel_ids(
     psi: np.ndarray,
     ring_edges_m,
     panels_per_ring,
+    *,
+    xp=np,
 ) -> np.ndarray:
-    """Panel id of each point (NumPy int64), -1 outside the panelled annulus.
+    """Panel id of each point, -1 outside the panelled annulus (``xp``: ``numpy`` -> int64, or
+    ``jax.numpy`` inside traced code: the simulator's ray casting uses the same rule).
 
     Rings are numbered from 0 (innermost) outwards; within ring k the panels are numbered from
     ``psi = 0`` counter-clockwise, each spanning ``2 pi / panels_per_ring[k]``.
     """
-    edges = np.asarray(ring_edges_m, dtype=float)
-    counts = np.asarray(panels_per_ring, dtype=np.int64)
-    first = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    rho = np.asarray(rho, dtype=float)
-    ring = np.searchsorted(edges, rho, side="right") - 1
-    inside = (ring >= 0) & (ring < len(counts))
-    ring_c = np.clip(ring, 0, len(counts) - 1)
-    n = counts[ring_c]
-    k = np.floor(np.mod(np.asarray(psi, dtype=float), 2 * np.pi) / (2 * np.pi) * n).astype(np.int64)
-    k = np.minimum(k, n - 1)
-    return np.where(inside, first[ring_c] + k, -1)
+    edges = xp.asarray(ring_edges_m, dtype=float)
+    counts = xp.asarray(panels_per_ring)
+    nr = counts.shape[0]
+    first = xp.concatenate([xp.zeros(1, counts.dtype), xp.cumsum(counts)[:-1]])
+    ring = xp.searchsorted(edges, xp.asarray(rho, dtype=float), side="right") - 1
+    inside = (ring >= 0) & (ring < nr)
+    rc = xp.clip(ring, 0, nr - 1)
+    n = counts[rc]
+    k = xp.floor(xp.mod(xp.asarray(psi, dtype=float), 2 * np.pi) / (2 * np.pi) * n)
+    k = xp.minimum(k.astype(counts.dtype), n - 1)
+    return xp.where(inside, first[rc] + k, -1)
 
 
 #: Side (m) of the square cells that stand in for panels on a reflector with no panel layout.

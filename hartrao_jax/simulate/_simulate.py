@@ -46,6 +46,7 @@ from ..campaign._schedule import CAMPAIGN_STEP_RAD, PRESET_TOURS, plan_positions
 from ..geometry._geometry import (
     decompose_zyx,
     panel_geometry,
+    panel_ids,
     pointing_elevation_deg,
     pointing_gravity,
     polar_to_cartesian,
@@ -485,7 +486,6 @@ class _Surface(eqx.Module):
 
     kappa: Array
     edges: Array
-    first: Array
     counts: Array
     offset: Array
     tilt_r: Array
@@ -502,12 +502,7 @@ class _Surface(eqx.Module):
         Xt = rot_z(self.kappa) @ X
         rho = jnp.hypot(Xt[0], Xt[1])
         psi = jnp.mod(jnp.arctan2(Xt[1], Xt[0]), 2 * jnp.pi)
-        nr = self.counts.shape[0]
-        ring = jnp.searchsorted(self.edges, rho, side="right").astype(jnp.int32) - 1
-        rc = jnp.clip(ring, 0, nr - 1)
-        n = self.counts[rc]
-        k = jnp.minimum(jnp.floor(psi / (2 * jnp.pi) * n), n - 1.0)
-        panel = jnp.where((ring >= 0) & (ring < nr), (self.first[rc] + k).astype(jnp.int32), -1)
+        panel = panel_ids(rho, psi, self.edges, self.counts, xp=jnp).astype(jnp.int32)
         dev = panel_deviation(rho, psi, panel, self.offset, self.tilt_r, self.tilt_t,
                               self.rho_c, self.psi_c)
         if self.modes:
@@ -534,8 +529,7 @@ def _surface(tel, refl: Reflector, kappa: float, zern: np.ndarray, extra) -> _Su
         edges, counts = tel.ring_edges_m, tel.panels_per_ring
         geo = panel_geometry(edges, counts)
     keep = [i for i, c in enumerate(zern) if c != 0.0]
-    return _Surface(f64(kappa), f64(edges), f64(np.concatenate([[0], np.cumsum(counts)[:-1]])),
-                    f64(counts), f64(refl.offset_m), f64(refl.tilt_radial_rad),
+    return _Surface(f64(kappa), f64(edges), f64(counts), f64(refl.offset_m), f64(refl.tilt_radial_rad),
                     f64(refl.tilt_tangential_rad), f64(geo["rho_c"]), f64(geo["psi_c"]),
                     f64(np.asarray(zern)[keep]), f64(_bumps(refl)), tel.diameter_m / 2,
                     tuple(refl.zernike_modes[i] for i in keep), extra)

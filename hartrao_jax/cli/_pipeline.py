@@ -13,7 +13,12 @@ from ..campaign._campaign import load_campaign
 from ..fit._fit import fit_campaign, write_fit
 from ..fit._joint import fit_joint, write_joint_fit
 from ..physics._catalog import CALIBRATION, CALIBRATION_OPTION
-from ..preprocess._preprocess import PreprocessConfig, preprocess_campaign, preprocess_keep
+from ..preprocess._preprocess import (
+    PreprocessConfig,
+    preprocess_campaign,
+    preprocess_keep,
+    preprocess_table,
+)
 from ..report._report import write_report
 from ..simulate._simulate import parse_effects, simulate_campaign
 from ..surface._disturbed import detect_disturbed_campaign, keep_function, without_disturbed
@@ -101,7 +106,8 @@ def preprocess(campaign, out_dir, d_min_m, d_max_m, patch_size_m, epsilon_m, see
     camp = load_campaign(campaign)
     cfg = PreprocessConfig(d_min_m=d_min_m, d_max_m=d_max_m, patch_size_m=patch_size_m,
                            epsilon_m=epsilon_m, seed=seed)
-    preprocess_campaign(camp, cfg, out_dir=out_dir, progress=True)
+    results = preprocess_campaign(camp, cfg, out_dir=out_dir, progress=True)
+    _console().print(preprocess_table(results, f"{camp.telescope.name}: preprocessing"))
     click.echo(f"wrote {Path(out_dir) / 'preprocess.json'}")
 
 

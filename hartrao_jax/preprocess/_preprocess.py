@@ -1203,11 +1203,11 @@ def preprocess_table(results: Mapping[str, PreprocessResult], title: str = "prep
 
 def preprocess_campaign(
     campaign: Campaign, config: PreprocessConfig | None = None, out_dir=None,
-    progress: bool = True, *, scans=None, masks: bool = True, console=None,
+    progress: bool = True, *, scans=None, masks: bool = True,
 ) -> dict[str, PreprocessResult]:
     """Preprocess every scan (or those named); with ``out_dir`` write ``preprocess.json``
-    (and ``masks/<scan>.parquet``) there and print the summary table."""
-    from rich.console import Console
+    (and ``masks/<scan>.parquet``) there. :func:`preprocess_table` is the summary table (the
+    CLI prints it)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     cfg = config or PreprocessConfig()
@@ -1224,9 +1224,6 @@ def preprocess_campaign(
     if out_dir is not None:
         write_preprocess_result(Path(out_dir) / "preprocess.json", results, cfg, campaign,
                                 masks=masks)
-    if progress or out_dir is not None:
-        title = f"{campaign.telescope.name}: preprocessing"
-        (console or Console()).print(preprocess_table(results, title))
     return results
 
 

@@ -21,8 +21,9 @@ Model (one condition per point ``i`` in surface cell ``g(i)``)::
 * The variance components ``s_e^2`` (a factor on the a priori ``Sigma_l``), ``s_1^2 .. s_k^2``
   and ``s_r^2`` are estimated by Foerstner's iterative variance-component estimation (the
   Helmert/REML-type estimator of geodesy): ``s^2 = (quadratic form of its residuals) / (its
-  redundancy)``, with redundancies from the traces of the cofactor matrix, updated at every
-  Gauss-Newton step until both converge.
+  redundancy)``, with redundancies from the traces of the cofactor matrix, iterated to their
+  fixed point at every Gauss-Newton step from that step's stored linearisation (no extra pass
+  over the points: the quadratic form comes from the normal-equation sums).
 
 Per iteration, with ``lambda = s_e^2 / s^2`` per component and the per-cell sums
 ``S_g = sum q d d^T``, ``s_g = sum q d a^T``, ``t_g = sum q d w`` (``q = 1/m``,
@@ -164,7 +165,6 @@ def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U
 
 def _reduce(N, nv, S, sg, tg, U, x, lam, ridge_idx, ridge_lam):
     """Schur complement over the cells, plus the ridge priors: ``(dx, dU, Qxx, Dinv)``."""
-    k = S.shape[1]
     Dinv = jnp.linalg.inv(S + jnp.diag(lam)[None])
     rhs_u = tg + lam[None, :] * U
     Nr = N - jnp.einsum("gki,gkl,glj->ij", sg, Dinv, sg)
@@ -174,7 +174,6 @@ def _reduce(N, nv, S, sg, tg, U, x, lam, ridge_idx, ridge_lam):
         nr = nr.at[ridge_idx].add(ridge_lam * x[ridge_idx])
     dx, Qxx = solve_scaled(Nr, -nr)
     dU = -jnp.einsum("gkl,gl->gk", Dinv, rhs_u + jnp.einsum("gli,i->gl", sg, dx))
-    del k
     return dx, dU, Qxx, Dinv
 
 

@@ -296,8 +296,7 @@ def fit_scan(
     mdl = make_model(model, fixed, aperture_radius_m=campaign.telescope.diameter_m / 2)
     n = len(data)
     n_pad = bucket_size(n) if pad else n
-    pdata = data.subset(np.concatenate([np.arange(n), np.zeros(n_pad - n, np.int64)])) \
-        if n_pad > n else data
+    pdata = padded(data, n_pad)
     l, c = scan_arrays(pdata)
     c[n:] = 0.0
     wpad = np.zeros(n_pad, bool)
@@ -386,15 +385,13 @@ def _faces(metas: Sequence[ScanMeta]) -> int:
     return 2 if {1, 2} <= {m.cycle for m in metas} else 1
 
 
-def _concat(parts: Sequence[np.ndarray]) -> np.ndarray:
-    return np.concatenate(parts, axis=0)
-
-
-def _pad_rows(a: np.ndarray, n_pad: int) -> np.ndarray:
-    n = len(a)
+def padded(data: ScanData, n_pad: int) -> ScanData:
+    """``data`` padded to ``n_pad`` rows with copies of its first row (the caller gives them
+    weight 0 and zero constants): scans of one size bucket share one compiled program."""
+    n = len(data)
     if n_pad <= n:
-        return a
-    return np.concatenate([a, np.repeat(a[:1], n_pad - n, axis=0)], axis=0)
+        return data
+    return data.subset(np.concatenate([np.arange(n), np.zeros(n_pad - n, np.int64)]))
 
 
 def _hold_note(group, partners, corr, reason, sigmas, elevation_deg) -> str:
@@ -475,13 +472,11 @@ def fit_position(
     elevation = pointing_elevation_deg(metas[0], tel, campaign.site)
     sizes = [len(p[0]) for p in prepared]
     n = int(sum(sizes))
-    l = _concat([scan_arrays(p[0])[0] for p in prepared])
-    c = _concat([scan_arrays(p[0])[1] for p in prepared])
-    w = _concat([p[3] for p in prepared]).astype(float)
-    n_pad = _bucket(n)
-    l, c = _pad_rows(l, n_pad), _pad_rows(c, n_pad)
+    n_pad = bucket_size(n)
+    pdata = padded(concat_scans([p[0] for p in prepared]), n_pad)  # both faces, one table
+    l, c = scan_arrays(pdata)
     c[n:] = 0.0
-    w = np.concatenate([w, np.zeros(n_pad - n)])
+    w = np.concatenate([p[3] for p in prepared] + [np.zeros(n_pad - n, bool)]).astype(float)
     sig = sigma_vector(campaign)
     aperture = tel.diameter_m / 2
 
@@ -507,10 +502,10 @@ def fit_position(
             break
         _hold(held, fixed, bad, res.cov, mdl.free, elevation)
     used = np.asarray(res.weights) > 0
-    fit1 = finish_scan_fit(campaign, metas[0], mdl, _PaddedData.of(prepared, n_pad), res, g,
-                           init, used, heading_hint_rad=heading_hint_rad)
+    fit1 = finish_scan_fit(campaign, metas[0], mdl, pdata, res, g, init, used,
+                           heading_hint_rad=heading_hint_rad)
     kappa = fit1.alignment.kappa_rad
-    res_final, surf, mdl_final, notes = res, None, mdl, []
+    surf, mdl_final, notes = None, mdl, []
     if surface:
         cell, local, n_cells, desc = panel_cells(
             fit1.X_tel, tel.ring_edges_m, tel.panels_per_ring,
@@ -554,7 +549,6 @@ def fit_position(
         mdl_final = model_of(free, kappa)
         weights = np.asarray(rm.weights)
         v, omega_pt = np.asarray(rm.v), np.asarray(rm.omega_point)
-        noise = float(rm.noise_var)
         r_e = float(rm.redundancy_noise)
         sigma0 = float(rm.sigma0)
         iterations, converged = int(rm.iterations), bool(rm.converged)
@@ -567,7 +561,6 @@ def fit_position(
         v = np.asarray(res.v)
         k_ = np.asarray(res.normalized) * float(res.sigma0)
         omega_pt = k_ * k_
-        noise = float(res.sigma0) ** 2
         r_e = float(res.redundancy)
         sigma0 = float(res.sigma0)
         iterations, converged = int(res.iterations), bool(res.converged)
@@ -601,26 +594,6 @@ def fit_position(
         position=metas[0].position, scans=scans, names=tuple(free), x=x_pos, cov=cov_pos,
         held=held, faces=faces, sigma0=sigma0, surface=surf, iterations=iterations,
         converged=converged, n_points=n_used, notes=notes)
-
-
-class _PaddedData:
-    """The concatenated (padded) rows of a position's scans, as :class:`ScanData` for the
-    alignment (only what :func:`finish_scan_fit` reads)."""
-
-    @staticmethod
-    def of(prepared, n_pad: int) -> ScanData:
-        d = concat_scans([p[0] for p in prepared])
-        n = len(d)
-        if n_pad > n:
-            d = d.subset(np.concatenate([np.arange(n), np.zeros(n_pad - n, np.int64)]))
-        return d
-
-
-def _bucket(n: int) -> int:
-    """Padded length (one compiled program per size bucket; see :func:`._joint.bucket_size`)."""
-    p2 = 1 << max(0, int(math.ceil(math.log2(max(n, 1)))))
-    q = max(4096, p2 // 8)
-    return int(-(-n // q) * q)
 
 
 def _value_sigma(v: float, s: float | None, unit: str) -> dict:

@@ -19,7 +19,7 @@ from ..preprocess._preprocess import (
     preprocess_keep,
     preprocess_table,
 )
-from ..report._report import write_report
+from ..report import write_report
 from ..simulate._simulate import parse_effects, simulate_campaign
 from ..surface._disturbed import detect_disturbed_campaign, keep_function, without_disturbed
 from ..surface._surface import (

@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from ..campaign._campaign import load_campaign
-from ..report._report import write_report
+from ..report import write_report
 from ..surface._surface import SurfaceConfig, surface_campaign
 from ._base import UserError, command, main
 

@@ -11,7 +11,6 @@ import numpy as np
 
 from ..diagnose._diagnose import diagnose
 from ..diagnose._result import Diagnosis, _json_default
-from ._report import diagnosis_local_figures
 
 
 def write_report(diag: Diagnosis, out_dir: str | Path) -> Path:
@@ -140,3 +139,74 @@ def diagnose_with_report(campaign, start="extended", *, report_dir: str | Path |
     if report_dir is not None:
         write_report(diag, report_dir)
     return diag
+
+
+def diagnosis_local_figures(diag, out_dir) -> list[tuple[str, str]]:
+    """Figures of the local-deformation search of a :class:`~._diagnose.Diagnosis`: for each
+    search the residual map before (and after, when the deformation was accepted and modelled)
+    and the matched-filter map (roughness-standardised score ``t`` at the candidate's width),
+    the candidate outlined by a circle of radius ``2 w`` (solid: accepted; dashed: the largest
+    local structure, not distinguishable from the roughness). Returns ``(title, file)`` rows."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Circle
+
+    out = Path(out_dir)
+    rows: list[tuple[str, str]] = []
+    hist = diag.history
+    if not hist or not diag.local_search:
+        return rows
+    ids = list(hist[0]["maps"])[:2]
+    for rec in diag.local_search:
+        maps = rec.get("_maps") or []
+        if not maps or rec.get("x_m") is None:
+            continue
+        k = rec.get("search", 1)
+        accepted = bool(rec.get("accepted"))
+        after = next((h for h in hist if h.get("label") == "local_deformation"
+                      and h.get("step", 0) >= k), None) if accepted else None
+        m = min(maps, key=lambda mm: abs(mm.width_m - rec["width_m"]))
+        x0, y0 = rec["where"]["x_m"] if accepted else rec["x_m"], (
+            rec["where"]["y_m"] if accepted else rec["y_m"])
+        w = rec["estimate"]["width_m"]["value"] if accepted else rec["width_m"]
+        ncol = 3 if after is not None else 2
+        fig, axes = plt.subplots(len(ids), ncol, figsize=(4.2 * ncol, 3.9 * len(ids)),
+                                 squeeze=False)
+        for r_, sid in enumerate(ids):
+            ext = diag.extents.get(sid, [-13.0, 13.0, -13.0, 13.0])
+            b = hist[0]["maps"][sid]
+            fin = np.abs(b[np.isfinite(b)])
+            lim = 1e3 * float(np.percentile(fin, 98)) if fin.size else 0.5
+            panels = [("residual before [mm]", b)] + (
+                [("residual after [mm]", after["maps"][sid])] if after is not None else [])
+            for c_, (lab, mp) in enumerate(panels):
+                ax = axes[r_, c_]
+                im = ax.imshow(1e3 * mp.T, origin="lower", extent=ext, cmap="RdBu_r",
+                               vmin=-lim, vmax=lim)
+                ax.set_title(f"{sid}: {lab}", fontsize=9)
+                fig.colorbar(im, ax=ax, shrink=0.7)
+            ax = axes[r_, ncol - 1]
+            t = np.where(m.valid, m.t, np.nan)
+            e = [m.origin[0], m.origin[0] + m.cell_m * t.shape[0],
+                 m.origin[1], m.origin[1] + m.cell_m * t.shape[1]]
+            tl = float(np.nanmax(np.abs(t))) if np.isfinite(t).any() else 1.0
+            im = ax.imshow(t.T, origin="lower", extent=e, cmap="PuOr_r", vmin=-tl, vmax=tl)
+            ax.set_xlim(ext[0], ext[1])
+            ax.set_ylim(ext[2], ext[3])
+            ax.set_title(f"matched filter t, w = {m.width_m:g} m", fontsize=9)
+            fig.colorbar(im, ax=ax, shrink=0.7)
+            for ax in axes[r_]:
+                ax.add_patch(Circle((x0, y0), 2 * w, fill=False, lw=1.2, color="k",
+                                    ls="-" if accepted else "--"))
+                ax.set_aspect("equal")
+                ax.set_xlabel("X [m]")
+                ax.set_ylabel("Y [m]")
+        state = "accepted and modelled" if accepted else "not distinguishable from the roughness"
+        fig.suptitle(f"local deformation search {k}: {state}", fontsize=10)
+        name = f"local_deformation_{k}.png"
+        fig.savefig(out / name, dpi=90)
+        plt.close(fig)
+        rows.append((f"local deformation search {k}: {state}", name))
+    return rows

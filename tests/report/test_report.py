@@ -12,7 +12,7 @@ import pytest
 
 from hartrao_jax.fit._fit import fit_campaign, write_fit
 from hartrao_jax.geometry._geometry import face_of
-from hartrao_jax.report._report import (
+from hartrao_jax.report import (
     face_boundary,
     fig_average_map,
     fig_cycle_maps,
@@ -97,7 +97,7 @@ def test_figures_not_blank(demo):
     }
     for name, fig in figs.items():
         assert pixel_std(png_bytes(fig)) > MIN_STD, name
-    from hartrao_jax.report._report import _figure
+    from hartrao_jax.report._draw import _figure
 
     assert pixel_std(png_bytes(_figure(2, 2))) == 0  # a blank figure fails the check
 

@@ -88,7 +88,7 @@ def main(argv=None) -> int:
     from hartrao_jax.campaign import _campaign
     from hartrao_jax.campaign._campaign import load_campaign
     from hartrao_jax.fit import _fit
-    from hartrao_jax.preprocess._preprocess import preprocess_keep
+    from hartrao_jax.preprocess import preprocess_keep
     from hartrao_jax.simulate._simulate import simulate_campaign
 
     enable_compilation_cache()

@@ -16,8 +16,9 @@ from ..fit._distributed import close_client, fit_dask, start_client
 from ..fit._fit import fit_campaign
 from ..fit._joint import fit_joint, write_joint_fit
 from ..fit._stream import stream_document, stream_fit_campaign, stream_fit_scan
+from ..fit._stream_position import stream_fit_positions
 from ..physics._catalog import CALIBRATION_OPTION
-from ..preprocess._preprocess import preprocess_keep
+from ..preprocess import preprocess_keep
 from ..sensitivity._sensitivity import finite_difference, sensitivity_table, write_sensitivity
 from ..sensitivity._sensitivity import sensitivity as run
 from ..surface._gravity import write_gravity
@@ -208,18 +209,28 @@ def fit_dask_command(campaign, out_dir, scheduler, n_workers, model, scans, fixe
               help="With --dask: an existing scheduler (default: a LocalCluster).")
 @click.option("--workers", default=2, show_default=True, type=int,
               help="With --dask: worker processes of the LocalCluster (one thread each).")
+@click.option("--per-cycle", is_flag=True, default=False,
+              help="Each scan by itself, white noise (the paper's procedure) instead of one "
+                   "two-face adjustment per position with the surface a random effect.")
 @command
 def fit_stream(campaign, scan_ids, model, rows_per_chunk, store, json_file, robust_k, use_dask,
-               scheduler, workers):
+               scheduler, workers, per_cycle):
     """Adjust full-resolution scans streaming them from disk with bounded memory.
 
-    One scan (``--scan ID``) writes a ``hartrao-stream/1`` record; several (or all, the default)
-    a ``hartrao-stream-campaign/1`` document with one record per scan, in-process one after the
-    other or, with ``--dask``, one task per scan on Dask workers.
+    Default: one adjustment per position from both faces (the scans selected), the surface a
+    random effect, started from a sample of each face and refined from every row; writes a
+    ``hartrao-stream-campaign/1`` document with ``positions[]`` (as fit.json's) and
+    ``scans[]``. ``--per-cycle``: one scan (``--scan ID``) writes a ``hartrao-stream/1`` record,
+    several a ``hartrao-stream-campaign/1`` document with one record per scan. ``--dask``: one
+    task per position (per scan with ``--per-cycle``) on Dask workers.
     """
 
     camp = load_campaign(campaign)
     ids = [s.strip() for v in scan_ids for s in v.split(",") if s.strip()]
+    if not per_cycle:
+        _fit_stream_positions(camp, ids, model, rows_per_chunk, store, json_file, robust_k,
+                              use_dask, scheduler, workers)
+        return
     if len(ids) == 1 and not use_dask:
         r = stream_fit_scan(camp, ids[0], model, rows_per_chunk=rows_per_chunk, store=store,
                             robust_k=robust_k or None)
@@ -249,3 +260,31 @@ def fit_stream(campaign, scan_ids, model, rows_per_chunk, store, json_file, robu
                    f"{rec['sigma0']:.3f}, {rec['n_points']:,} points, {rec['passes']} passes, "
                    f"{rec['seconds']:.1f} s, peak {rec['peak_rss_gib']:.2f} GiB")
     click.echo(f"streamed {len(doc['scans'])} scans in {doc['seconds']:.1f} s")
+
+
+def _fit_stream_positions(camp, ids, model, rows_per_chunk, store, json_file, robust_k, use_dask,
+                          scheduler, workers):
+    """``fit-stream`` without ``--per-cycle``: one streamed two-face adjustment per position."""
+    client = cluster = None
+    if use_dask:
+        client, cluster = start_client(scheduler, n_workers=workers)
+    try:
+        doc = stream_fit_positions(camp, ids or None, model, store=store,
+                                   rows_per_chunk=rows_per_chunk, robust_k=robust_k or None,
+                                   client=client, progress=True)
+    finally:
+        if client is not None:
+            close_client(client, cluster)
+    if json_file:
+        write_json_atomic(json_file, doc, indent=1)
+    for rec in doc["positions"]:
+        f = rec["f"]
+        click.echo(f"{rec['position']}: {rec['faces']} face(s), f = {f['value']:.6f} ± "
+                   f"{f['sigma']:.6f} m, sigma0 {rec['sigma0']:.3f}, {rec['n_points']:,} of "
+                   f"{rec['n_rows']:,} rows, {rec['passes']} passes, {rec['seconds']:.1f} s, "
+                   f"peak {rec['peak_rss_gib']:.2f} GiB")
+        for n, e in rec.items():
+            if isinstance(e, dict) and e.get("identifiable") is False:
+                click.echo(f"  not identifiable: {e['note']}")
+    click.echo(f"streamed {len(doc['positions'])} positions ({len(doc['scans'])} scans) in "
+               f"{doc['seconds']:.1f} s")

@@ -11,7 +11,7 @@ import click
 
 from ..diagnose import DiagnoseConfig, write_json
 from ..physics._catalog import EFFECTS
-from ..preprocess._preprocess import preprocess_keep
+from ..preprocess import preprocess_keep
 from ..prove._prove import CASES, run_prove
 from ..prove._prove import detectability as mda
 from ..report._diagnosis import diagnose_with_report

@@ -13,7 +13,7 @@ from ..campaign._campaign import load_campaign
 from ..fit._fit import fit_campaign, write_fit
 from ..fit._joint import fit_joint, write_joint_fit
 from ..physics._catalog import CALIBRATION, CALIBRATION_OPTION
-from ..preprocess._preprocess import (
+from ..preprocess import (
     PreprocessConfig,
     preprocess_campaign,
     preprocess_keep,

@@ -300,7 +300,8 @@ def quadric_initial_values(
     t = -R2 @ V
     d = np.abs(_paraboloid_distance(P, a, V, f))
     return InitialValues(
-        x={"tx": float(t[0]), "ty": float(t[1]), "tz": float(t[2]), "rx": rx, "ry": ry, "f": float(f)},
+        x={"tx": float(t[0]), "ty": float(t[1]), "tz": float(t[2]), "rx": rx, "ry": ry,
+           "f": float(f)},
         kappa_rad=0.0, heading_rad=0.0, inlier_fraction=float(np.mean(d < tol_m)), tol_m=tol_m,
     )
 
@@ -374,7 +375,8 @@ def patch_initial_values(
         tt = -R2 @ V
         d = np.abs(_paraboloid_distance(P, a, V, f))
         out.append(InitialValues(
-            x={"tx": float(tt[0]), "ty": float(tt[1]), "tz": float(tt[2]), "rx": rx, "ry": ry, "f": f},
+            x={"tx": float(tt[0]), "ty": float(tt[1]), "tz": float(tt[2]), "rx": rx, "ry": ry,
+               "f": f},
             kappa_rad=0.0, heading_rad=0.0, inlier_fraction=float(np.mean(d < tol_m)), tol_m=tol_m,
         ))
     return sorted(out, key=lambda c: -c.inlier_fraction)

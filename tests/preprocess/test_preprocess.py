@@ -12,7 +12,7 @@ import pytest
 
 from hartrao_jax.campaign._campaign import ScanData, ScanMeta, default_campaign
 from hartrao_jax.geometry._geometry import cartesian_to_raw, face_of, polar_to_cartesian
-from hartrao_jax.preprocess._preprocess import (
+from hartrao_jax.preprocess import (
     PREPROCESS_SCHEMA,
     REASONS,
     PlaneCondition,

@@ -26,6 +26,7 @@ from ..geometry._geometry import (
     pointing_elevation_deg,
     pointing_gravity,
     rot_z,
+    square_cells,
 )
 from ..model._model import (
     N_CONSTS,
@@ -149,6 +150,30 @@ class SurfaceEffect:
 
 
 @dataclass
+class MixedState:
+    """Where a position's random-effect adjustment ended, to refine it from more points (the
+    streamed full-resolution refinement of :mod:`._stream_position`).
+
+    ``model``: the condition with the surface modes; ``x``: all its unknowns (modes included);
+    ``u`` (g, 3): the cells' predictions; ``var``: ``(noise factor, cell variances (3,), mode
+    variances (r,))`` and ``var0`` their start values; ``ridge``: the modes' indices in ``x``;
+    ``kappa_rad``: the north alignment; ``cell_m`` and ``cell_keys``: the square cells (no
+    panel layout; None with one); ``inits``: each scan's initial values (its geometry window).
+    """
+
+    model: ParaboloidModel
+    x: np.ndarray
+    u: np.ndarray
+    var: tuple
+    var0: tuple
+    ridge: dict | None
+    kappa_rad: float
+    cell_m: float
+    cell_keys: np.ndarray | None
+    inits: list[InitialValues]
+
+
+@dataclass
 class PositionFit:
     """One telescope position adjusted from both faces at once (or from its one usable face).
 
@@ -171,6 +196,7 @@ class PositionFit:
     converged: bool
     n_points: int
     notes: list[str] = field(default_factory=list)
+    mixed: MixedState | None = None
 
     @property
     def sigma(self) -> np.ndarray:
@@ -505,11 +531,13 @@ def fit_position(
     fit1 = finish_scan_fit(campaign, metas[0], mdl, pdata, res, g, init, used,
                            heading_hint_rad=heading_hint_rad)
     kappa = fit1.alignment.kappa_rad
-    surf, mdl_final, notes = None, mdl, []
+    surf, mdl_final, notes, mixed = None, mdl, [], None
     if surface:
+        cell_m = float(tel.extra.get("panel_cell_m", 2.0)) if tel.extra else 2.0
         cell, local, n_cells, desc = panel_cells(
-            fit1.X_tel, tel.ring_edges_m, tel.panels_per_ring,
-            cell_m=float(tel.extra.get("panel_cell_m", 2.0)) if tel.extra else 2.0)
+            fit1.X_tel, tel.ring_edges_m, tel.panels_per_ring, cell_m=cell_m)
+        keys = (None if tel.ring_edges_m is not None and tel.panels_per_ring is not None
+                else square_cells(fit1.X_tel, cell_m)[2])
         design = np.column_stack([np.ones(n_pad), local]) * (cell >= 0)[:, None]
         modes = SURFACE_MODES if tel.offset_m == 0 else ()
         for _ in range(3):
@@ -544,6 +572,10 @@ def fit_position(
                         "tilt": float(np.sum(np.asarray(rm.redundancy_cells[1:]))),
                         **({"modes": float(rm.redundancy_ridge[0])} if mode_idx else {})},
             modes={mdl2.free[i]: (float(xs[i]), float(np.sqrt(cov[i, i]))) for i in mode_idx})
+        mixed = MixedState(mdl2, xs, np.asarray(rm.u), (float(rm.noise_var), np.asarray(
+            rm.cell_var), np.asarray(rm.ridge_var)), (1.0, np.asarray(_CELL_VAR0), np.full(
+                len(mode_idx) and 1, _MODE_VAR0)), ridge, kappa, cell_m, keys,
+            [p[2] for p in prepared])
         free = tuple(mdl2.free[i] for i in keep_idx)
         x_pos, cov_pos = xs[keep_idx], cov[np.ix_(keep_idx, keep_idx)]
         mdl_final = model_of(free, kappa)
@@ -593,7 +625,7 @@ def fit_position(
     return PositionFit(
         position=metas[0].position, scans=scans, names=tuple(free), x=x_pos, cov=cov_pos,
         held=held, faces=faces, sigma0=sigma0, surface=surf, iterations=iterations,
-        converged=converged, n_points=n_used, notes=notes)
+        converged=converged, n_points=n_used, notes=notes, mixed=mixed)
 
 
 def _value_sigma(v: float, s: float | None, unit: str) -> dict:

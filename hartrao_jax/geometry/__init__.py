@@ -4,6 +4,7 @@ the paraboloid, panels and panel cells, Zernike polynomials."""
 from ._geometry import (
     face_of,
     panel_cells,
+    square_cells,
     panel_geometry,
     panel_ids,
     paraboloid_deviation,
@@ -19,6 +20,7 @@ from ._geometry import (
 __all__ = [
     "face_of",
     "panel_cells",
+    "square_cells",
     "panel_geometry",
     "panel_ids",
     "paraboloid_deviation",

@@ -245,6 +245,7 @@ def panel_cells(
     panels_per_ring=None,
     *,
     cell_m: float = DEFAULT_CELL_M,
+    keys: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int, str]:
     """Surface cells of points for the surface random effect, and each point's local coordinates.
 
@@ -253,7 +254,8 @@ def panel_cells(
     the local coordinates ``(rho - rho_c, rho_c * dpsi)`` are those of the panel tilts of
     :func:`._physics.panel_deviation` (radial, tangential; m). Without one, the aperture plane
     is cut into squares of ``cell_m`` (a stated regular grid, never another telescope's panel
-    numbers) with local coordinates ``(x - x_c, y - y_c)``.
+    numbers) with local coordinates ``(x - x_c, y - y_c)``; ``keys`` fixes those squares (see
+    :func:`square_cells`).
 
     Returns ``(cell (n,) int64 compact ids, -1 outside any cell; local (n, 2) m; n_cells;
     description)``.
@@ -270,12 +272,37 @@ def panel_cells(
         local[ids < 0] = 0.0
         return ids.astype(np.int64), local, int(len(geo["ring"])), (
             f"panels ({len(geo['ring'])} in {len(panels_per_ring)} rings)")
+    cell, local, keys = square_cells(X, cell_m, keys)
+    return cell, local, int(len(keys)), f"square cells of {cell_m:g} m (no panel layout)"
+
+
+def _cell_code(ij: np.ndarray) -> np.ndarray:
+    """One int64 per grid index pair, ordered as the pairs are lexicographically."""
+    return (ij[:, 0] + (1 << 30)) * (1 << 31) + (ij[:, 1] + (1 << 30))
+
+
+def square_cells(
+    X: np.ndarray, cell_m: float = DEFAULT_CELL_M, keys: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Square cells of ``cell_m`` (m) in the aperture plane: ``(cell (n,), local (n, 2) m,
+    keys (g, 2))``. ``keys``: the grid indices of the cells (sorted, as returned before): points
+    of other squares get cell -1 (so chunks of one recording share one numbering); default: the
+    squares that ``X`` occupies."""
+    X = np.asarray(X, float)
     ij = np.floor(X[:, :2] / cell_m).astype(np.int64)
-    keys, cell = np.unique(ij, axis=0, return_inverse=True)
+    if keys is None:
+        keys, cell = np.unique(ij, axis=0, return_inverse=True)
+        cell = cell.reshape(-1).astype(np.int64)
+    else:
+        keys = np.asarray(keys, np.int64).reshape(-1, 2)
+        codes, want = _cell_code(keys), _cell_code(ij)
+        cell = np.full(len(ij), -1, np.int64)
+        if len(codes):
+            pos = np.clip(np.searchsorted(codes, want), 0, len(codes) - 1)
+            cell = np.where(codes[pos] == want, pos, -1).astype(np.int64)
     centre = (keys + 0.5) * cell_m
-    local = X[:, :2] - centre[cell.reshape(-1)]
-    return cell.reshape(-1).astype(np.int64), local, int(len(keys)), (
-        f"square cells of {cell_m:g} m (no panel layout)")
+    local = np.where((cell >= 0)[:, None], X[:, :2] - centre[np.maximum(cell, 0)], 0.0)
+    return cell, local, keys
 
 
 def panel_geometry(ring_edges_m, panels_per_ring) -> dict[str, np.ndarray]:

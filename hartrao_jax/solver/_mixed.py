@@ -213,7 +213,7 @@ class _Update(eqx.Module):
     var_new: tuple
 
 
-def _update(lin, var, var0, x, U, weights, groups, ridge_idx, ridge_group, ridge_count,
+def _update(lin, var, var0, x, U, n_used, ridge_idx, ridge_group, ridge_count,
             n_ridge_groups):
     """Solve the linearised mixed model at the variances ``var`` and re-estimate them
     (Foerstner: each component's quadratic form over its redundancy share)."""
@@ -239,7 +239,6 @@ def _update(lin, var, var0, x, U, weights, groups, ridge_idx, ridge_group, ridge
     else:
         r_ridge = jnp.zeros((0,), f)
         xx = jnp.zeros((0,), f)
-    n_used = jnp.sum(weights > 0)
     u = x.shape[0]
     r_e = n_used - u - jnp.sum(r_cells) + (jnp.sum(ridge_count) - jnp.sum(r_ridge))
     se2_new = omega / jnp.maximum(r_e, 1.0)
@@ -265,15 +264,33 @@ def _settled(new, old, var0):
             & ok(new[2], old[2], _FLOOR * var0[2]))
 
 
+def _ridge_args(ridge_idx, ridge_group, n_ridge_groups) -> dict:
+    f = jnp.float64
+    return dict(ridge_idx=ridge_idx, ridge_group=ridge_group, n_ridge_groups=n_ridge_groups,
+                ridge_count=jax.ops.segment_sum(jnp.ones_like(ridge_idx, f), ridge_group,
+                                                n_ridge_groups))
+
+
+def _vce(upd, lin, var, var0, x, U, n_used):
+    """The variance components at this linearisation: a fixed point of ``_update`` (cheap: no
+    pass over the condition, only the normal-equation sums)."""
+
+    def body(c):
+        v, _, i = c
+        new = upd(lin, v, x=x, U=U, n_used=n_used).var_new
+        return new, _settled(new, v, var0), i + 1
+
+    v, _, _ = lax.while_loop(lambda c: (~c[1]) & (c[2] < 200), body,
+                             (var, jnp.array(False), jnp.array(0)))
+    return v
+
+
 @eqx.filter_jit
 def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0, v0,
            var0, ridge_idx, ridge_group, n_ridge_groups, tol, max_iter, chunk, n_cells,
            estimate_variances, robust_k, on):
     f = l.dtype
-    ridge_count = jax.ops.segment_sum(jnp.ones_like(ridge_idx, f), ridge_group, n_ridge_groups)
-    upd = partial(_update, var0=var0, groups=groups, ridge_idx=ridge_idx,
-                  ridge_group=ridge_group, ridge_count=ridge_count,
-                  n_ridge_groups=n_ridge_groups)
+    upd = partial(_update, var0=var0, **_ridge_args(ridge_idx, ridge_group, n_ridge_groups))
 
     def linearize(x, U, V, weights):
         (N, nv, S, sg, tg, wmw), (a, b, d, wm, m, _) = _pass(
@@ -282,25 +299,15 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
         return _Linearization(N, nv, S, sg, tg, wmw, a, b, d, wm, m)
 
     def vce(lin, var, x, U, weights):
-        """The variance components at this linearisation: a fixed point of ``_update`` (cheap:
-        no pass over the condition, only the stored per-point terms)."""
         if not estimate_variances:
             return var
-
-        def body(c):
-            v, _, i = c
-            new = upd(lin, v, x=x, U=U, weights=weights).var_new
-            return new, _settled(new, v, var0), i + 1
-
-        v, _, _ = lax.while_loop(lambda c: (~c[1]) & (c[2] < 200), body,
-                                 (var, jnp.array(False), jnp.array(0)))
-        return v
+        return _vce(upd, lin, var, var0, x, U, jnp.sum(weights > 0))
 
     def step(state):
         x, U, V, var, it, _, weights = state
         lin = linearize(x, U, V, weights)
         var = vce(lin, var, x, U, weights)
-        up = upd(lin, var, x=x, U=U, weights=weights)
+        up = upd(lin, var, x=x, U=U, n_used=jnp.sum(weights > 0))
         kk = _point_residuals(lin, up, groups)
         V_new = s2 * lin.b * kk[:, None]
         sd = jnp.sqrt(jnp.where(jnp.diagonal(up.Qxx) > 0, jnp.diagonal(up.Qxx), 1.0))
@@ -322,7 +329,7 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
     # statistics at the solution: one more linearisation (the step is ~0)
     lin = linearize(x, U, V, weights)
     var = vce(lin, var, x, U, weights)
-    up = upd(lin, var, x=x, U=U, weights=weights)
+    up = upd(lin, var, x=x, U=U, n_used=jnp.sum(weights > 0))
     kk = _point_residuals(lin, up, groups)
     V = s2 * lin.b * kk[:, None]
     x, U = x + up.dx, U + up.dU
@@ -391,12 +398,9 @@ def gauss_helmert_mixed(
     f = l.dtype
     s2 = jnp.broadcast_to(jnp.asarray(sigma_l, f) ** 2, l.shape)
     k = design.shape[1]
-    ridge = ridge or {}
-    names = list(ridge)
-    ridge_idx = jnp.asarray([i for g in names for i in ridge[g]], jnp.int32)
-    ridge_group = jnp.asarray([j for j, g in enumerate(names) for _ in ridge[g]], jnp.int32)
+    ridge_idx, ridge_group, n_groups = ridge_indices(ridge)
     var0 = (jnp.asarray(noise_var0, f), jnp.asarray(cell_var0, f).reshape(k),
-            jnp.broadcast_to(jnp.asarray(ridge_var0, f), (len(names),)))
+            jnp.broadcast_to(jnp.asarray(ridge_var0, f), (n_groups,)))
     U0 = jnp.zeros((n_cells, k), f) if u0 is None else jnp.asarray(u0, f)
     V0 = jnp.zeros_like(l) if v0 is None else jnp.asarray(v0, f)
     chunk = int(min(chunk_size, max(256, 1 << int(np.ceil(np.log2(max(n, 1)))))))
@@ -411,13 +415,145 @@ def gauss_helmert_mixed(
     res = _solve(condition, int(dev_column), l[o], jnp.asarray(x0, f), s2o,
                  jnp.asarray(consts, f)[o], jnp.asarray(weights, f)[o],
                  jnp.asarray(g_np[order], jnp.int32), jnp.asarray(design, f)[o], U0, V0[o], var0,
-                 ridge_idx, ridge_group, len(names), float(tol), int(max_iter), chunk,
+                 ridge_idx, ridge_group, n_groups, float(tol), int(max_iter), chunk,
                  int(n_cells), bool(estimate_variances),
                  jnp.asarray(np.inf if robust_k is None else robust_k, f), jnp.ones((), bool))
     back = jnp.asarray(inv)
     return eqx.tree_at(lambda r: (r.v, r.normalized, r.dev, r.omega_point, r.weights), res,
                        (res.v[back], res.normalized[back], res.dev[back],
                         res.omega_point[back], res.weights[back]))
+
+
+# --------------------------------------------------------------------------------------------
+# The same adjustment streamed: sums per chunk of points, the step from the sums
+# --------------------------------------------------------------------------------------------
+
+
+class MixedSums(eqx.Module):
+    """Normal-equation sums of a set of points (add them over chunks), see :func:`mixed_chunk`.
+
+    ``N`` (u, u), ``nv`` (u,), per cell ``S`` (g, k, k), ``sg`` (g, k, u), ``tg`` (g, k),
+    ``wMw`` the weighted misclosure square sum, ``n_used`` the points in the sums,
+    ``omega`` the points' ``v^T Sigma^-1 v`` at the linearisation point (for sigma0).
+    """
+
+    N: Float[Array, "u u"]
+    nv: Float[Array, " u"]
+    S: Float[Array, "g k k"]
+    sg: Float[Array, "g k u"]
+    tg: Float[Array, "g k"]
+    wMw: Float[Array, ""]
+    n_used: Float[Array, ""]
+    omega: Float[Array, ""]
+
+    def __add__(self, other: "MixedSums") -> "MixedSums":
+        return jax.tree.map(jnp.add, self, other)
+
+
+class MixedChunk(eqx.Module):
+    """Per point of a chunk (the caller's order): residuals ``v`` (n, 3) at the solution the
+    chunk was linearised at, standardized residuals ``e`` (``|k| sqrt(m) / s_e``) and the
+    weights after the robust rejection."""
+
+    v: Float[Array, "n 3"]
+    e: Float[Array, " n"]
+    weights: Float[Array, " n"]
+
+
+@eqx.filter_jit
+def mixed_chunk(
+    condition,
+    l: Float[Array, "n 3"],
+    consts: Float[Array, "n c"],
+    weights: Float[Array, " n"],
+    s2: Float[Array, "n 3"],
+    groups: Int[Array, " n"],
+    design: Float[Array, "n k"],
+    x: Float[Array, " u"],
+    U: Float[Array, "g k"],
+    noise_var: Float[Array, ""],
+    robust_k: Float[Array, ""],
+    *,
+    dev_column: int = 1,
+    chunk: int = 8192,
+) -> tuple[MixedSums, MixedChunk]:
+    """One chunk of points of a streamed :func:`gauss_helmert_mixed` (constant memory per chunk).
+
+    1. Residuals at ``(x, U)``, first-order Gauss-Helmert at the observations:
+       ``k = -F(l, x, c + dev) / m``, ``v = Sigma b k``; points with ``|k| sqrt(m) / s_e`` above
+       ``robust_k`` get weight 0 (at every pass from the current solution: a point is out
+       exactly when its residual is beyond the limit there).
+    2. The linearisation at ``(l + v, x, c + dev)`` and its sums (as one pass of the in-memory
+       solver). The sums of all chunks give the step by :func:`mixed_step`.
+    """
+    n_cells = U.shape[0]
+    f = l.dtype
+    g_key = jnp.where(groups >= 0, groups, n_cells)
+    order = jnp.argsort(g_key, stable=True)
+    L, C, W, S2, G, DM = (a[order] for a in (l, consts, weights, s2, groups, design))
+    live = G >= 0
+    gi = jnp.where(live, G, 0)
+    dev = jnp.where(live, jnp.sum(DM * U[gi], axis=-1), 0.0)
+    cond = materialize_trig(condition, jnp.ones((), bool))
+    F0, b0 = jax.vmap(jax.value_and_grad(lambda ll, cc: cond(ll, x, cc)))(
+        L, C.at[:, dev_column].add(dev))
+    m0 = jnp.sum(b0 * b0 * S2, axis=-1)
+    ok = m0 > 0
+    k0 = jnp.where(ok, -F0 / jnp.where(ok, m0, 1.0), 0.0)
+    V = S2 * b0 * k0[:, None]
+    e = jnp.abs(k0) * jnp.sqrt(m0) / jnp.sqrt(noise_var)
+    W = jnp.where((W > 0) & (e > robust_k), 0.0, W)
+    (N, nv, S, sg, tg, wmw), _ = _pass(condition, dev_column, jnp.ones((), bool), n_cells,
+                                       chunk, L, V, C, W, S2, G, DM, x, U)
+    used = (W > 0) & ok
+    sums = MixedSums(N, nv, S, sg, tg, wmw, jnp.sum(used).astype(f),
+                     jnp.sum(jnp.where(used, k0 * k0 * m0, 0.0)))
+    back = jnp.argsort(order)
+    return sums, MixedChunk(V[back], e[back], W[back])
+
+
+class MixedStep(eqx.Module):
+    """The step of a streamed mixed adjustment: new ``x``, ``U``, variance components
+    ``var = (s_e^2, cell variances (k,), ridge variances (r,))``, ``Qxx``, ``Quu``, the
+    redundancy shares and the convergence measure ``max |dx_j| / sigma_j``."""
+
+    x: Array
+    U: Array
+    var: tuple
+    Qxx: Array
+    Quu: Array
+    redundancy_noise: Array
+    redundancy_cells: Array
+    redundancy_ridge: Array
+    ratio: Array
+
+
+@eqx.filter_jit
+def mixed_step(
+    sums: MixedSums, var: tuple, var0: tuple, x: Float[Array, " u"], U: Float[Array, "g k"],
+    ridge_idx: Int[Array, " r"], ridge_group: Int[Array, " r"], n_ridge_groups: int,
+    estimate_variances: bool = True,
+) -> MixedStep:
+    """Variance components at these sums (Foerstner's fixed point), then the step: the same
+    arithmetic as one iteration of :func:`gauss_helmert_mixed`, from sums added over chunks."""
+    upd = partial(_update, var0=var0, **_ridge_args(ridge_idx, ridge_group, n_ridge_groups))
+    lin = _Linearization(sums.N, sums.nv, sums.S, sums.sg, sums.tg, sums.wMw,
+                         None, None, None, None, None)
+    if estimate_variances:
+        var = _vce(upd, lin, var, var0, x, U, sums.n_used)
+    up = upd(lin, var, x=x, U=U, n_used=sums.n_used)
+    sd = jnp.sqrt(jnp.where(jnp.diagonal(up.Qxx) > 0, jnp.diagonal(up.Qxx), 1.0))
+    return MixedStep(x + up.dx, U + up.dU, var, up.Qxx, up.Quu, up.r_e, up.r_cells, up.r_ridge,
+                     jnp.max(jnp.abs(up.dx) / sd))
+
+
+def ridge_indices(ridge: dict[str, list[int]] | None) -> tuple[Array, Array, int]:
+    """``(indices into x, their group, number of groups)`` of a ridge specification."""
+    ridge = ridge or {}
+    names = list(ridge)
+    return (jnp.asarray([i for g in names for i in ridge[g]], jnp.int32),
+            jnp.asarray([j for j, g in enumerate(names) for _ in ridge[g]], jnp.int32),
+            len(names))
 
 
 def unidentifiable(

@@ -251,7 +251,7 @@ def test_cli_fit_stream(scatter_campaign, tmp_path):
 
     r = CliRunner().invoke(main, ["fit-stream", str(scatter_campaign.root), "--scan", "r23c1",
                                   "--rows-per-chunk", "5000", "--store", str(tmp_path / "s"),
-                                  "--json", str(tmp_path / "st.json")])
+                                  "--json", str(tmp_path / "st.json"), "--per-cycle"])
     assert r.exit_code == 0, r.output
     doc = json.loads((tmp_path / "st.json").read_text())
     assert doc["schema"] == "hartrao-stream/1" and doc["converged"]
@@ -300,11 +300,20 @@ def test_cli_fit_stream_every_scan(scatter_campaign, tmp_path):
     from hartrao_jax.cli import main
 
     r = CliRunner().invoke(main, ["fit-stream", str(scatter_campaign.root), "--rows-per-chunk",
-                                  "5000", "--json", str(tmp_path / "st.json")])
+                                  "5000", "--json", str(tmp_path / "st.json"), "--per-cycle"])
     assert r.exit_code == 0, r.output
     doc = json.loads((tmp_path / "st.json").read_text())
     assert doc["schema"] == "hartrao-stream-campaign/1" and len(doc["scans"]) == 2
     assert all(s["converged"] for s in doc["scans"])
     assert "streamed 2 scans" in r.output
+    # the default: one two-face adjustment of the position
+    r = CliRunner().invoke(main, ["fit-stream", str(scatter_campaign.root), "--rows-per-chunk",
+                                  "5000", "--json", str(tmp_path / "pos.json")])
+    assert r.exit_code == 0, r.output
+    doc = json.loads((tmp_path / "pos.json").read_text())
+    (p,) = doc["positions"]
+    assert p["faces"] == 2 and p["converged"] and p["f"]["sigma"] > 0
+    assert [s["scan"] for s in doc["scans"]] == ["r23c1", "r23c2"]
+    assert "streamed 1 positions (2 scans)" in r.output
     r = CliRunner().invoke(main, ["fit-stream", str(scatter_campaign.root), "--scan", "nope"])
     assert r.exit_code == 2 and "nope" in r.output

@@ -1,0 +1,315 @@
+"""Two-face position adjustment of full-resolution scans, streamed with bounded memory.
+
+The default adjustment of a position (:func:`._fit.fit_position`: both faces together, the
+surface a random effect with estimated variances) holds every point in memory. At the paper's
+resolution a position has 2.6e7 points; here it is adjusted without holding them:
+
+1. **Start** from :func:`._fit.fit_position` on a seeded random sample of each face
+   (``n_sample`` rows per scan, drawn while streaming): initial values, geometry window,
+   identifiability (the parameters it holds stay held), north alignment, cells, and the
+   random effect's predictions and variance components. With the surface a random effect the
+   sigmas of f, pose and calibration are set by the surface, not by the number of points, so
+   this start is already close (and its sigmas close) to the full-resolution answer.
+2. **Refine** from every row of both scans: each iteration reads the scans chunk by chunk
+   and adds up the normal-equation sums of :func:`.solver.mixed_chunk` (residuals at the
+   current solution, robust rejection at ``robust_k`` noise sigmas from there, linearisation
+   at ``l + v``); :func:`.solver.mixed_step` re-estimates the variance components from the
+   sums and takes the Gauss-Newton step of ``x`` and the cells. Iterations stop when every
+   step is below ``tol`` of its sigma; one more pass writes the per-point results.
+
+Memory: a chunk of ``rows_per_chunk`` rows and the per-cell sums (g x 3 x u); nothing per point
+is kept between passes (the residuals are recomputed at each pass from the solution).
+Per-point outputs under ``store/<scan id>/``: ``v.npy`` (rows, 3) residuals (m, rad, rad),
+``w.npy`` weights (0: outside the window or rejected), ``e.npy`` standardized residuals,
+``dev.npy`` the surface random effect's deviation at the point (m), indexed by the file row.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tempfile
+import time
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..campaign._campaign import Campaign, ScanMeta, iter_scan_chunks, load_campaign
+from ..campaign._campaign import _concat as concat_scans
+from ..geometry._geometry import panel_cells, rot_z, square_cells
+from ..model._model import ZERNIKE_PREFIX
+from ..preprocess._initial import geometry_window
+from ..solver._ghm import bucket_size
+from ..solver._mixed import MixedSums, mixed_chunk, mixed_step, ridge_indices
+from ._distributed import worker_setup
+from ._fit import PositionFit, SurfaceEffect, fit_position, position_record, scan_arrays, sigma_vector
+from ._stream import _count_rows, _NpyRows, _progress, peak_rss_gib
+
+
+@eqx.filter_jit
+def _telescope_points(model, l, x, c, kappa):
+    """North-aligned telescope-frame points (m) of the rows at the solution ``x``."""
+    X = jax.vmap(model.telescope_point, in_axes=(0, None, 0))(l, x, c)
+    return X @ rot_z(kappa).T
+
+
+def _sample_rows(campaign: Campaign, meta: ScanMeta, rows_per_chunk: int, n_sample: int,
+                 seed: int):
+    """A seeded random sample of about ``n_sample`` rows of one scan (read by chunks)."""
+    n_rows = _count_rows(campaign, meta)
+    frac = min(1.0, n_sample / max(n_rows, 1))
+    rng = np.random.default_rng(seed)
+    parts = [ch.subset(rng.random(len(ch)) < frac)
+             for ch in iter_scan_chunks(campaign, meta, rows_per_chunk)]
+    return concat_scans(parts), n_rows
+
+
+def _cells(st, tel, X_tel):
+    """Cell and design ``(1, local coordinates)`` of each point, numbered as the start's."""
+    if st.cell_keys is None:
+        cell, local, _, _ = panel_cells(X_tel, tel.ring_edges_m, tel.panels_per_ring)
+    else:
+        cell, local, _ = square_cells(X_tel, st.cell_m, st.cell_keys)
+    return cell, np.column_stack([np.ones(len(cell)), local]) * (cell >= 0)[:, None]
+
+
+def _chunk_inputs(campaign, st, ch, init, window_m, x):
+    """Observations, constants, window weights, cells and design of one chunk, padded to a
+    size bucket (copies of the first row at weight 0, in no cell): few compiled shapes."""
+    n = len(ch)
+    l, c = scan_arrays(ch)
+    w = geometry_window(ch.range_m, ch.phi_rad, ch.theta_rad, init.x, window_m).astype(float)
+    X_tel = np.asarray(_telescope_points(st.model, l, x, c, st.kappa_rad))
+    cell, design = _cells(st, campaign.telescope, X_tel)
+    size = bucket_size(n)
+    if size > n:
+        pad = np.zeros(size - n, np.int64)
+        l, c, design = l[np.r_[np.arange(n), pad]], c[np.r_[np.arange(n), pad]], np.concatenate(
+            [design, np.zeros((size - n, design.shape[1]))])
+        w = np.concatenate([w, np.zeros(size - n)])
+        cell = np.concatenate([cell, np.full(size - n, -1)])
+    return l, c, w, cell, design
+
+
+def stream_fit_position(
+    campaign: Campaign,
+    scans: Sequence[str | ScanMeta],
+    model: str | Iterable[str] = "extended",
+    *,
+    rows_per_chunk: int = 1_000_000,
+    n_sample: int = 300_000,
+    store=None,
+    fixed: dict[str, float] | None = None,
+    window_m: float = 0.10,
+    robust_k: float | None = 4.0,
+    max_iter: int = 10,
+    tol: float = 1e-2,
+    seed: int = 0,
+    progress: bool = False,
+) -> dict:
+    """Adjust the scans of one position (both faces, or one) streaming them from disk.
+
+    Returns the position's record (as ``fit.json``'s ``positions[]``, see
+    :func:`._fit.position_record`) with the streaming figures added (``n_rows``, ``passes``,
+    ``seconds``, ``peak_rss_gib``, ``start``: the sample adjustment's f and sigma0) and
+    ``scans[]``: per scan its rows, points, rejections, sigma0 and the ``store`` of its
+    per-point results.
+    """
+    t_start = time.perf_counter()
+    metas = [campaign.scan(s) if isinstance(s, str) else s for s in scans]
+    if len({m.position for m in metas}) != 1:
+        raise ValueError("stream_fit_position: scans of one position expected, found "
+                         + ", ".join(sorted({m.position for m in metas})))
+    store = Path(store) if store is not None else Path(tempfile.mkdtemp(prefix="hartrao-stream-"))
+    timings = {}
+    t0 = time.perf_counter()
+    samples, n_rows = [], []
+    for i, m in enumerate(metas):
+        d, n = _sample_rows(campaign, m, rows_per_chunk, n_sample, seed + i)
+        samples.append(d)
+        n_rows.append(n)
+    timings["sample_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    start = fit_position(campaign, metas, model, datas=samples, fixed=fixed, robust_k=robust_k,
+                         window_m=window_m)
+    timings["start_fit_s"] = time.perf_counter() - t0
+    st = start.mixed
+    if st is None:
+        raise ValueError(f"position {metas[0].position}: the start adjustment has no surface "
+                         "random effect to refine")
+    sig = sigma_vector(campaign)
+    k_rob = np.asarray(np.inf if robust_k is None else float(robust_k))
+    ridge_idx, ridge_group, n_groups = ridge_indices(st.ridge)
+    var0 = tuple(jnp.asarray(v, jnp.float64) for v in st.var0)
+    var = tuple(jnp.asarray(v, jnp.float64) for v in st.var)
+    x, U = jnp.asarray(st.x), jnp.asarray(st.u)
+    outs = {}
+
+    def stream_pass(x, U, var, write: bool):
+        """One read of every scan of the position: the sums at ``(x, U)`` (and, if ``write``,
+        the per-point results there). Returns the sums and per scan (omega, n_used)."""
+        total, per_scan = None, []
+        for i, m in enumerate(metas):
+            om = nu = 0.0
+            for ch in iter_scan_chunks(campaign, m, rows_per_chunk):
+                n = len(ch)
+                l, c, w, cell, design = _chunk_inputs(campaign, st, ch, st.inits[i], window_m,
+                                                      x)
+                sums, pc = mixed_chunk(st.model, l, c, w, np.broadcast_to(sig**2, l.shape),
+                                       cell, design, x, U, var[0], k_rob)
+                total = sums if total is None else total + sums
+                om += float(sums.omega)
+                nu += float(sums.n_used)
+                if write:
+                    dev = np.where(cell[:n] >= 0, np.sum(design[:n] * np.asarray(U)[
+                        np.maximum(cell[:n], 0)], axis=1), 0.0)
+                    for key, val in (("v", pc.v), ("w", pc.weights), ("e", pc.e), ("dev", dev)):
+                        outs[m.id][key].write_rows(ch.row, np.asarray(val)[:n])
+            per_scan.append((om, nu))
+        return total, per_scan
+
+    for m, nr in zip(metas, n_rows):
+        d = store / m.id
+        d.mkdir(parents=True, exist_ok=True)
+        outs[m.id] = {"v": _NpyRows(d / "v.npy", np.float64, nr, (3,)),
+                      "w": _NpyRows(d / "w.npy", np.float32, nr),
+                      "e": _NpyRows(d / "e.npy", np.float64, nr),
+                      "dev": _NpyRows(d / "dev.npy", np.float64, nr)}
+    t0 = time.perf_counter()
+    ratios, passes, converged = [], 0, False
+    try:
+        with _progress(not progress) as prog:
+            task = prog.add_task(f"streaming position {metas[0].position}", total=max_iter + 1)
+            for _ in range(max_iter):
+                sums, _ = stream_pass(x, U, var, write=False)
+                passes += 1
+                step = mixed_step(sums, var, var0, x, U, ridge_idx, ridge_group, n_groups)
+                x, U, var = step.x, step.U, step.var
+                ratios.append(float(step.ratio))
+                prog.advance(task)
+                if ratios[-1] < tol:
+                    converged = True
+                    break
+            # statistics and per-point results at the solution
+            sums, per_scan = stream_pass(x, U, var, write=True)
+            passes += 1
+            final = mixed_step(sums, var, var0, x, U, ridge_idx, ridge_group, n_groups,
+                               estimate_variances=False)
+            prog.advance(task)
+    finally:
+        for o in outs.values():
+            for f_ in o.values():
+                f_.close()
+    timings["refine_s"] = time.perf_counter() - t0
+    rec = _record(start, st, x, final, var, sums, per_scan, converged, passes)
+    rec.update(n_rows=int(sum(n_rows)), n_sample=[len(d) for d in samples], passes=passes,
+               ratios=ratios, seconds=time.perf_counter() - t_start,
+               peak_rss_gib=peak_rss_gib(), timings=timings, store=str(store),
+               start={"f": {"value": start.estimate("f")[0], "sigma": start.estimate("f")[1],
+                            "unit": "m"}, "sigma0": start.sigma0, "n_points": start.n_points})
+    r_e = float(final.redundancy_noise)
+    rec["scans"] = [
+        {"scan": m.id, "n_rows": nr, "n_points": int(nu),
+         "sigma0": _sigma0(om, nu, r_e, sums), "store": str(store / m.id)}
+        for m, nr, (om, nu) in zip(metas, n_rows, per_scan)]
+    return rec
+
+
+def _sigma0(omega: float, n_used: float, redundancy: float, sums: MixedSums) -> float:
+    """A scan's sigma0: its share of ``v^T Sigma^-1 v`` over its share of the redundancy."""
+    r = redundancy * n_used / max(float(sums.n_used), 1.0)
+    return math.sqrt(omega / max(r, 1.0))
+
+
+def _record(start: PositionFit, st, x, final, var, sums, per_scan, converged, passes) -> dict:
+    """The ``positions[]`` record of the refined adjustment."""
+    names = st.model.free
+    xs = np.asarray(x)
+    cov = float(var[0]) * np.asarray(final.Qxx)
+    keep = [i for i, n in enumerate(names) if not n.startswith(ZERNIKE_PREFIX)]
+    modes = [i for i, n in enumerate(names) if n.startswith(ZERNIKE_PREFIX)]
+    s = start.surface
+    surf = SurfaceEffect(
+        cells=s.cells, u=np.asarray(final.U), u_cov=float(var[0]) * np.asarray(final.Quu),
+        n=s.n, variances={"noise": float(var[0]), "offset_m2": float(var[1][0]),
+                          "tilt_rad2": float(np.mean(np.asarray(var[1])[1:])),
+                          **({"modes_m2": float(var[2][0])} if modes else {})},
+        redundancy={"noise": float(final.redundancy_noise),
+                    "offset": float(final.redundancy_cells[0]),
+                    "tilt": float(np.sum(np.asarray(final.redundancy_cells)[1:])),
+                    **({"modes": float(final.redundancy_ridge[0])} if modes else {})},
+        modes={names[i]: (float(xs[i]), math.sqrt(cov[i, i])) for i in modes})
+    n_used = float(sums.n_used)
+    sigma0 = math.sqrt(float(sums.omega) / max(n_used - len(names), 1.0))
+    pf = dataclasses.replace(
+        start, names=tuple(names[i] for i in keep), x=xs[keep], cov=cov[np.ix_(keep, keep)],
+        sigma0=sigma0, surface=surf, iterations=passes, converged=converged,
+        n_points=int(n_used), mixed=None,
+        notes=[*start.notes, "streamed: started from a sample of each face, refined from "
+               "every row"])
+    rec = position_record(pf)
+    rec.pop("panels", None)  # the cells' point counts are the sample's: not written
+    return rec
+
+
+def _position_task(root: str, scan_ids: list[str], model, store: str | None,
+                   rows_per_chunk: int, robust_k: float | None) -> dict:
+    """One position streamed where this runs (in-process or on a Dask worker)."""
+    try:  # on a Dask worker: float64 and the compilation cache
+        worker_setup()
+    except ImportError:  # pragma: no cover
+        pass
+    camp = load_campaign(root)
+    return stream_fit_position(camp, scan_ids, model, rows_per_chunk=rows_per_chunk,
+                               store=store, robust_k=robust_k)
+
+
+def stream_fit_positions(
+    campaign: Campaign,
+    scans: Iterable[str] | None = None,
+    model: str | Iterable[str] = "extended",
+    *,
+    store=None,
+    rows_per_chunk: int = 1_000_000,
+    robust_k: float | None = 4.0,
+    client=None,
+    progress: bool = False,
+) -> dict:
+    """Stream every position of a campaign (or of the scans named): one two-face adjustment
+    per position (:func:`stream_fit_position`), in this process one after the other or as one
+    Dask task per position. ``store``: a directory receiving ``<scan id>/`` per scan.
+
+    Returns ``{"schema": "hartrao-stream-campaign/1", "positions": [record, ...], "scans":
+    [...], "seconds": ...}``.
+    """
+    t0 = time.perf_counter()
+    ids = [m.id for m in campaign.scans] if scans is None else list(scans)
+    metas = [campaign.scan(s) for s in ids]  # unknown ids: the campaign's error, before work
+    groups: dict[str, list[str]] = {}
+    for m in metas:
+        groups.setdefault(m.position, []).append(m.id)
+    root = str(campaign.root)
+    st = None if store is None else str(store)
+    if client is None:
+        recs = []
+        with _progress(not progress) as prog:
+            task = prog.add_task("streaming positions", total=len(groups))
+            for pos, sids in groups.items():
+                prog.update(task, description=f"streaming {pos}")
+                recs.append(_position_task(root, sids, model, st, rows_per_chunk, robust_k))
+                prog.advance(task)
+    else:
+        futs = [client.submit(_position_task, root, sids, model, st, rows_per_chunk, robust_k,
+                              key=f"stream-{pos}", pure=False) for pos, sids in groups.items()]
+        recs = client.gather(futs)
+    return {"schema": "hartrao-stream-campaign/1", "campaign": root, "positions": recs,
+            "scans": [s for r in recs for s in r["scans"]],
+            "seconds": time.perf_counter() - t0, "rows_per_chunk": rows_per_chunk,
+            "workers": None if client is None else len(client.scheduler_info()["workers"])}
+
+
+__all__ = ["stream_fit_position", "stream_fit_positions"]

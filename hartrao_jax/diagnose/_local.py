@@ -33,7 +33,9 @@ ALPHA_LOCAL = 1e-3  # of the maximum over the reflector's placements
 MAX_BUMPS = 2
 
 
-def _points(S):
+def search_points(S):
+    """Aperture positions (m) and residual normal deviations (m) of the points the fit keeps,
+    all scans together: what the search sees."""
     xy = np.concatenate([sc.X_tel[sc.used, :2] for sc in S])
     r = np.concatenate([sc.mismatch_m[sc.used] for sc in S])
     return xy, r
@@ -82,7 +84,7 @@ def local_step(ctx, S: Sequence, spec, record: list[dict], notes: list[str]) -> 
 
     out = []
     for k in range(1, MAX_BUMPS + 1):
-        xy, r = _points(S)
+        xy, r = search_points(S)
         exclude = [(b["values"][b["names"][0]], b["values"][b["names"][1]],
                     abs(b["values"][b["names"][3]])) for b in spec.bumps]
         srch = search(xy, r, alpha=ALPHA_LOCAL, min_amplitude_m=ctx.config.min_effect_m * 5,

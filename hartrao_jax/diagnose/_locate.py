@@ -22,7 +22,11 @@ from what *this* surface produces anywhere else. So:
 
 1. each width's ``z`` map is divided by its own robust spread over all valid centres
    (``1.4826 MAD``): the *roughness factor* ``s_w`` (1 for white noise, 2-5 on real panels)
-   carries the correlated structure at that scale into the statistic ``t = z / s_w``;
+   carries the correlated structure at that scale into the statistic ``t = z / s_w``. A
+   width whose valid centres cover fewer than :data:`MIN_PLACEMENTS` discs of radius ``w``
+   is skipped (listed): its spread would come from one or two placements (on a 1.5 m strip a
+   1 m wide bump fills the map and its own ``s_w``), and such maps gave the largest,
+   meaningless peaks;
 2. the local maxima of ``|t|`` (one per neighbourhood of radius ``w``) over the whole surface
    are the placements the reflector offers; their heights, pooled over the widths and without
    the candidate's own neighbourhood, give the null distribution of one placement's peak, whose
@@ -57,6 +61,7 @@ WIDTHS_M: tuple[float, ...] = (0.3, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
 BACKGROUND = 3.0  # background window (Gaussian sigma) in units of the width
 TAIL_QUANTILE = 0.8  # 0.5 when there are fewer than 100 peaks (a strip, a small patch)
 MIN_PEAKS = 16  # fewer peaks: no calibrated significance
+MIN_PLACEMENTS = 12.0  # valid area of a width in discs of radius w: fewer, the width is skipped
 NOT_DISTINGUISHABLE = "not distinguishable from the reflector's panel-scale roughness"
 
 
@@ -168,6 +173,8 @@ def width_map(xy: np.ndarray, r: np.ndarray, w: float, sigma: float, density: fl
     a = np.where(valid, (S11 * Sgr - Sg1 * S1r) / detv, 0.0)
     se = sigma * np.sqrt(np.where(valid, np.maximum(S11, 0.0) / detv, 1.0))
     z = np.where(valid, a / se, 0.0)
+    if valid.sum() * h * h < MIN_PLACEMENTS * math.pi * w * w:
+        return None  # too few independent placements to measure the roughness at this width
     if valid.sum() < 16:
         return WidthMap(w, h, lo, a, z, np.zeros_like(z), valid, float("nan"), np.zeros((0, 2), int))
     zv = z[valid]

@@ -7,6 +7,7 @@ stderr with exit status 2 (no traceback unless ``--debug``).
 from __future__ import annotations
 
 import functools
+import importlib
 import logging
 import sys
 
@@ -51,7 +52,69 @@ def command(fn):
     return wrapper
 
 
-@click.group(cls=OneLineGroup, context_settings={"help_option_names": ["-h", "--help"]})
+VERBS: dict[str, tuple[str, str]] = {
+    "demo": ("_demo:demo", "Simulate a two-cycle scan, fit it (simplified and extended), "
+             "print, plot, report."),
+    "diagnose": ("_diagnose:diagnose_command", "Locate the mismatch between CAMPAIGN and the "
+                 "model, explain and model it."),
+    "fit": ("_pipeline:fit", "Fit every scan of CAMPAIGN; writes OUT/fit.json and "
+            "OUT/residuals/*.parquet."),
+    "fit-dask": ("_campaign:fit_dask_command", "Fit CAMPAIGN on Dask workers; writes the same "
+                 "OUT/fit.json as `fit`."),
+    "fit-joint": ("_campaign:fit_joint_command", "Joint adjustment: calibration shared per night "
+                  "or campaign (Schur complement)."),
+    "fit-stream": ("_campaign:fit_stream", "Adjust full-resolution scans streaming them from disk "
+                   "with bounded memory."),
+    "gravity": ("_campaign:gravity", "Gravity model over the sky from a fit (RESULTS_DIR with "
+                "fit.json and residuals/)."),
+    "import": ("_import:import_command", "Import a Leica PTX, XYZ text or E57 export as a "
+               "one-face campaign (cycle 0)."),
+    "preprocess": ("_pipeline:preprocess", "Clean every scan: range window, angular patches, "
+                   "RANSAC planes; OUT/preprocess.json."),
+    "prove": ("_diagnose:prove_command", "Prove the diagnosis on simulated campaigns where each "
+              "effect is concealed."),
+    "report": ("_surface:report", "One self-contained HTML page (figures + tables) for "
+               "RESULTS_DIR."),
+    "schedule": ("_campaign:schedule", "The measurement plan: four tours, 88 positions, start "
+                 "times and temperatures."),
+    "sensitivity": ("_campaign:sensitivity", "Implicit derivatives of f, panels and sigma0 w.r.t. "
+                    "calibration and scan design."),
+    "simulate": ("_pipeline:simulate", "Simulate a campaign (scans + truth) into OUT."),
+    "surface": ("_surface:surface", "Surface products of CAMPAIGN: panels, cycle averages, "
+                "OUT/surface.json."),
+}
+"""Verb -> ``("module:attribute", short help)``: the group imports a verb's module (and with it
+the engine the verb needs) only when that verb runs or shows its help; ``hartrao-jax --help``
+lists the short helps without importing any. ``tests/cli`` checks both against the commands."""
+
+
+class LazyGroup(OneLineGroup):
+    """The verb group: verbs are loaded by name from :data:`VERBS` on first use."""
+
+    def list_commands(self, ctx) -> list[str]:
+        return sorted(set(self.commands) | set(VERBS))
+
+    def get_command(self, ctx, name: str):
+        if name not in self.commands and name in VERBS:
+            module, attr = VERBS[name][0].split(":")
+            cmd = getattr(importlib.import_module(f"{__package__}.{module}"), attr)
+            self.add_command(cmd, name)
+        return self.commands.get(name)
+
+    def format_commands(self, ctx, formatter) -> None:
+        """The command list from the short helps of :data:`VERBS` (no verb module imported)."""
+        names = self.list_commands(ctx)
+        if not names:
+            return
+        limit = formatter.width - 6 - max(len(n) for n in names)
+        rows = [(n, self.commands[n].get_short_help_str(limit) if n in self.commands
+                 else click.Command(n, help=VERBS[n][1]).get_short_help_str(limit))
+                for n in names]
+        with formatter.section("Commands"):
+            formatter.write_dl(rows)
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
 @click.option("-v", "--verbose", is_flag=True, help="More log output.")
 @click.version_option(package_name="hartrao-jax")
@@ -177,8 +240,47 @@ def print_fit_table(cf, title="fit") -> None:
     _console().print(pt)
 
 
-@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False))
-@click.option("--d-min", "d_min_m", type=float, default=None, help="Range window minimum (m).")
+def options(*decorators):
+    """One decorator applying click options in the order written (as stacked above a verb)."""
+
+    def apply(fn):
+        for d in reversed(decorators):
+            fn = d(fn)
+        return fn
+
+    return apply
+
+
+def model_option(help: str | None = None):
+    """``--model``: the adjustment's model (default extended)."""
+    return click.option("--model", default="extended", show_default=True, help=help or (
+        "simplified, extended, or comma-separated parameter names of the catalog."))
+
+
+def fitting_options(preprocess_help: str):
+    """``--preprocess/--no-preprocess``, ``--exclude-disturbed``, ``--cut-disturbed``: how the
+    verbs that fit (``fit``, ``surface``) clean the scans and treat disturbed ones."""
+    return options(
+        click.option("--preprocess/--no-preprocess", default=True, show_default=True,
+                     help=preprocess_help),
+        click.option("--exclude-disturbed", is_flag=True,
+                     help="Detect scans disturbed along one phi (brake, settling) and drop them."),
+        click.option("--cut-disturbed", is_flag=True,
+                     help="Detect disturbed scans and drop only the affected phi range, then "
+                          "refit."),
+    )
+
+
+def disturbed_mode(exclude_disturbed: bool, cut_disturbed: bool) -> str | None:
+    """``"exclude"``, ``"cut"`` or None from the two flags of :func:`fitting_options`."""
+    if exclude_disturbed and cut_disturbed:
+        raise UserError("--exclude-disturbed and --cut-disturbed: choose one")
+    return "exclude" if exclude_disturbed else "cut" if cut_disturbed else None
+
+
+def _names(text: str | None) -> tuple[str, ...]:
+    """The non-empty items of a comma-separated option value."""
+    return tuple(s.strip() for s in (text or "").split(",") if s.strip())
 
 
 def _parse_fixes(fixes) -> dict[str, float]:

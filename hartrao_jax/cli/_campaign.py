@@ -22,12 +22,8 @@ from ..preprocess import preprocess_keep
 from ..sensitivity._sensitivity import finite_difference, sensitivity_table, write_sensitivity
 from ..sensitivity._sensitivity import sensitivity as run
 from ..surface._gravity import write_gravity
-from ._base import UserError, _console, _parse_fixes, command, main
+from ._base import UserError, _console, _names, _parse_fixes, command, main
 from ._tables import print_gravity_summary, print_joint_summary
-
-
-def _names(text: str | None) -> tuple[str, ...]:
-    return tuple(s.strip() for s in (text or "").split(",") if s.strip())
 
 
 @main.command()
@@ -74,8 +70,8 @@ def fit_joint_command(campaign, out_dir, model, shared, group, scans, fixes, rob
     try:
         jf = fit_joint(camp, model, shared=_names(shared), group=group,
                        scans=scans.split(",") if scans else None, fixed=_parse_fixes(fixes),
-                       keep=preprocess_keep(preprocess, camp), robust_k=robust_k or None, batch=batch,
-                       progress=True)
+                       keep=preprocess_keep(preprocess, camp), robust_k=robust_k or None,
+                       batch=batch, progress=True)
     except ValueError as e:
         raise UserError(str(e)) from None
     p = write_joint_fit(out_dir, jf)
@@ -131,9 +127,10 @@ def sensitivity(campaign, json_file, model, params, fixes, scans, joint, batch, 
 
     camp = load_campaign(campaign)
     t0 = time.time()
+    # implicit derivatives of the per-scan adjustment
     start = fit_campaign(camp, model, scans=scans.split(",") if scans else None,
-                         fixed=_parse_fixes(fixes), keep=preprocess_keep(preprocess, camp), batch=batch,
-                         per_cycle=True)  # implicit derivatives of the per-scan adjustment
+                         fixed=_parse_fixes(fixes), keep=preprocess_keep(preprocess, camp),
+                         batch=batch, per_cycle=True)
     if joint:
         start = fit_joint(camp, model, shared=[p for p in _names(params) if p in start.model_names],
                           group="campaign", start=start).campaign_fit()
@@ -242,18 +239,8 @@ def fit_stream(campaign, scan_ids, model, rows_per_chunk, store, json_file, robu
             allow_nan=False))
         click.echo(f"f = {r.estimates['f'][0]:.6f} ± {r.estimates['f'][1]:.6f} m")
         return
-    client = cluster = None
-    if use_dask:
-        client, cluster = start_client(scheduler, n_workers=workers)
-    try:
-        doc = stream_fit_campaign(camp, ids or None, model, store=store,
-                                  rows_per_chunk=rows_per_chunk, robust_k=robust_k or None,
-                                  client=client, progress=True)
-    finally:
-        if client is not None:
-            close_client(client, cluster)
-    if json_file:
-        write_json_atomic(json_file, doc, indent=1)
+    doc = _streamed(stream_fit_campaign, camp, ids, model, rows_per_chunk, store, json_file,
+                    robust_k, use_dask, scheduler, workers)
     for rec in doc["scans"]:
         f = rec["estimates"]["f"]
         click.echo(f"{rec['scan']}: f = {f['value']:.6f} ± {f['sigma']:.6f} m, sigma0 "
@@ -262,21 +249,29 @@ def fit_stream(campaign, scan_ids, model, rows_per_chunk, store, json_file, robu
     click.echo(f"streamed {len(doc['scans'])} scans in {doc['seconds']:.1f} s")
 
 
-def _fit_stream_positions(camp, ids, model, rows_per_chunk, store, json_file, robust_k, use_dask,
-                          scheduler, workers):
-    """``fit-stream`` without ``--per-cycle``: one streamed two-face adjustment per position."""
+def _streamed(run, camp, ids, model, rows_per_chunk, store, json_file, robust_k, use_dask,
+              scheduler, workers) -> dict:
+    """``run(camp, ids, model, ...)`` (a streamed fit of scans or positions), on Dask workers
+    with ``use_dask``; its document is written to ``json_file`` when given and returned."""
     client = cluster = None
     if use_dask:
         client, cluster = start_client(scheduler, n_workers=workers)
     try:
-        doc = stream_fit_positions(camp, ids or None, model, store=store,
-                                   rows_per_chunk=rows_per_chunk, robust_k=robust_k or None,
-                                   client=client, progress=True)
+        doc = run(camp, ids or None, model, store=store, rows_per_chunk=rows_per_chunk,
+                  robust_k=robust_k or None, client=client, progress=True)
     finally:
         if client is not None:
             close_client(client, cluster)
     if json_file:
         write_json_atomic(json_file, doc, indent=1)
+    return doc
+
+
+def _fit_stream_positions(camp, ids, model, rows_per_chunk, store, json_file, robust_k, use_dask,
+                          scheduler, workers):
+    """``fit-stream`` without ``--per-cycle``: one streamed two-face adjustment per position."""
+    doc = _streamed(stream_fit_positions, camp, ids, model, rows_per_chunk, store, json_file,
+                    robust_k, use_dask, scheduler, workers)
     for rec in doc["positions"]:
         f = rec["f"]
         click.echo(f"{rec['position']}: {rec['faces']} face(s), f = {f['value']:.6f} ± "

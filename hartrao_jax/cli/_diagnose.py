@@ -15,7 +15,7 @@ from ..preprocess import preprocess_keep
 from ..prove._prove import CASES, run_prove
 from ..prove._prove import detectability as mda
 from ..report._diagnosis import diagnose_with_report
-from ._base import UserError, _console, command, main
+from ._base import UserError, _console, _names, command, main
 
 
 def print_diagnosis(diag) -> None:
@@ -63,7 +63,7 @@ def diagnose_command(campaign, json_path, start, report_dir, scans, effects, alp
                      min_effect_mm, max_steps, preprocess):
     """Locate the mismatch between CAMPAIGN and the model, explain and model it."""
 
-    eff = tuple(e.strip() for e in effects.split(",") if e.strip()) if effects else None
+    eff = _names(effects) or None
     bad = [e for e in eff or () if e not in EFFECTS]
     if bad:
         raise UserError(f"--effects: unknown effect id(s) {', '.join(bad)}; known: "
@@ -71,8 +71,9 @@ def diagnose_command(campaign, json_path, start, report_dir, scans, effects, alp
     cfg = DiagnoseConfig(alpha=alpha, min_effect_m=min_effect_mm * 1e-3, max_steps=max_steps,
                          effects=eff)
     t0 = time.time()
-    diag = diagnose_with_report(campaign, start, config=cfg, scans=scans.split(",") if scans else None,
-                    keep=preprocess_keep(preprocess), report_dir=report_dir)
+    diag = diagnose_with_report(campaign, start, config=cfg,
+                                scans=scans.split(",") if scans else None,
+                                keep=preprocess_keep(preprocess), report_dir=report_dir)
     p = write_json(diag, json_path)
     print_diagnosis(diag)
     click.echo(f"wrote {p} ({time.time() - t0:.1f} s)")

@@ -10,7 +10,7 @@ import click
 from ..campaign._campaign import load_campaign
 from ..report import write_report
 from ..surface._surface import SurfaceConfig, surface_campaign
-from ._base import UserError, command, main
+from ._base import UserError, command, disturbed_mode, fitting_options, main, model_option
 
 
 @main.command()
@@ -19,20 +19,14 @@ from ._base import UserError, command, main
               help="Output directory: surface.json, points/, cycles/ (and fit/ when fitting).")
 @click.option("--fit", "fit_dir", type=click.Path(exists=True, file_okay=False), default=None,
               help="Use this fit output (fit.json + residuals/) instead of fitting.")
-@click.option("--model", default="extended", show_default=True,
-              help="Model of the adjustment when fitting here.")
+@model_option("Model of the adjustment when fitting here.")
 @click.option("--margin", "margin_m", type=float, default=0.02, show_default=True,
               help="Panel edge mask, radial and tangential (m).")
 @click.option("--margin-radial", type=float, default=None, help="Radial edge mask (m).")
 @click.option("--margin-tangential", type=float, default=None, help="Tangential edge mask (m).")
 @click.option("--radius", "radius_m", type=float, default=None,
               help="Cycle-averaging radius (m); default 1 cm, more on coarse scans.")
-@click.option("--preprocess/--no-preprocess", default=True, show_default=True,
-              help="Clean scans before fitting (when fitting here).")
-@click.option("--exclude-disturbed", is_flag=True,
-              help="Leave out scans disturbed along one horizontal angle.")
-@click.option("--cut-disturbed", is_flag=True,
-              help="Cut the disturbed phi range out of such scans (refitted).")
+@fitting_options("Clean scans before fitting (when fitting here).")
 @click.option("--report/--no-report", "with_report", default=False, show_default=True,
               help="Also write OUT/report.html.")
 @command
@@ -40,8 +34,7 @@ def surface(campaign, out_dir, fit_dir, model, margin_m, margin_radial, margin_t
             radius_m, preprocess, exclude_disturbed, cut_disturbed, with_report):
     """Surface products of CAMPAIGN: panels, cycle averages, OUT/surface.json."""
 
-    if exclude_disturbed and cut_disturbed:
-        raise UserError("--exclude-disturbed and --cut-disturbed: choose one")
+    mode = disturbed_mode(exclude_disturbed, cut_disturbed)
     try:
         cfg = SurfaceConfig(
             margin_radial_m=margin_m if margin_radial is None else margin_radial,
@@ -54,7 +47,6 @@ def surface(campaign, out_dir, fit_dir, model, margin_m, margin_radial, margin_t
     if camp.telescope.ring_edges_m is None or camp.telescope.panels_per_ring is None:
         click.echo("note: the campaign has no panel layout: no panel products, points only",
                    err=True)
-    mode = "exclude" if exclude_disturbed else "cut" if cut_disturbed else None
     res = surface_campaign(camp, cfg, out_dir, fit_dir=fit_dir, preprocess=preprocess,
                            disturbed=mode, progress=True)
     _print_summary(res)

@@ -4,7 +4,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hartrao_jax.geometry._geometry import polar_components, polar_to_cartesian, zernike
-from hartrao_jax.preprocess._preprocess import _cartesian
+from hartrao_jax.preprocess._frames import _cartesian
 from hartrao_jax.surface._gravity import zernike_np
 
 

@@ -201,7 +201,7 @@ def fit_dask_command(campaign, out_dir, scheduler, n_workers, model, scans, fixe
 @click.option("--json", "json_file", default=None, type=click.Path(dir_okay=False))
 @click.option("--robust-k", default=4.0, show_default=True, type=float)
 @click.option("--dask/--no-dask", "use_dask", default=False, show_default=True,
-              help="Several scans: one task per scan on Dask workers.")
+              help="One task per position (per scan with --per-cycle) on Dask workers.")
 @click.option("--scheduler", default=None, metavar="ADDRESS",
               help="With --dask: an existing scheduler (default: a LocalCluster).")
 @click.option("--workers", default=2, show_default=True, type=int,

@@ -43,7 +43,7 @@ def two_face_scan(seed: int, n: int = 12000, tau: float = TAU, noise: bool = Tru
 
 def _fit_mixed(lobs, X, names=("tx", "ty", "tz", "rx", "ry", "f")):
     model = make_model(list(names))
-    x_true = np.array([{**POSE, "f": F_TRUE}[k] for k in model.free])
+    x_true = np.array([{**POSE, "f": F_TRUE}.get(k, 0.0) for k in model.free])
     cell, local, n_cells, _ = panel_cells(X, EDGES, COUNTS)
     design = np.column_stack([np.ones(len(X)), local]) * (cell >= 0)[:, None]
     c = np.zeros((len(lobs), 2))

@@ -103,6 +103,7 @@ def initial_values(
     focal_length_m: float,
     n_sample: int = 20000,
     n_headings: int = 120,
+    n_coarse: int = 2500,
     tol_m: float = 0.02,
     seed: int = 0,
 ) -> InitialValues:
@@ -114,6 +115,8 @@ def initial_values(
         focal_length_m: nominal focal length (m), used to rank headings with nearly equal fits.
         n_sample: points drawn (seeded) for the search.
         n_headings: headings tried on a full turn before a local refinement.
+        n_coarse: points of the sample that score the full turn (the inlier fraction of a
+            heading to about 1 %); the local refinement uses the whole sample.
         tol_m: distance defining an inlier of the trial paraboloid.
     """
     rng = np.random.default_rng(seed)
@@ -122,9 +125,9 @@ def initial_values(
     xs = np.asarray(polar_to_cartesian(r[idx], phi[idx], theta[idx]))
     Ra = gimbal_rotation(gravity)
 
-    def score(kappa_s: float):
+    def score(kappa_s: float, pts: np.ndarray = xs):
         R = Ra @ np.asarray(rot_z(kappa_s))
-        X = xs @ R.T
+        X = pts @ R.T
         t, f, res = _robust_fit(X, focal_length_m, tol_m)
         if not np.isfinite(f) or f <= 0:
             return -np.inf, t, f
@@ -133,7 +136,7 @@ def initial_values(
         return inl - 1e-3 * abs(f - focal_length_m) / focal_length_m, t, f
 
     grid = np.linspace(0, 2 * np.pi, n_headings, endpoint=False)
-    scores = [score(k)[0] for k in grid]
+    scores = [score(k, xs[:n_coarse])[0] for k in grid]
     best = grid[int(np.argmax(scores))]
     step = grid[1] - grid[0]
     for _ in range(3):  # local refinement

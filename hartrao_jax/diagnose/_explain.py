@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import stats
+from scipy import special, stats
 
 from ..model._model import (
     DRIFT,
@@ -379,8 +379,6 @@ def _candidates(joint: _Joint, scans: Sequence[_Scan], local: dict[str, list[str
 
 def _log_sf(T: float, dof: int) -> float:
     """Natural log of the chi-square survival function, accurate far in the tail."""
-    from scipy import special
-
     T = max(float(T), 0.0)
     k = max(int(dof), 1)
     p = float(special.gammaincc(k / 2.0, T / 2.0))

@@ -4,6 +4,7 @@ and the weighted refit of one or all scans that every search and step relies on.
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -390,8 +391,7 @@ _STATE = ("names", "x", "cov", "sigma0", "omega", "redundancy", "v", "used", "F"
 
 
 def _save(S: Sequence[_Scan], spec: _Spec):
-    import copy
-
+    """The scans' fit state and a copy of the spec (for :func:`_restore`)."""
     return [{k: getattr(sc, k) for k in _STATE} for sc in S], copy.deepcopy(spec)
 
 

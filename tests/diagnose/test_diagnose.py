@@ -18,7 +18,8 @@ from hartrao_jax._config import enable_compilation_cache
 from hartrao_jax.diagnose._explain import _log_sf
 from hartrao_jax.diagnose._find import _box_search, _periodogram
 from hartrao_jax.diagnose._result import DIAGNOSIS_SCHEMA, write_json
-from hartrao_jax.diagnose._state import DiagnoseConfig
+from hartrao_jax.diagnose._state import DiagnoseConfig, _Context
+from hartrao_jax.diagnose._thermal import _thermal
 from hartrao_jax.prove._prove import (
     MULTI_POSITIONS,
     PANELS,
@@ -238,9 +239,6 @@ def _fake_scans(n_pos, df_dT, seed=0, sigma_f=5e-5):
 def test_thermal_from_the_focal_lengths_across_positions():
     """f against temperature with the gravity terms estimated: found with its estimate on 23
     positions, nothing without it, and confounded with gravity on a few positions."""
-    from hartrao_jax.diagnose._diagnose import _thermal
-    from hartrao_jax.diagnose._state import DiagnoseConfig, _Context
-
     ctx = _Context.__new__(_Context)
     ctx.config = DiagnoseConfig()
     kind, f = _thermal(ctx, _fake_scans(23, 1.3e-4), 40)

@@ -42,6 +42,7 @@ import os
 import pathlib
 import re
 import secrets
+import time
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
@@ -167,7 +168,6 @@ def _unlink(path: pathlib.Path) -> None:
 def _pause() -> None:
     t = os.environ.get(PAUSE_ENV)
     if t:
-        import time
 
         time.sleep(float(t))
 

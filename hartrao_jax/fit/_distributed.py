@@ -33,10 +33,12 @@ import functools
 import logging
 import math
 import os
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from .._config import enable_compilation_cache, enable_x64
@@ -94,6 +96,12 @@ def worker_setup() -> None:
         enable_compilation_cache()
     except OSError:  # read-only home on a remote worker: compile every time
         pass
+
+
+def worker_campaign(root: str):
+    """On a worker (or in-process): :func:`worker_setup`, then the campaign at ``root``."""
+    worker_setup()
+    return load_campaign(root)
 
 
 def _plugin_class():
@@ -213,7 +221,6 @@ def release_compiled(every: int = CLEAR_EVERY) -> bool:
     _tasks_since_clear[0] += 1
     if _tasks_since_clear[0] < every:
         return False
-    import jax
 
     jax.clear_caches()
     _tasks_since_clear[0] = 0
@@ -248,7 +255,6 @@ class ScanSummary:
 def task_fit_scan(root: str, scan_id: str, model, fixed: dict | None, robust_k: float | None,
                   preprocess: bool, heading_hint_rad: float | None):
     """Worker: read, preprocess and fit one scan; the :class:`ScanFit` stays on the worker."""
-    import time
 
     worker_setup()
 
@@ -271,7 +277,6 @@ def task_fit_position(root: str, scan_ids: Sequence[str], model, fixed: dict | N
                       out_dir: str | None):
     """Worker: read, preprocess and adjust the scans of one position together (two faces, the
     surface a random effect); returns the scans' summaries and the position's record."""
-    import time
 
     worker_setup()
 
@@ -440,7 +445,6 @@ def fit_dask(
     both faces adjusted together with the surface as a random effect (as ``fit``);
     ``per_cycle=True``: one task per scan, each cycle alone.
     """
-    import time
 
 
     t0 = time.perf_counter()
@@ -526,7 +530,6 @@ def fit_dask(
 def _finish(client, od, out_dir, metas, ordered, doc, t0, jf, futures) -> DaskFit:
     """Commit the output directory (the residual tables the workers wrote, ``fit.json`` last)
     and the :class:`DaskFit`."""
-    import time
 
     if od is not None:
         for m in metas:
@@ -568,4 +571,4 @@ def _joint_on_workers(client, root, campaign, metas, fits, summaries, names, sha
 
 __all__ = ["DaskBackend", "DaskFit", "ScanSummary", "WORKER_ENV",
            "close_client", "fit_dask", "fit_document", "release_compiled", "start_client",
-           "thin_scan_fit", "worker_setup"]
+           "thin_scan_fit", "worker_campaign", "worker_setup"]

@@ -13,6 +13,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -351,7 +352,6 @@ def finish_scan_fit(
     g: np.ndarray, init: InitialValues, window: np.ndarray, *, heading_hint_rad: float | None = None,
 ) -> ScanFit:
     """Turn a GH result into a :class:`ScanFit`: alignment, deviations, bookkeeping."""
-    import jax
 
     x = np.asarray(res.x)
     names = mdl.free

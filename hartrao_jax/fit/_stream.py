@@ -53,6 +53,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import resource
 import tempfile
 import time
 from collections.abc import Iterable
@@ -65,12 +66,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..campaign._campaign import Campaign, ScanMeta, iter_scan_chunks, load_campaign
+from ..campaign._campaign import Campaign, ScanMeta, iter_scan_chunks
 from ..geometry._geometry import pointing_gravity
 from ..model._model import N_CONSTS, make_model, parameter_unit
 from ..preprocess._initial import InitialValues, geometry_window, initial_values
 from ..solver._kernel import linearize_rev, make_pass, solve_scaled
-from ._distributed import worker_setup
+from ._distributed import worker_campaign
 from ._fit import Estimates, _progress, _x0, sigma_vector
 
 log = logging.getLogger("hartrao_jax")
@@ -529,7 +530,6 @@ def stream_fit_scan(
 
 def peak_rss_gib() -> float:
     """Peak resident memory of this process (GiB), from ``getrusage``."""
-    import resource
 
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
 
@@ -552,11 +552,7 @@ def _stream_task(root: str, scan_id: str, model, store: str | None, rows_per_chu
     """One scan streamed where this runs (in-process or on a Dask worker): its small record;
     the per-point results stay in ``store`` (on the worker's disk)."""
 
-    try:  # on a Dask worker: float64 and the compilation cache
-        worker_setup()
-    except ImportError:  # pragma: no cover
-        pass
-    camp = load_campaign(root)
+    camp = worker_campaign(root)  # on a Dask worker: float64, the compilation cache
     r = stream_fit_scan(camp, scan_id, model, rows_per_chunk=rows_per_chunk, store=store,
                         robust_k=robust_k)
     return stream_document(r)

@@ -38,15 +38,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..campaign._campaign import Campaign, ScanMeta, iter_scan_chunks, load_campaign
+from ..campaign._campaign import Campaign, ScanMeta, iter_scan_chunks
 from ..campaign._campaign import _concat as concat_scans
 from ..geometry._geometry import panel_cells, rot_z, square_cells
 from ..model._model import ZERNIKE_PREFIX
 from ..preprocess._initial import geometry_window
 from ..solver._ghm import bucket_size
 from ..solver._mixed import MixedSums, mixed_chunk, mixed_step, ridge_indices
-from ._distributed import worker_setup
-from ._fit import PositionFit, SurfaceEffect, fit_position, position_record, scan_arrays, sigma_vector
+from ._distributed import worker_campaign
+from ._fit import (
+    PositionFit,
+    SurfaceEffect,
+    fit_position,
+    position_record,
+    scan_arrays,
+    sigma_vector,
+)
 from ._stream import _count_rows, _NpyRows, _progress, peak_rss_gib
 
 
@@ -259,11 +266,7 @@ def _record(start: PositionFit, st, x, final, var, sums, per_scan, converged, pa
 def _position_task(root: str, scan_ids: list[str], model, store: str | None,
                    rows_per_chunk: int, robust_k: float | None) -> dict:
     """One position streamed where this runs (in-process or on a Dask worker)."""
-    try:  # on a Dask worker: float64 and the compilation cache
-        worker_setup()
-    except ImportError:  # pragma: no cover
-        pass
-    camp = load_campaign(root)
+    camp = worker_campaign(root)  # on a Dask worker: float64, the compilation cache
     return stream_fit_position(camp, scan_ids, model, rows_per_chunk=rows_per_chunk,
                                store=store, robust_k=robust_k)
 

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..campaign._campaign import read_scan, require_points
-from ..fit._align import mount_heading
+from ..fit._align import mean_heading, scan_heading
 from ..fit._fit import finish_scan_fit, prepare_scan, scan_arrays
 from ..geometry._geometry import (
     face_of,
@@ -44,11 +44,9 @@ def _start_scans(ctx: _Context, start: tuple[str, ...], keep,
         l, c = scan_arrays(data)
         x0 = np.array([init.x.get(n, 0.0) for n in mdl.free])
         res = _adjust(ctx, mdl, l, x0, c, window.astype(float))
-        hint = float(np.angle(np.mean(np.exp(1j * np.array(headings))))) if headings else None
-        f = finish_scan_fit(camp, meta, mdl, data, res, g, init, window, heading_hint_rad=hint)
-        if f.alignment.source == "gravity":
-            headings.append(mount_heading(f.alignment.kappa_rad, f.value("rx"), f.value("ry"),
-                                          f.gravity))
+        f = finish_scan_fit(camp, meta, mdl, data, res, g, init, window,
+                            heading_hint_rad=mean_heading(headings))
+        headings.append(scan_heading(f))
         fits[meta.id] = (f, window)
         log.info("start fit %s: sigma0 %.3f, %d points", meta.id, f.sigma0, f.n_points)
 

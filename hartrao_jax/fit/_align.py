@@ -142,6 +142,21 @@ def mount_heading(kappa: float, rx: float, ry: float, gravity: np.ndarray) -> fl
     return float(np.arctan2(Rz_h[1, 0], Rz_h[0, 0]))
 
 
+def scan_heading(fit) -> float | None:
+    """Mount heading (rad) of a fitted scan (anything with ``alignment``, ``value(name)`` and
+    ``gravity``) whose north alignment came from gravity; None otherwise."""
+    if fit.alignment.source != "gravity":
+        return None
+    return mount_heading(fit.alignment.kappa_rad, fit.value("rx"), fit.value("ry"), fit.gravity)
+
+
+def mean_heading(headings) -> float | None:
+    """Circular mean (rad) of the headings that are not None; None when there are none: the
+    hint other positions give a flat one (:func:`north_alignment`'s ``heading_hint_rad``)."""
+    hs = [h for h in headings if h is not None]
+    return float(np.angle(np.mean(np.exp(1j * np.array(hs))))) if hs else None
+
+
 def kappa_from_heading(heading: float, gravity: np.ndarray) -> float:
     """``kappa`` (rad) predicted from a known mount heading at a position with gravity ``g``."""
     R = gimbal_rotation(gravity) @ np.asarray(rot_z(heading))

@@ -47,7 +47,7 @@ from ..campaign._safeio import OutputDir
 from ..geometry._geometry import pointing_gravity
 from ..model._model import parse_model
 from ..preprocess._preprocess import preprocess_keep
-from ._align import MIN_TILT_RAD, Alignment, mount_heading
+from ._align import MIN_TILT_RAD, Alignment, mean_heading, scan_heading
 from ._fit import (
     FIT_SCHEMA,
     CampaignFit,
@@ -302,10 +302,7 @@ def task_summary(fit, out_dir: str | None = None, held=None) -> ScanSummary:
     if out_dir:
         (Path(out_dir) / "residuals").mkdir(parents=True, exist_ok=True)
         write_residuals(Path(out_dir) / "residuals" / f"{fit.meta.id}.parquet", fit)
-    heading = None
-    if fit.alignment.source == "gravity":
-        heading = mount_heading(fit.alignment.kappa_rad, fit.value("rx"), fit.value("ry"),
-                                fit.gravity)
+    heading = scan_heading(fit)
     try:
         wname = get_worker().address
     except ValueError:
@@ -488,7 +485,7 @@ def fit_dask(
             run_positions(first, None)
             hs = [summaries[m.id].heading_rad for p in first for m in groups[p][:1]
                   if summaries[m.id].alignment_source == "gravity"]
-            hint = float(np.angle(np.mean(np.exp(1j * np.array(hs))))) if hs else None
+            hint = mean_heading(hs)
             rest = [p for p in groups if p not in first]
             if rest:
                 run_positions(rest, hint)
@@ -510,7 +507,7 @@ def fit_dask(
         run(tilted, None)
         hs = [summaries[m.id].heading_rad for m in tilted
               if summaries[m.id].alignment_source == "gravity"]
-        hint = float(np.angle(np.mean(np.exp(1j * np.array(hs))))) if hs else None
+        hint = mean_heading(hs)
         if flat:
             run(flat, hint)
         names = parse_model(model)

@@ -51,7 +51,7 @@ from ..solver._ghm import (
     robust_gauss_helmert,
 )
 from ..solver._mixed import gauss_helmert_mixed, unidentifiable
-from ._align import Alignment, mount_heading, north_alignment
+from ._align import Alignment, mean_heading, north_alignment, scan_heading
 
 log = logging.getLogger("hartrao_jax")
 
@@ -740,13 +740,10 @@ def fit_campaign(
             task = prog.add_task("fitting positions", total=len(order))
             for pos in order:
                 prog.update(task, description=f"fitting {pos}")
-                hint = float(np.angle(np.mean(np.exp(1j * np.array(headings))))) if headings else None
                 pf = fit_position(campaign, groups[pos], model, keep=keep, fixed=fixed,
-                                  robust_k=robust_k, heading_hint_rad=hint, surface=surface)
-                s0 = pf.scans[0]
-                if s0.alignment.source == "gravity":
-                    headings.append(mount_heading(s0.alignment.kappa_rad, s0.value("rx"),
-                                                  s0.value("ry"), s0.gravity))
+                                  robust_k=robust_k, heading_hint_rad=mean_heading(headings),
+                                  surface=surface)
+                headings.append(scan_heading(pf.scans[0]))
                 pfits[pos] = pf
                 prog.advance(task)
         by_id = {s.meta.id: s for pf in pfits.values() for s in pf.scans}
@@ -765,12 +762,9 @@ def fit_campaign(
                 prog.update(task, description=f"fitting {m.id}")
                 data = read_scan(campaign, m)
                 k = keep(m, data) if keep is not None else None
-                hint = float(np.angle(np.mean(np.exp(1j * np.array(headings))))) if headings else None
-                fit = fit_scan(campaign, m, model, data=data, keep=k, fixed=fixed, robust_k=robust_k,
-                               heading_hint_rad=hint)
-                if fit.alignment.source == "gravity":
-                    headings.append(mount_heading(fit.alignment.kappa_rad, fit.value("rx"),
-                                                  fit.value("ry"), fit.gravity))
+                fit = fit_scan(campaign, m, model, data=data, keep=k, fixed=fixed,
+                               robust_k=robust_k, heading_hint_rad=mean_heading(headings))
+                headings.append(scan_heading(fit))
                 fits[m.id] = fit
                 prog.advance(task)
     return CampaignFit(campaign, names, [fits[m.id] for m in metas])
@@ -823,11 +817,9 @@ def _fit_batch(campaign, metas, model, *, fixed, robust_k, keep, progress) -> di
             weights=res.weights[b, :nb], redundancy=res.redundancy[b],
             iterations=res.iterations[b], converged=res.converged[b],
         )
-        hint = float(np.angle(np.mean(np.exp(1j * np.array(headings))))) if headings else None
-        fit = finish_scan_fit(campaign, m, mdl, data, rb, g, init, window, heading_hint_rad=hint)
-        if fit.alignment.source == "gravity":
-            headings.append(mount_heading(fit.alignment.kappa_rad, fit.value("rx"), fit.value("ry"),
-                                          fit.gravity))
+        fit = finish_scan_fit(campaign, m, mdl, data, rb, g, init, window,
+                              heading_hint_rad=mean_heading(headings))
+        headings.append(scan_heading(fit))
         out[m.id] = fit
     return out
 

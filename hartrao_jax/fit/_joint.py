@@ -53,7 +53,7 @@ from ..solver._ghm import (
     chunk_for,
     normal_equations,
 )
-from ._align import mount_heading
+from ._align import mean_heading, scan_heading
 from ._fit import (
     CampaignFit,
     ScanFit,
@@ -474,9 +474,7 @@ class JointFit:
 
 
 def _heading_hint(fits: Iterable[ScanFit]) -> float | None:
-    hs = [mount_heading(s.alignment.kappa_rad, s.value("rx"), s.value("ry"), s.gravity)
-          for s in fits if s.alignment.source == "gravity"]
-    return float(np.angle(np.mean(np.exp(1j * np.array(hs))))) if hs else None
+    return mean_heading(scan_heading(s) for s in fits)
 
 
 def problems_from_fits(campaign: Campaign, fits: Sequence[ScanFit], *, common_shape: bool = True

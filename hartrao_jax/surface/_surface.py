@@ -49,7 +49,7 @@ import numpy as np
 
 from ..campaign._campaign import load_campaign
 from ..campaign._safeio import OutputDir, verify_result_dir
-from ..fit._align import mount_heading
+from ..fit._align import mean_heading, scan_heading
 from ..fit._fit import fit_campaign, fit_scan, panel_predictions, read_residuals, write_fit
 from ..geometry._geometry import face_of, panel_geometry, panel_ids
 from ..preprocess._preprocess import preprocess_keep
@@ -761,9 +761,7 @@ def surface_campaign(campaign, config: SurfaceConfig | None = None, out_dir=None
         reports = detect_disturbed_campaign(cf)
         bad = {r.scan: r for r in reports}
         if disturbed == "cut" and bad:
-            heads = [mount_heading(s.alignment.kappa_rad, s.value("rx"), s.value("ry"),
-                                   s.gravity) for s in cf.scans if s.alignment.source == "gravity"]
-            hint = float(np.angle(np.mean(np.exp(1j * np.array(heads))))) if heads else None
+            hint = mean_heading(scan_heading(s) for s in cf.scans)
             for i, s in enumerate(cf.scans):
                 if s.meta.id in bad:
                     k = cut_keep(s.data.phi_rad, bad[s.meta.id])

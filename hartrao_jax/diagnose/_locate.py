@@ -251,6 +251,8 @@ def search(xy: np.ndarray, r: np.ndarray, *, widths: Sequence[float] = WIDTHS_M,
     r = np.asarray(r, float)
     ok = np.all(np.isfinite(xy), 1) & np.isfinite(r)
     xy, r = xy[ok], r[ok]
+    if len(r) < 16:  # nothing to search (every point rejected, or an empty recording)
+        return Search([], None, float("nan"), [float(w) for w in widths])
     med = float(np.median(r))
     sigma = float(1.4826 * np.median(np.abs(r - med))) or float(np.std(r)) or 1e-4
     # gross outliers (mixed pixels, edges) clipped to 5 sigma: they are not deformations

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 import click
+import numpy as np
 
 from ..campaign._campaign import load_campaign
 from ..campaign._safeio import strict_json, write_json_atomic
@@ -122,19 +123,19 @@ def gravity(results_dir, out_dir, modes, temperature, step_deg, figures):
 def sensitivity(campaign, json_file, model, params, fixes, scans, joint, batch, preprocess,
                 n_validate):
     """Implicit derivatives of f, panels and sigma0 w.r.t. calibration and scan design."""
-    import numpy as np
-
-
     camp = load_campaign(campaign)
     t0 = time.time()
     # implicit derivatives of the per-scan adjustment
-    start = fit_campaign(camp, model, scans=scans.split(",") if scans else None,
-                         fixed=_parse_fixes(fixes), keep=preprocess_keep(preprocess, camp),
+    picked = scans.split(",") if scans else None
+    keep = preprocess_keep(preprocess, camp)
+    start = fit_campaign(camp, model, scans=picked, fixed=_parse_fixes(fixes), keep=keep,
                          batch=batch, per_cycle=True)
+    # the two-face adjustments (surface random effect): what of sigma(f) a finer step cannot buy
+    two = fit_campaign(camp, model, scans=picked, fixed=_parse_fixes(fixes), keep=keep)
     if joint:
         start = fit_joint(camp, model, shared=[p for p in _names(params) if p in start.model_names],
                           group="campaign", start=start).campaign_fit()
-    cs = run(camp, start, _names(params))
+    cs = run(camp, start, _names(params), positions=two.position_fits)
     validation = None
     if n_validate:
         rows = []

@@ -21,8 +21,12 @@ From ``dx/dp``:
   ``Nr_pp = N_pp - N_px N_xx^-1 N_xp`` (envelope theorem; ``n_p = 0`` when ``p`` sits at its
   estimate), ``sigma0^2 = Omega / (n - u)``.
 
-Scan design: covariances scale with ``1 / n_points`` and ``n_points ~ step^-2``, so
-``sigma_f(step) = sigma_f(step0) step / step0``; one face instead of two: the normal equations
+Scan design: white-noise covariances scale with ``1 / n_points`` and ``n_points ~ step^-2``,
+so the white part of sigma(f) goes as ``step / step0``; the part the surface random effect
+puts into sigma(f) (the panel pattern blurs f however many points sample it) does not, so
+given the two-face adjustments of the positions ``sigma_f(step)^2 = sigma_w^2 (step /
+step0)^2 + sigma_s^2`` (``sigma_w``: the white-noise sigma of both faces together,
+``sigma_s^2 = sigma_f^2 - sigma_w^2``); one face instead of two: the normal equations
 restricted to the face-1 points (x4, x6, x7 flip sign between faces; with one face they are
 not separable from the pose -- the condition number says so).
 """
@@ -308,6 +312,7 @@ class CampaignSensitivity:
     params: tuple[str, ...]
     scans: list[ScanSensitivity]
     model_names: tuple[str, ...]
+    position_fits: list = field(default_factory=list)
 
     def positions(self) -> list[dict]:
         """Per position: inverse-variance weighted derivatives over its scans (cycles)."""
@@ -357,6 +362,28 @@ class CampaignSensitivity:
             out.append(entry)
         return out
 
+    def surface_limited_f(self) -> list[dict]:
+        """Per two-face position fit: sigma(f) (m) with the surface random effect, its white
+        part ``sigma_w`` (the scans' normal matrices added: both faces, noise factor of the
+        adjustment) and the surface part ``sigma_s = sqrt(sigma_f^2 - sigma_w^2)``."""
+        rows = []
+        for p in self.position_fits:
+            scans = [s for s in self.scans if s.position == p.position]
+            if "f" not in p.names or not scans:
+                continue
+            n = len(scans[0].names)
+            if any(s.names != scans[0].names for s in scans):
+                continue
+            i_f = scans[0].names.index("f")
+            q = np.linalg.inv(np.sum([s.N[:n, :n] for s in scans], axis=0))[i_f, i_f]
+            noise = p.surface.variances["noise"] if p.surface is not None else 1.0
+            total = float(p.sigma[list(p.names).index("f")])
+            white = math.sqrt(max(noise * q, 0.0))
+            rows.append({"position": p.position, "faces": p.faces, "sigma_f_m": total,
+                         "sigma_f_white_m": white,
+                         "sigma_f_surface_m": math.sqrt(max(total**2 - white**2, 0.0))})
+        return rows
+
     def design(self) -> dict:
         """Scan design: sigma(f) against the angular step; one face against two."""
         step0 = float(self.campaign.scanner.angular_step_rad)
@@ -367,8 +394,13 @@ class CampaignSensitivity:
                                                                            s.names.index("f")]))
         sig_f = float(np.median([np.median(v) for v in sf.values()]))
         steps = sorted(set(DESIGN_STEPS_RAD) | {step0})
+        lim = self.surface_limited_f()
+        sw = float(np.median([r["sigma_f_white_m"] for r in lim])) if lim else None
+        ss = float(np.median([r["sigma_f_surface_m"] for r in lim])) if lim else None
         step_rows = [{"step_rad": st, "n_points_factor": (step0 / st) ** 2,
-                      "sigma_f_m": sig_f * st / step0} for st in steps]
+                      "sigma_f_m": sig_f * st / step0,
+                      **({"sigma_f_two_face_m": math.hypot(sw * st / step0, ss)} if lim else {})}
+                     for st in steps]
         faces = {}
         for key in ("two_faces", "one_face"):
             rows = [s.design[key] for s in self.scans if s.design]
@@ -386,8 +418,14 @@ class CampaignSensitivity:
         return {
             "step": {"reference_step_rad": step0, "sigma_f_m_at_reference": sig_f,
                      "dsigma_f_dstep": sig_f / step0,
-                     "model": "sigma_f ~ 1/sqrt(n_points), n_points ~ step^-2 (white noise, same "
-                              "coverage)", "table": step_rows},
+                     "model": "sigma_f_m: one scan, white noise: ~ 1/sqrt(n_points), n_points ~ "
+                              "step^-2 (same coverage)" + (
+                                  "; sigma_f_two_face_m: both faces with the surface random "
+                                  "effect, sqrt(sigma_w^2 (step/step0)^2 + sigma_s^2): the "
+                                  "surface part does not shrink with more points" if lim else ""),
+                     "table": step_rows,
+                     **({"two_face": {"sigma_f_white_m": sw, "sigma_f_surface_m": ss,
+                                      "positions": lim}} if lim else {})},
             "faces": faces,
             "note": "with one face the two-face-sensitive parameters (" + ", ".join(
                 p for p in self.params if INSTRUMENT.get(p) and INSTRUMENT[p].two_face != "no")
@@ -413,13 +451,16 @@ def sensitivity(
     *,
     panels: bool = True,
     design: bool = True,
+    positions: Sequence = (),
 ) -> CampaignSensitivity:
     """Sensitivities of every scan of ``start`` (converged fits) to ``params`` held fixed.
 
     Parameters free in ``start`` are held at their estimates (the solution of the reduced
     problem is then the same point); the others at the model's fixed values (0 if not given).
     ``start`` may be a joint fit (:class:`._joint.JointFit`): the shared parameters are then held
-    at their joint estimates.
+    at their joint estimates. ``positions``: the two-face position fits of the same scans
+    (:class:`..fit.PositionFit`, the default of ``fit``): the design then also says how much
+    of sigma(f) is the surface's and does not shrink with a finer step.
     """
     if hasattr(start, "campaign_fit"):
         start = start.campaign_fit()
@@ -428,7 +469,8 @@ def sensitivity(
     n_pad = max(bucket_size(len(s.data)) for s in scans)
     out = [scan_sensitivity(campaign, s, params, n_pad=n_pad, panels=panels, design=design)
            for s in scans]
-    return CampaignSensitivity(campaign, params, out, tuple(start.model_names))
+    return CampaignSensitivity(campaign, params, out, tuple(start.model_names),
+                               list(positions))
 
 
 # --------------------------------------------------------------------------------------------
@@ -559,6 +601,14 @@ def sensitivity_table(cs: CampaignSensitivity) -> str:
             cells.append(f"{r[p]['delta_f_m'] * 1e6:+.2f}")
             cells.append(f"{r[p].get('delta_panel_rms_m', float('nan')) * 1e6:.2f}")
         rows.append("| " + " | ".join(cells) + " |")
+    lim = cs.surface_limited_f()
+    if lim:
+        sw = np.median([r["sigma_f_white_m"] for r in lim])
+        ss = np.median([r["sigma_f_surface_m"] for r in lim])
+        rows += ["", f"sigma(f), both faces with the surface random effect (median over "
+                 f"{len(lim)} positions): {np.median([r['sigma_f_m'] for r in lim]) * 1e6:.1f} um"
+                 f" = white {sw * 1e6:.1f} um (shrinks with a finer step) (+) surface "
+                 f"{ss * 1e6:.1f} um (does not)"]
     return "\n".join(rows)
 
 

@@ -145,3 +145,24 @@ def test_json_table_and_figure(fitted, tmp_path):
     assert len(doc["positions"][0]["panel_dp_m_per_unit"]["x4"]) == 255
     assert (tmp_path / "sensitivity_f.png").is_file()
     assert "arcsec of x4" in sensitivity_table(cs)
+
+
+def test_design_splits_sigma_f_into_white_and_surface(fitted):
+    """With the two-face fits, sigma(f) = white (+) surface per position, and a finer step
+    shrinks only the white part: the step table's two-face sigma falls slower than 1/step."""
+    camp, start, _ = fitted
+    two = fit_campaign(camp, "extended", progress=False)
+    cs = sensitivity(camp, start, PARAMS, panels=False, positions=two.position_fits)
+    lim = cs.surface_limited_f()
+    assert [r["position"] for r in lim] == [p.position for p in two.position_fits]
+    for r, p in zip(lim, two.position_fits):
+        assert r["sigma_f_m"] == pytest.approx(float(p.sigma[list(p.names).index("f")]))
+        assert 0 < r["sigma_f_white_m"] < r["sigma_f_m"]
+        assert r["sigma_f_surface_m"] > 0  # the panels (0.1 mm rms) blur f
+        assert r["sigma_f_m"] ** 2 == pytest.approx(
+            r["sigma_f_white_m"] ** 2 + r["sigma_f_surface_m"] ** 2)
+    rows = {r["step_rad"]: r for r in cs.design()["step"]["table"]}
+    assert rows[0.006]["sigma_f_m"] == pytest.approx(2 * rows[0.003]["sigma_f_m"])
+    ratio = rows[0.003]["sigma_f_two_face_m"] / rows[0.006]["sigma_f_two_face_m"]
+    assert 0.5 < ratio < 1.0
+    assert "surface" in sensitivity_table(cs)

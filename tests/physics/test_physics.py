@@ -3,19 +3,17 @@
 import numpy as np
 import pytest
 
-from hartrao_jax import ModelError, make_model
 from hartrao_jax.geometry._geometry import polar_to_cartesian
 from hartrao_jax.physics._catalog import (
     EFFECTS,
     INSTRUMENT,
     correct_observations,
     impulsive_shift,
-    inseparable_pairs,
     instrument_corrections,
     oscillation,
     oscillation_sincos,
-    paraboloid_condition,
     panel_deviation,
+    paraboloid_condition,
 )
 
 
@@ -55,18 +53,6 @@ def test_x6_x7_phi_terms_use_corrected_theta():
     assert abs(float(dphi[0]) - 1e-4 / (10 * np.sin(0.5))) < 1e-15
 
 
-def test_inseparable_pairs_found_and_refused():
-    pairs = {(a, b) for a, b, _ in inseparable_pairs(list(INSTRUMENT))}
-    assert ("x5z", "x7") in pairs or ("x7", "x5z") in pairs
-    with pytest.raises(ModelError, match="x5z and x7 cannot be estimated together"):
-        make_model("tx,ty,tz,rx,ry,f,x5z,x7")
-    # the seed's extended model is separable
-    assert inseparable_pairs(["x4", "x6", "x7"]) == []
-
-
-def test_unknown_parameter_names_are_refused():
-    with pytest.raises(ModelError, match="unknown parameter"):
-        make_model("x4,x99")
 
 
 def test_motion_effects():

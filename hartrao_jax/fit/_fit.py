@@ -182,6 +182,11 @@ class PositionFit:
     of ``scans``; ``cov`` includes the surface random effect. ``held``: parameters not
     identifiable from these data, held at their fixed/prior value. ``faces``: 2 when both
     cycles entered the adjustment, 1 otherwise (never called a cycle average).
+    ``response`` (g, len(names), 3): ``d estimate / d (offset, tilt, tilt)`` of each surface
+    cell (the solver's ``x_response``): the surface's share of ``cov`` is ``sum_g R_g
+    diag(surface variances) R_g^T``; positions that see the same panels share those errors
+    (``gravity`` uses it). ``sigma_white``: the rest of each sigma, the noise's (what more
+    points shrink).
     """
 
     position: str
@@ -198,6 +203,8 @@ class PositionFit:
     n_points: int
     notes: list[str] = field(default_factory=list)
     mixed: MixedState | None = None
+    sigma_white: np.ndarray | None = None
+    response: np.ndarray | None = None
 
     @property
     def sigma(self) -> np.ndarray:
@@ -587,6 +594,9 @@ def fit_position(
         if not converged:
             notes.append(f"surface random effect: not converged after {iterations} iterations")
         normalized = np.asarray(rm.normalized)
+        response = np.asarray(rm.x_response)[:, keep_idx, :]
+        surf_var = np.einsum("gik,k,gik->i", response, np.asarray(rm.cell_var), response)
+        sigma_white = np.sqrt(np.maximum(np.diag(cov_pos) - surf_var, 0.0))
     else:
         free, x_pos, cov_pos = mdl.free, np.asarray(res.x), np.asarray(res.cov)
         weights = np.asarray(res.weights)
@@ -597,6 +607,7 @@ def fit_position(
         sigma0 = float(res.sigma0)
         iterations, converged = int(res.iterations), bool(res.converged)
         normalized = np.asarray(res.normalized)
+        sigma_white, response = np.sqrt(np.diag(cov_pos)), None
     n_used = int(np.sum(weights > 0))
     # 4. per-scan views: the shared estimates, each scan's own residuals and statistics
     scans, start = [], 0
@@ -625,7 +636,8 @@ def fit_position(
     return PositionFit(
         position=metas[0].position, scans=scans, names=tuple(free), x=x_pos, cov=cov_pos,
         held=held, faces=faces, sigma0=sigma0, surface=surf, iterations=iterations,
-        converged=converged, n_points=n_used, notes=notes, mixed=mixed)
+        converged=converged, n_points=n_used, notes=notes, mixed=mixed, sigma_white=sigma_white,
+        response=response)
 
 
 def _value_sigma(v: float, s: float | None, unit: str) -> dict:
@@ -638,13 +650,15 @@ def panel_predictions(p: PositionFit) -> list[dict]:
     Offsets in m (positive towards the focus), tilts in rad (``tilt_radial_rad``: outer edge up,
     ``tilt_tangential_rad``: counter-clockwise edge up; for square cells ``tilt_x_rad``,
     ``tilt_y_rad``), from every point of both faces. Deviations are from the fitted paraboloid
-    plus the smooth modes (``surface_modes``).
+    plus the smooth modes (``surface_modes``). ``f_response``: ``d f_hat / d (offset, tilt,
+    tilt)`` of the cell (1, m/rad): how the cell's true deviation moved f.
     """
     if p.surface is None:
         return []
     sf = p.surface
     names = (("tilt_radial_rad", "tilt_tangential_rad") if sf.cells.startswith("panels")
              else ("tilt_x_rad", "tilt_y_rad"))
+    i_f = (list(p.names).index("f") if p.response is not None and "f" in p.names else None)
     out = []
     for g in np.flatnonzero(sf.n > 0):
         sd = np.sqrt(np.clip(np.diag(sf.u_cov[g]), 0.0, None))
@@ -652,7 +666,9 @@ def panel_predictions(p: PositionFit) -> list[dict]:
                     "offset_m": _num(sf.u[g, 0]), "offset_sigma_m": _num(sd[0]),
                     names[0]: _num(sf.u[g, 1]), names[0][:-4] + "_sigma_rad": _num(sd[1]),
                     names[1]: _num(sf.u[g, 2]), names[1][:-4] + "_sigma_rad": _num(sd[2]),
-                    "n": int(sf.n[g])})
+                    "n": int(sf.n[g]),
+                    **({"f_response": [_num(a) for a in p.response[g, i_f]]}
+                       if i_f is not None else {})})
     return out
 
 
@@ -670,6 +686,8 @@ def position_record(p: PositionFit) -> dict:
                scans=[s.meta.id for s in p.scans])
     for i, n in enumerate(p.names):
         row[n] = _value_sigma(p.x[i], p.sigma[i], parameter_unit(n))
+        if p.sigma_white is not None and p.surface is not None:
+            row[n]["sigma_white"] = _num(p.sigma_white[i])
     for n, h in p.held.items():
         row[n] = {"value": _num(h.value), "sigma": None, "identifiable": False, "note": h.note,
                   "unit": parameter_unit(n)}

@@ -76,6 +76,10 @@ class MixedResult(AbstractAdjustment):
         dev: the surface deviation ``D_i . u_g(i)`` (m) at every point.
         omega_point: ``k_i^2 m_i`` per point (its share of ``v^T Sigma^-1 v``).
         weights: weights used; n_used: their count; iterations; converged.
+        x_response: ``d x_hat / d u_g`` per cell, (g, u, k): how a cell's true deviation moves
+            the estimates (``Q_xx s_g^T D_g^-1 Lambda``). The surface's share of ``cov`` is
+            ``sum_g R_g diag(cell_var) R_g^T``; cells seen by other adjustments of the same
+            reflector make their estimates' surface errors correlated (``gravity``).
     """
 
     x: Float[Array, " u"]
@@ -98,6 +102,7 @@ class MixedResult(AbstractAdjustment):
     n_used: Int[Array, ""]
     iterations: Int[Array, ""]
     converged: Bool[Array, ""]
+    x_response: Float[Array, "g u k"]
 
 
 def _linearize(condition, dev_column, on, l0, x, c):
@@ -175,6 +180,14 @@ def _reduce(N, nv, S, sg, tg, U, x, lam, ridge_idx, ridge_lam):
     dx, Qxx = solve_scaled(Nr, -nr)
     dU = -jnp.einsum("gkl,gl->gk", Dinv, rhs_u + jnp.einsum("gli,i->gl", sg, dx))
     return dx, dU, Qxx, Dinv
+
+
+def _x_response(lin, var, Qxx):
+    """``d x_hat / d u_g = Q_xx s_g^T D_g^-1 Lambda`` per cell, (g, u, k) (Henderson's
+    equations with the data ``Z u``: ``x_hat = Q_xx sum_g s_g^T (I - D_g^-1 S_g) u_g``)."""
+    lam = var[0] / var[1]
+    Dinv = jnp.linalg.inv(lin.S + jnp.diag(lam)[None])
+    return jnp.einsum("ij,gkj,gkl,l->gil", Qxx, lin.sg, Dinv, lam)
 
 
 def _cell_cofactors(Dinv, sg, Qxx):
@@ -346,7 +359,8 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
         cell_var=var[1], ridge_var=var[2], redundancy_noise=up.r_e, redundancy_cells=up.r_cells,
         redundancy_ridge=up.r_ridge, sigma0=sigma0, v=V,
         normalized=jnp.sqrt(omega_pt) / jnp.sqrt(se2), dev=dev_final, omega_point=omega_pt,
-        weights=weights, n_used=n_used, iterations=it, converged=done)
+        weights=weights, n_used=n_used, iterations=it, converged=done,
+        x_response=_x_response(lin, var, up.Qxx))
 
 
 def gauss_helmert_mixed(

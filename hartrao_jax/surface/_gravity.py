@@ -84,6 +84,10 @@ class ScanSample:
     # True when f comes from the position's two-face adjustment, shared by its scans: the
     # position then contributes f once (not once per scan, as independent cycles would)
     shared_f: bool = False
+    # two-face adjustment: d f / d (offset, tilt, tilt) of each panel {panel id: (3,)} and the
+    # surface variances (m^2, rad^2, rad^2): positions seeing the same panels share errors
+    f_response: dict[int, np.ndarray] | None = None
+    cell_var: np.ndarray | None = None
 
 
 def samples_from_fit(cf, *, with_points: bool = True, modes: Sequence[int] = (),
@@ -111,24 +115,32 @@ def samples_from_fit(cf, *, with_points: bool = True, modes: Sequence[int] = (),
     if aperture_radius_m is None:
         aperture_radius_m = camp.telescope.diameter_m / 2 if camp is not None else 12.95
     two_face = bool(getattr(cf, "position_fits", None))
+    resp = {}
+    for p in getattr(cf, "position_fits", None) or ():
+        if p.response is not None and p.surface is not None and "f" in p.names \
+                and p.surface.cells.startswith("panels"):  # panel ids: the same on every position
+            i_f = list(p.names).index("f")
+            resp[p.position] = ({int(g): p.response[g, i_f] for g in np.flatnonzero(p.surface.n)},
+                                np.asarray(p.mixed.var[1], float) if p.mixed is not None else None)
     out = []
     for s in scans:
         v, sg = s.estimates["f"]
         m = s.meta
-        resp = (None, None)
+        resp_m = (None, None)
         # the mode take-up of a white-noise adjustment; a two-face adjustment carries the
         # smooth modes as random effects itself
         if with_points and modes and not two_face and sigma_l is not None and s.model is not None \
                 and getattr(s, "data", None) is not None and len(s.data) == len(s.used):
             obs, c = scan_arrays(s.data)
             model, x = _per_scan_model(s.model, s.x, shared)
-            resp = mode_response(model, obs, s.v, c, s.used, x, sigma_l, s.X_tel[s.used],
+            resp_m = mode_response(model, obs, s.v, c, s.used, x, sigma_l, s.X_tel[s.used],
                                  aperture_radius_m, modes)
         out.append(ScanSample(
             m.id, m.position, np.asarray(s.gravity, float), v, sg, m.ha_deg, m.dec_deg,
             s.elevation_deg, m.temperature_c,
             s.X_tel[s.used] if with_points else None,
-            s.deviation_m[s.used] if with_points else None, *resp, shared_f=two_face))
+            s.deviation_m[s.used] if with_points else None, *resp_m, shared_f=two_face,
+            **_response_fields(resp.get(m.position) if two_face else None)))
     return out
 
 
@@ -293,8 +305,27 @@ def samples_from_dir(results_dir, *, with_points: bool = True, modes: Sequence[i
             s["id"], s["position"], np.asarray(s.get("gravity") or q.get("gravity"), float),
             float(est["value"]), float(est["sigma"]), q.get("ha_deg"), q.get("dec_deg"),
             s.get("elevation_deg", q.get("elevation_deg")), temps.get(s["id"]), X, dev, *resp,
-            shared_f=two_face))
+            shared_f=two_face, **_response_fields(_response_of_record(q) if two_face else None)))
     return out
+
+
+def _response_fields(r) -> dict:
+    """``ScanSample`` keywords from ``({panel: d f / d u}, cell variances)`` or None."""
+    if r is None or r[1] is None or not r[0]:
+        return {}
+    return {"f_response": r[0], "cell_var": r[1]}
+
+
+def _response_of_record(q: dict):
+    """``({panel: d f / d u}, variances)`` of a ``positions[]`` record of fit.json (panels with
+    ``f_response``; the tilt variance is the mean of the two stated as ``tilt_rad``)."""
+    vc = q.get("variance_components") or {}
+    rows = [r for r in q.get("panels") or () if "panel" in r and r.get("f_response")]
+    if not rows or vc.get("surface_m") is None or vc.get("tilt_rad") is None:
+        return None
+    var = np.array([vc["surface_m"] ** 2, vc["tilt_rad"] ** 2, vc["tilt_rad"] ** 2])
+    return {int(r["panel"]): np.asarray([a or 0.0 for a in r["f_response"]], float)
+            for r in rows}, var
 
 
 def _response_from_table(t, used, X, rec: dict, names: Sequence[str], shared: dict, sigma_l,
@@ -447,14 +478,41 @@ class LinearFit:
                 "chi2": self.chi2, "dof": self.dof, "variance_factor": self.scale}
 
 
-def weighted_lsq(A: np.ndarray, y: np.ndarray, sigma: np.ndarray, names: Sequence[str]
-                 ) -> LinearFit:
-    w = 1.0 / np.asarray(sigma, float) ** 2
-    N = A.T @ (A * w[:, None])
-    cov = np.linalg.inv(N)
-    beta = cov @ (A.T @ (w * y))
+def weighted_lsq(A: np.ndarray, y: np.ndarray, sigma: np.ndarray, names: Sequence[str],
+                 cov_y: np.ndarray | None = None) -> LinearFit:
+    """Weighted LS of ``y = A beta`` with independent rows of ``sigma``, or generalised LS with
+    the full covariance ``cov_y`` of the rows when given (positions whose f share the errors
+    of the panels they all see: :func:`f_covariance`). ``chi2 = r^T Cov^-1 r``."""
+    y = np.asarray(y, float)
+    if cov_y is None:
+        W = np.diag(1.0 / np.asarray(sigma, float) ** 2)
+    else:
+        W = np.linalg.inv(np.asarray(cov_y, float))
+    cov = np.linalg.inv(A.T @ W @ A)
+    beta = cov @ (A.T @ W @ y)
     r = y - A @ beta
-    return LinearFit(tuple(names), beta, cov, float(np.sum(w * r * r)), len(y) - A.shape[1])
+    return LinearFit(tuple(names), beta, cov, float(r @ W @ r), len(y) - A.shape[1])
+
+
+def f_covariance(rows: Sequence[PositionRow]) -> np.ndarray | None:
+    """Covariance (m^2) of the positions' f when every row comes from a two-face adjustment
+    with its panel responses: ``sigma_f^2`` on the diagonal and, between positions, the
+    surface errors they share, ``sum_panels r_i^T sqrt(G_i G_j) r_j`` (``r``: d f / d (offset,
+    tilt, tilt) of the panel, ``G``: the surface variances). None otherwise (independent)."""
+    if not rows or any(r.f_response is None or r.cell_var is None for r in rows):
+        return None
+    n = len(rows)
+    C = np.diag([r.sigma_f**2 for r in rows])
+    for i in range(n):
+        for j in range(i + 1, n):
+            g = np.sqrt(np.asarray(rows[i].cell_var) * np.asarray(rows[j].cell_var))
+            common = rows[i].f_response.keys() & rows[j].f_response.keys()
+            c = sum(float(rows[i].f_response[k] @ (g * rows[j].f_response[k])) for k in common)
+            C[i, j] = C[j, i] = c
+    # a valid covariance: clip correlations to [-1, 1] against round-off of mixed variances
+    d = np.sqrt(np.diag(C))
+    R = np.clip(C / np.outer(d, d), -1.0, 1.0)
+    return R * np.outer(d, d)
 
 
 def _design(G: np.ndarray, cols: Sequence[str], T: np.ndarray | None = None,
@@ -506,6 +564,8 @@ class PositionRow:
     # and d z_j / d a_k: how much of each mode its residual projections kept (mode_response)
     leak: np.ndarray | None = None
     retention: np.ndarray | None = None
+    f_response: dict[int, np.ndarray] | None = None  # see ScanSample (two-face adjustments)
+    cell_var: np.ndarray | None = None
 
 
 @dataclass
@@ -686,8 +746,9 @@ def _positions(samples: Sequence[ScanSample], modes, aperture: float, layout=Non
         w = np.array([1.0 / s.sigma_f**2 for s in ss])
         f = float(np.sum(w * np.array([s.f for s in ss])) / np.sum(w))
         sf = float(1.0 / math.sqrt(np.sum(w)))
+        fr = cv = None
         if all(s.shared_f for s in ss):  # one two-face estimate, repeated by its scans
-            f, sf = ss[0].f, ss[0].sigma_f
+            f, sf, fr, cv = ss[0].f, ss[0].sigma_f, ss[0].f_response, ss[0].cell_var
         z = zs = rr = leak = ret = None
         ok = [s for s in ss if s.X is not None and len(s.X) > 3 * (len(modes) + 3)]
         if ok and all(s.shared_f for s in ss):  # one surface seen by both faces: one projection
@@ -715,7 +776,7 @@ def _positions(samples: Sequence[ScanSample], modes, aperture: float, layout=Non
         rows.append(PositionRow(pos, np.mean([s.gravity for s in ss], 0), f, sf, s0.ha_deg,
                                 s0.dec_deg, s0.elevation_deg,
                                 float(np.mean(temps)) if temps else None, z, zs, rr,
-                                [s.id for s in ss], leak, ret))
+                                [s.id for s in ss], leak, ret, fr, cv))
     return rows
 
 
@@ -855,8 +916,9 @@ def gravity_model(
         full, zfits = _joint_regression(G, y, sy, T, cols_full, Z, SZ, K, M)
         red, _ = _joint_regression(G, y, sy, T, cols_red, Z, SZ, K, M)
     else:
-        full = weighted_lsq(_design(G, cols_full, T), y, sy, cols_full)
-        red = weighted_lsq(_design(G, cols_red, T), y, sy, cols_red)
+        cov_y = f_covariance(rows)
+        full = weighted_lsq(_design(G, cols_full, T), y, sy, cols_full, cov_y)
+        red = weighted_lsq(_design(G, cols_red, T), y, sy, cols_red, cov_y)
     test = nested_test(red, full)
     if with_modes and not corrected:
         Z = np.array([r.zernike for r in rows])

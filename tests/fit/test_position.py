@@ -35,6 +35,8 @@ def test_fit_json_positions_carry_the_shared_estimates(positions):
     assert p["faces"] == 2 and p["kind"] == "two-face adjustment"
     for n in ("tx", "ty", "tz", "rx", "ry", "f", "x4", "x6", "x7"):
         assert p[n]["sigma"] > 0, n
+        assert 0 < p[n]["sigma_white"] <= p[n]["sigma"], n  # the part more points shrink
+    assert p["f"]["sigma_white"] < 0.7 * p["f"]["sigma"]  # the panels dominate sigma(f)
     vc = p["variance_components"]
     assert 0.8 < vc["noise"] < 1.25
     assert 0.5e-4 < vc["surface_m"] < 3e-4  # simulated 0.15 mm rms panels

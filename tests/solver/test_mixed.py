@@ -17,13 +17,17 @@ COUNTS = (15, 24, 30, 36, 42, 48, 60)
 TAU = 1.5e-4  # panel offsets, m
 
 
-def two_face_scan(seed: int, n: int = 12000, tau: float = TAU, noise: bool = True):
+def two_face_scan(seed: int, n: int = 12000, tau: float = TAU, noise: bool = True,
+                  extra: dict[int, float] | None = None):
     """Both faces of one set-up looking at a paraboloid whose panels are offset by N(0, tau^2)
-    along the normal: raw observations (2n, 3), telescope-frame points, the truth."""
+    along the normal (plus ``extra`` {cell: offset m}): raw observations (2n, 3), telescope-frame
+    points."""
     rng = np.random.default_rng(seed)
     X = paraboloid_points(2 * n, F_TRUE, seed)
     cell, _, n_cells, _ = panel_cells(X, EDGES, COUNTS)
     offsets = rng.normal(0.0, tau, n_cells)
+    for k, d in (extra or {}).items():
+        offsets[k] += d
     rho = np.hypot(X[:, 0], X[:, 1])
     normal = np.column_stack([-X[:, 0] / (2 * F_TRUE), -X[:, 1] / (2 * F_TRUE),
                               np.ones(len(X))]) / np.sqrt(1 + (rho / (2 * F_TRUE)) ** 2)[:, None]
@@ -112,3 +116,30 @@ def test_unidentifiable_by_correlation_and_by_sigma():
     bad = unidentifiable(C, names, ["x6", "x7", "x4"], typical={"x6": 5e-5, "x7": 5e-5})
     assert [b[0] for b in bad] == [("x6",)] and bad[0][3] == "sigma"
     assert unidentifiable(np.diag([1e-10, 1e-12, 1e-12, 1e-14]), names, ["x6", "x7"]) == []
+
+
+def test_x_response_is_the_estimates_derivative_by_a_cell():
+    """``x_response[g]``: a known extra offset of one panel moves the estimates by
+    ``R_g @ (offset, 0, 0)`` (refit at the same variances); the surface's share of the
+    covariance, ``sum_g R_g G R_g^T``, is most of sigma(f)^2 and never more than all of it."""
+    model = make_model(["tx", "ty", "tz", "rx", "ry", "f"])
+    x_true = np.array([{**POSE, "f": F_TRUE}[k] for k in model.free])
+    fits = []
+    for extra in (None, {40: 2e-4}):
+        lobs, X = two_face_scan(2, n=8000, noise=False, extra=extra)
+        cell, local, n_cells, _ = panel_cells(X, EDGES, COUNTS)
+        design = np.column_stack([np.ones(len(X)), local]) * (cell >= 0)[:, None]
+        fits.append(gauss_helmert_mixed(
+            model, lobs, x_true, SIGMA, np.zeros((len(lobs), 2)), np.ones(len(lobs)), cell,
+            design, n_cells, cell_var0=np.array([TAU**2, 1e-8, 1e-8]), estimate_variances=False,
+            robust_k=None))
+    R = np.asarray(fits[0].x_response)
+    dx = np.asarray(fits[1].x) - np.asarray(fits[0].x)
+    np.testing.assert_allclose(dx, R[40] @ np.array([2e-4, 0.0, 0.0]), rtol=0.02,
+                               atol=1e-3 * np.max(np.abs(dx)))
+    G = np.diag(np.asarray(fits[0].cell_var))
+    surf = np.einsum("gik,kl,gjl->ij", R, G, R) * 1.0
+    tot = np.asarray(fits[0].cov)
+    i_f = model.free.index("f")
+    assert np.all(np.diag(surf) <= np.diag(tot) * (1 + 1e-9))
+    assert np.diag(surf)[i_f] > 0.5 * tot[i_f, i_f]

@@ -30,6 +30,7 @@ from hartrao_jax.surface._gravity import (
     gravity_model,
     ruze_gain,
     samples_from_fit,
+    weighted_lsq,
     write_gravity,
     zernike_np,
     zernike_projection,
@@ -299,3 +300,29 @@ def test_cli_schedule_and_gravity(gravity_fit, tmp_path):
     (tmp_path / "empty").mkdir()
     r = CliRunner().invoke(main, ["gravity", str(tmp_path / "empty")])
     assert r.exit_code == 2 and "fit.json" in r.output
+
+
+def test_weighted_lsq_with_shared_errors_is_the_generalised_lsq():
+    """Positions that see the same panels share the surface's errors: with ``cov_y`` the fit is
+    the generalised LS (estimates, covariance, chi2); an error common to all rows moves only
+    the intercept and leaves chi2 unchanged."""
+    rng = np.random.default_rng(0)
+    n = 9
+    A = np.column_stack([np.ones(n), rng.normal(size=(n, 3))])
+    y = rng.normal(size=n)
+    sw, s = rng.uniform(0.5, 1.5, n), rng.uniform(0.5, 2.0, n)
+    C = np.diag(sw**2) + np.outer(s, s)
+    Ci = np.linalg.inv(C)
+    N = A.T @ Ci @ A
+    beta = np.linalg.solve(N, A.T @ Ci @ y)
+    r = y - A @ beta
+    names = ("f0", "gx", "gy", "gz")
+    fit = weighted_lsq(A, y, np.sqrt(np.diag(C)), names, C)
+    np.testing.assert_allclose(fit.beta, beta, rtol=1e-10)
+    np.testing.assert_allclose(fit.cov, np.linalg.inv(N), rtol=1e-10)
+    assert fit.chi2 == pytest.approx(float(r @ Ci @ r), rel=1e-10)
+    C1 = np.eye(n) + 4.0
+    same = weighted_lsq(A, y + 3.0, np.full(n, np.sqrt(5.0)), names, C1)
+    base = weighted_lsq(A, y, np.full(n, np.sqrt(5.0)), names, C1)
+    np.testing.assert_allclose(same.beta[1:], base.beta[1:], atol=1e-12)
+    assert same.chi2 == pytest.approx(base.chi2)

@@ -364,21 +364,14 @@ class CampaignSensitivity:
 
     def surface_limited_f(self) -> list[dict]:
         """Per two-face position fit: sigma(f) (m) with the surface random effect, its white
-        part ``sigma_w`` (the scans' normal matrices added: both faces, noise factor of the
-        adjustment) and the surface part ``sigma_s = sqrt(sigma_f^2 - sigma_w^2)``."""
+        part ``sigma_w`` (the position fit's ``sigma_white``: what the noise contributes) and
+        the surface part ``sigma_s = sqrt(sigma_f^2 - sigma_w^2)``."""
         rows = []
         for p in self.position_fits:
-            scans = [s for s in self.scans if s.position == p.position]
-            if "f" not in p.names or not scans:
+            if "f" not in p.names or p.sigma_white is None or p.surface is None:
                 continue
-            n = len(scans[0].names)
-            if any(s.names != scans[0].names for s in scans):
-                continue
-            i_f = scans[0].names.index("f")
-            q = np.linalg.inv(np.sum([s.N[:n, :n] for s in scans], axis=0))[i_f, i_f]
-            noise = p.surface.variances["noise"] if p.surface is not None else 1.0
-            total = float(p.sigma[list(p.names).index("f")])
-            white = math.sqrt(max(noise * q, 0.0))
+            i_f = list(p.names).index("f")
+            total, white = float(p.sigma[i_f]), float(p.sigma_white[i_f])
             rows.append({"position": p.position, "faces": p.faces, "sigma_f_m": total,
                          "sigma_f_white_m": white,
                          "sigma_f_surface_m": math.sqrt(max(total**2 - white**2, 0.0))})

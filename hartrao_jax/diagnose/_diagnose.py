@@ -270,6 +270,21 @@ def _scans_final(S: Sequence[_Scan]) -> dict[str, dict[str, Any]]:
 # ============================================================================================
 
 
+def _local_search(ctx, S, spec, record: list[dict], notes: list[str], findings: list,
+                  history: list[dict], stage: str) -> None:
+    """One round of the local-deformation search (:func:`._local.local_step`) on the current
+    residuals: its summaries go to ``record`` (with ``stage``), what it models to
+    ``findings`` and ``history``."""
+    n0 = len(record)
+    for f in local_step(ctx, S, spec, record, notes):
+        findings.append(f)
+        spec.accepted.append(f.effect)
+        history.append({"step": len(history), "label": f.effect, "maps": _snapshot(S),
+                        "scans": f.scans})
+    for r in record[n0:]:
+        r["stage"] = stage
+
+
 def diagnose(
     campaign: Campaign | str | Path,
     start: str | Iterable[str] = "extended",
@@ -315,11 +330,7 @@ def diagnose(
     local_search: list[dict] = []
     if _want(wanted, "local_deformation"):
         t_l = time.time()
-        for f in local_step(ctx, S, spec, local_search, notes):
-            findings.append(f)
-            spec.accepted.append(f.effect)
-            history.append({"step": len(history), "label": f.effect, "maps": _snapshot(S),
-                            "scans": f.scans})
+        _local_search(ctx, S, spec, local_search, notes, findings, history, "start model")
         timing["local_search"] = time.time() - t_l
     # which covariate carries the structure left after the start model (and any local
     # deformation), compared on held-out points: recorded whatever the loop then accepts
@@ -350,6 +361,14 @@ def diagnose(
                  f.effect, ",".join(f.scans), best.T, best.dof, f.sigma0_before,
                  f.sigma0_after, 1e3 * f.rms_before_m, 1e3 * f.rms_after_m)
     timing["loop"] = time.time() - t_loop
+    if (_want(wanted, "local_deformation") and not spec.bumps
+            and any(f.effect == "panel_offset" for f in findings)):
+        # the panel pattern modelled: search again on residuals without it (before, the
+        # panels' own roughness set the bar a compact bump inside one panel had to pass)
+        t_l = time.time()
+        _local_search(ctx, S, spec, local_search, notes, findings, history,
+                      "after the panel offsets were modelled")
+        timing["local_search"] = timing.get("local_search", 0.0) + time.time() - t_l
     if _want(wanted, "thermal"):
         th = _thermal(ctx, S, len(last_rows) + 1)
         if th is not None and th[0] == "finding":

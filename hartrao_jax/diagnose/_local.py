@@ -73,7 +73,9 @@ def _describe(c, ctx, S) -> dict:
                 f"the same surface")
     statement = (f"largest local structure: a {kind} of {1e3 * c.amplitude_m:+.2f} mm, width "
                  f"{c.width_m:.2f} m at x {c.x_m:.2f} m, y {c.y_m:.2f} m ({sig}, roughness "
-                 f"factor {c.roughness:.1f}): {NOT_DISTINGUISHABLE}")
+                 f"factor {c.roughness:.1f}): " + ("it stands out from the reflector's own "
+                                                   "roughness" if c.significant
+                                                   else NOT_DISTINGUISHABLE))
     return {**c.to_json(), "where": where, "centre_scan_m": pt, "scan": sid,
             "accepted": False, "statement": statement}
 
@@ -124,9 +126,13 @@ def local_step(ctx, S: Sequence, spec, record: list[dict], notes: list[str]) -> 
             spec.__dict__.update(spec2.__dict__)
             desc["statement"] = desc["statement"].replace(
                 "largest local structure:", "largest local structure (significant in the search "
-                "but it did not survive the refit):")
-            notes.append("local deformation candidate did not survive the refit "
-                         f"(sigma0 {before[0]:.4f} -> {after[0]:.4f})")
+                "but it did not survive the refit):") + (
+                "; refitted as the catalog's local_deformation it did not converge or did "
+                f"not lower sigma0 ({before[0]:.4f} -> " + (f"{after[0]:.4f}" if math.isfinite(
+                    after[0]) else "not finite") + "): not modelled")
+            notes.append("local deformation candidate did not survive the refit (sigma0 "
+                         f"{before[0]:.4f} -> " + (f"{after[0]:.4f})" if math.isfinite(after[0])
+                                                   else "not finite)"))
             break
         spec.bumps[-1]["values"] = {n: est[n][0] for n in names}
         x, y, a, w = (est[n][0] for n in names)

@@ -111,19 +111,28 @@ def local_step(ctx, S: Sequence, spec, record: list[dict], notes: list[str]) -> 
             break
         before = (_global_sigma0(S), _rms(S))
         saved = _save(S, spec)
-        spec.bumps.append({"names": names, "values": dict(hint), "scans": covering})
-        _refit_all(ctx, S, spec, only=[sc for sc in S if sc.id in covering],
-                   hints={sid: hint for sid in covering}, from_used=True, others=True)
-        est = _combine(S, covering, names)
-        after = (_global_sigma0(S), _rms(S))
-        ok = (est is not None and after[0] < before[0] and all(sc.converged for sc in S)
-              and 0.02 < est[names[3]][0] < 20.0
-              and abs(est[names[2]][0]) > 3 * est[names[2]][1] * c.roughness
-              and math.hypot(est[names[0]][0] - c.x_m, est[names[1]][0] - c.y_m)
-              < 3 * c.width_m)
-        if not ok:
+        # all four parameters free; when that nonlinear refit fails (a compact bump of low
+        # signal can send the width through zero), the amplitude alone, centre and width held
+        # at the search's values (linear: it converges)
+        for free in (names, names[2:3]):
+            spec.bumps.append({"names": names, "values": dict(hint), "scans": covering,
+                               "free": list(free)})
+            _refit_all(ctx, S, spec, only=[sc for sc in S if sc.id in covering],
+                       hints={sid: hint for sid in covering}, from_used=True, others=True)
+            est = _combine(S, covering, free)
+            after = (_global_sigma0(S), _rms(S))
+            if est is not None and len(free) < len(names):
+                est.update({n: (hint[n], None) for n in names if n not in free})
+            ok = (est is not None and after[0] < before[0] and all(sc.converged for sc in S)
+                  and 0.02 < est[names[3]][0] < 20.0
+                  and abs(est[names[2]][0]) > 3 * est[names[2]][1] * c.roughness
+                  and math.hypot(est[names[0]][0] - c.x_m, est[names[1]][0] - c.y_m)
+                  < 3 * c.width_m)
+            if ok:
+                break
             spec2 = _restore(S, saved)
             spec.__dict__.update(spec2.__dict__)
+        if not ok:
             desc["statement"] = desc["statement"].replace(
                 "largest local structure:", "largest local structure (significant in the search "
                 "but it did not survive the refit):") + (
@@ -138,17 +147,21 @@ def local_step(ctx, S: Sequence, spec, record: list[dict], notes: list[str]) -> 
         x, y, a, w = (est[n][0] for n in names)
         f_ = c.roughness
         where, pt, sid = _place(ctx, S, x, y, abs(w))
-        estimate = {
-            "amplitude_m": {"value": a, "sigma": est[names[2]][1] * f_,
-                            "sigma_white": est[names[2]][1]},
-            "width_m": {"value": abs(w), "sigma": est[names[3]][1] * f_,
-                        "sigma_white": est[names[3]][1]},
-            "x_m": {"value": x, "sigma": est[names[0]][1] * f_, "sigma_white": est[names[0]][1]},
-            "y_m": {"value": y, "sigma": est[names[1]][1] * f_, "sigma_white": est[names[1]][1]},
-        }
+
+        def _vs(name, value):
+            s = est[name][1]
+            if s is None:  # held at the search's grid value
+                return {"value": value, "sigma": None, "held": "at the search's grid value"}
+            return {"value": value, "sigma": s * f_, "sigma_white": s}
+
+        estimate = {"amplitude_m": _vs(names[2], a), "width_m": _vs(names[3], abs(w)),
+                    "x_m": _vs(names[0], x), "y_m": _vs(names[1], y)}
         kind = "bump" if a > 0 else "dent"
+        held = est[names[3]][1] is None
+        wtxt = (f"width {abs(w):.2f} m (held at the search's value: the free refit did not "
+                f"converge)" if held else f"width {abs(w):.2f} ± {est[names[3]][1] * f_:.2f} m")
         expl = (f"a smooth local {kind} of {1e3 * a:+.2f} ± {1e3 * est[names[2]][1] * f_:.2f} mm "
-                f"and width {abs(w):.2f} ± {est[names[3]][1] * f_:.2f} m at x {x:.2f} m, y "
+                f"and {wtxt} at x {x:.2f} m, y "
                 f"{y:.2f} m of the aperture stands out from the reflector's own roughness "
                 f"(p = {c.p_value:.2g} against its {c.n_peaks} local structures); modelled as "
                 f"local_deformation, rms {1e3 * before[1]:.4f} -> {1e3 * after[1]:.4f} mm")
@@ -190,6 +203,7 @@ def _combine(S, ids, names):
         w = np.array([1 / s**2 for _, s in v])
         out[n] = (float(np.sum(w * np.array([x for x, _ in v])) / w.sum()),
                   float(1 / math.sqrt(w.sum())))
-    if out[names[3]][0] < 0:  # the sign of the width is not observable
-        out[names[3]] = (-out[names[3]][0], out[names[3]][1])
+    wname = next((n for n in names if n.endswith("width_m")), None)
+    if wname is not None and out[wname][0] < 0:  # the sign of the width is not observable
+        out[wname] = (-out[wname][0], out[wname][1])
     return out

@@ -149,7 +149,8 @@ class _Spec:
     times: bool = True  # recorded scan times (else no motion search)
     no_covariates: set[str] = field(default_factory=set)  # covariates the recording lacks
     # modelled local deformations: {"names": bump_* names, "values": {name: value},
-    # "scans": ids of the scans where they are free (the others hold them fixed)}
+    # "scans": ids of the scans where they are free (the others hold them fixed), "free":
+    # optional subset of the names that are free there (the rest held at "values")}
     bumps: list[dict] = field(default_factory=list)
 
     def names(self) -> list[str]:
@@ -182,9 +183,9 @@ def _scan_model(sc: _Scan, spec: _Spec, aperture: float, extra: Sequence[str] = 
                 window_s=None, period_s=None):
     mot = spec.motion.get(sc.id, {})
     names = list(spec.start) + [n for n in mot.get("names", ()) if n not in spec.start]
-    for b in spec.bumps:
+    for b in spec.bumps:  # free where they are seen; "free": the subset the fit may move
         if sc.id in b["scans"]:
-            names += list(b["names"])
+            names += [n for n in b["names"] if n in b.get("free", b["names"])]
     names += [n for n in extra if n not in names]
     window = mot.get("window_s") or window_s or (0.0, 0.0)
     period = mot.get("period_s") or period_s or 1.0

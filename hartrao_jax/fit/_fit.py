@@ -186,7 +186,7 @@ class PositionFit:
     cell (the solver's ``x_response``): the surface's share of ``cov`` is ``sum_g R_g
     diag(surface variances) R_g^T``; positions that see the same panels share those errors
     (``gravity`` uses it). ``sigma_white``: the rest of each sigma, the noise's (what more
-    points shrink).
+    points shrink). Both None without the surface effect.
     """
 
     position: str
@@ -607,7 +607,7 @@ def fit_position(
         sigma0 = float(res.sigma0)
         iterations, converged = int(res.iterations), bool(res.converged)
         normalized = np.asarray(res.normalized)
-        sigma_white, response = np.sqrt(np.diag(cov_pos)), None
+        sigma_white = response = None  # no surface effect: every sigma is the noise's
     n_used = int(np.sum(weights > 0))
     # 4. per-scan views: the shared estimates, each scan's own residuals and statistics
     scans, start = [], 0
@@ -686,7 +686,7 @@ def position_record(p: PositionFit) -> dict:
                scans=[s.meta.id for s in p.scans])
     for i, n in enumerate(p.names):
         row[n] = _value_sigma(p.x[i], p.sigma[i], parameter_unit(n))
-        if p.sigma_white is not None and p.surface is not None:
+        if p.sigma_white is not None:
             row[n]["sigma_white"] = _num(p.sigma_white[i])
     for n, h in p.held.items():
         row[n] = {"value": _num(h.value), "sigma": None, "identifiable": False, "note": h.note,

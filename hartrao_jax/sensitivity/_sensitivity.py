@@ -368,7 +368,7 @@ class CampaignSensitivity:
         the surface part ``sigma_s = sqrt(sigma_f^2 - sigma_w^2)``."""
         rows = []
         for p in self.position_fits:
-            if "f" not in p.names or p.sigma_white is None or p.surface is None:
+            if "f" not in p.names or p.sigma_white is None:
                 continue
             i_f = list(p.names).index("f")
             total, white = float(p.sigma[i_f]), float(p.sigma_white[i_f])
@@ -376,6 +376,16 @@ class CampaignSensitivity:
                          "sigma_f_white_m": white,
                          "sigma_f_surface_m": math.sqrt(max(total**2 - white**2, 0.0))})
         return rows
+
+    def surface_limited_median(self, lim: list[dict] | None = None) -> dict | None:
+        """Medians over :meth:`surface_limited_f`'s positions (``lim`` if already computed),
+        m: ``sigma_f_m``, ``sigma_f_white_m``, ``sigma_f_surface_m`` and ``n``; None without
+        two-face fits."""
+        lim = self.surface_limited_f() if lim is None else lim
+        if not lim:
+            return None
+        keys = ("sigma_f_m", "sigma_f_white_m", "sigma_f_surface_m")
+        return {**{k: float(np.median([r[k] for r in lim])) for k in keys}, "n": len(lim)}
 
     def design(self) -> dict:
         """Scan design: sigma(f) against the angular step; one face against two."""
@@ -388,8 +398,8 @@ class CampaignSensitivity:
         sig_f = float(np.median([np.median(v) for v in sf.values()]))
         steps = sorted(set(DESIGN_STEPS_RAD) | {step0})
         lim = self.surface_limited_f()
-        sw = float(np.median([r["sigma_f_white_m"] for r in lim])) if lim else None
-        ss = float(np.median([r["sigma_f_surface_m"] for r in lim])) if lim else None
+        med = self.surface_limited_median(lim)
+        sw, ss = (med["sigma_f_white_m"], med["sigma_f_surface_m"]) if med else (None, None)
         step_rows = [{"step_rad": st, "n_points_factor": (step0 / st) ** 2,
                       "sigma_f_m": sig_f * st / step0,
                       **({"sigma_f_two_face_m": math.hypot(sw * st / step0, ss)} if lim else {})}
@@ -594,14 +604,12 @@ def sensitivity_table(cs: CampaignSensitivity) -> str:
             cells.append(f"{r[p]['delta_f_m'] * 1e6:+.2f}")
             cells.append(f"{r[p].get('delta_panel_rms_m', float('nan')) * 1e6:.2f}")
         rows.append("| " + " | ".join(cells) + " |")
-    lim = cs.surface_limited_f()
-    if lim:
-        sw = np.median([r["sigma_f_white_m"] for r in lim])
-        ss = np.median([r["sigma_f_surface_m"] for r in lim])
+    med = cs.surface_limited_median()
+    if med:
         rows += ["", f"sigma(f), both faces with the surface random effect (median over "
-                 f"{len(lim)} positions): {np.median([r['sigma_f_m'] for r in lim]) * 1e6:.1f} um"
-                 f" = white {sw * 1e6:.1f} um (shrinks with a finer step) (+) surface "
-                 f"{ss * 1e6:.1f} um (does not)"]
+                 f"{med['n']} positions): {med['sigma_f_m'] * 1e6:.1f} um = white "
+                 f"{med['sigma_f_white_m'] * 1e6:.1f} um (shrinks with a finer step) (+) "
+                 f"surface {med['sigma_f_surface_m'] * 1e6:.1f} um (does not)"]
     return "\n".join(rows)
 
 

@@ -399,13 +399,34 @@ def finish_scan_fit(
 # Two-face position adjustment with the surface as a random effect
 # --------------------------------------------------------------------------------------------
 
-#: Smooth surface modes (Noll indices) carried as random effects on a centred reflector:
-#: astigmatism, coma, trefoil, spherical -- what gravity produces. Piston, tilt and defocus are
-#: the pose and f themselves.
-SURFACE_MODES: tuple[int, ...] = (5, 6, 7, 8, 9, 10, 11)
+#: Smooth surface modes (Noll indices) carried as random effects on a centred reflector, one
+#: variance per group: astigmatism, coma, trefoil, spherical -- what gravity produces. Piston,
+#: tilt and defocus are the pose and f themselves.
+SURFACE_MODE_GROUPS: dict[str, tuple[int, ...]] = {"modes": (5, 6, 7, 8, 9, 10, 11)}
+SURFACE_MODES: tuple[int, ...] = tuple(j for g in SURFACE_MODE_GROUPS.values() for j in g)
 #: Start values of the variance components: offsets (m^2), tilts (rad^2), modes (m^2).
 _CELL_VAR0 = (1e-8, 1e-8, 1e-8)
 _MODE_VAR0 = 1e-8
+
+
+def white_sigmas(response: np.ndarray, cell_var, cov: np.ndarray) -> np.ndarray:
+    """The noise's part of each sigma: ``sqrt(diag(cov) - sum_g R_g diag(cell_var) R_g^T)``
+    with ``R_g`` (g, u, k) the estimates' response to each cell (the surface's part)."""
+    surf = np.einsum("gik,k,gik->i", response, np.asarray(cell_var), response)
+    return np.sqrt(np.maximum(np.diag(cov) - surf, 0.0))
+
+
+def mode_variances(ridge: dict | None, ridge_var) -> dict[str, float]:
+    """The smooth modes' variance components for ``SurfaceEffect.variances``: ``modes_m2`` the
+    mean variance per mode (m^2) and, with several groups, ``mode_groups_m2`` each group's."""
+    if not ridge:
+        return {}
+    rv = np.asarray(ridge_var, float)
+    sizes = np.array([len(v) for v in ridge.values()], float)
+    out: dict = {"modes_m2": float(np.sum(rv * sizes) / np.sum(sizes))}
+    if len(ridge) > 1:
+        out["mode_groups_m2"] = {k: float(v) for k, v in zip(ridge, rv)}
+    return out
 
 
 def two_face_parameters(names: Iterable[str]) -> tuple[str, ...]:
@@ -546,13 +567,14 @@ def fit_position(
         keys = (None if tel.ring_edges_m is not None and tel.panels_per_ring is not None
                 else square_cells(fit1.X_tel, cell_m)[2])
         design = np.column_stack([np.ones(n_pad), local]) * (cell >= 0)[:, None]
-        modes = SURFACE_MODES if tel.offset_m == 0 else ()
+        groups = SURFACE_MODE_GROUPS if tel.offset_m == 0 else {}
         for _ in range(3):
-            extra = tuple(f"{ZERNIKE_PREFIX}{j}" for j in modes)
+            extra = tuple(f"{ZERNIKE_PREFIX}{j}" for g_ in groups.values() for j in g_)
             mdl2 = model_of(free_of(extra), kappa)
             x0 = np.array([float(res.x[list(mdl.free).index(n_)]) if n_ in mdl.free else 0.0
                            for n_ in mdl2.free])
-            ridge = {"modes": [mdl2.free.index(e) for e in extra]} if extra else None
+            ridge = {k_: [mdl2.free.index(f"{ZERNIKE_PREFIX}{j}") for j in g_]
+                     for k_, g_ in groups.items()} or None
             rm = gauss_helmert_mixed(
                 mdl2, l, x0, sig, c, used.astype(float), cell, design, n_cells,
                 robust_k=robust_k, cell_var0=np.asarray(_CELL_VAR0), ridge=ridge,
@@ -573,15 +595,16 @@ def fit_position(
             variances={"noise": float(rm.noise_var),
                        "offset_m2": float(rm.cell_var[0]), "tilt_rad2": float(
                            np.mean(np.asarray(rm.cell_var[1:]))),
-                       **({"modes_m2": float(rm.ridge_var[0])} if mode_idx else {})},
+                       **mode_variances(ridge, rm.ridge_var)},
             redundancy={"noise": float(rm.redundancy_noise),
                         "offset": float(rm.redundancy_cells[0]),
                         "tilt": float(np.sum(np.asarray(rm.redundancy_cells[1:]))),
-                        **({"modes": float(rm.redundancy_ridge[0])} if mode_idx else {})},
+                        **({"modes": float(np.sum(np.asarray(rm.redundancy_ridge)))}
+                           if mode_idx else {})},
             modes={mdl2.free[i]: (float(xs[i]), float(np.sqrt(cov[i, i]))) for i in mode_idx})
         mixed = MixedState(mdl2, xs, np.asarray(rm.u), (float(rm.noise_var), np.asarray(
             rm.cell_var), np.asarray(rm.ridge_var)), (1.0, np.asarray(_CELL_VAR0), np.full(
-                len(mode_idx) and 1, _MODE_VAR0)), ridge, kappa, cell_m, keys,
+                len(ridge or ()), _MODE_VAR0)), ridge, kappa, cell_m, keys,
             [p[2] for p in prepared])
         free = tuple(mdl2.free[i] for i in keep_idx)
         x_pos, cov_pos = xs[keep_idx], cov[np.ix_(keep_idx, keep_idx)]
@@ -595,8 +618,7 @@ def fit_position(
             notes.append(f"surface random effect: not converged after {iterations} iterations")
         normalized = np.asarray(rm.normalized)
         response = np.asarray(rm.x_response)[:, keep_idx, :]
-        surf_var = np.einsum("gik,k,gik->i", response, np.asarray(rm.cell_var), response)
-        sigma_white = np.sqrt(np.maximum(np.diag(cov_pos) - surf_var, 0.0))
+        sigma_white = white_sigmas(response, rm.cell_var, cov_pos)
     else:
         free, x_pos, cov_pos = mdl.free, np.asarray(res.x), np.asarray(res.cov)
         weights = np.asarray(res.weights)
@@ -701,6 +723,8 @@ def position_record(p: PositionFit) -> dict:
             "noise": _num(v["noise"]), "surface_m": _num(math.sqrt(v["offset_m2"])),
             "tilt_rad": _num(math.sqrt(v["tilt_rad2"])),
             **({"modes_m": _num(math.sqrt(v["modes_m2"]))} if "modes_m2" in v else {}),
+            **({"mode_groups_m": {k: _num(math.sqrt(x)) for k, x in v["mode_groups_m2"].items()}}
+               if "mode_groups_m2" in v else {}),
             "redundancy": {k: _num(x) for k, x in p.surface.redundancy.items()},
             "cells": p.surface.cells}
         if p.surface.modes:

@@ -44,15 +44,17 @@ from ..geometry._geometry import panel_cells, rot_z, square_cells
 from ..model._model import ZERNIKE_PREFIX
 from ..preprocess._initial import geometry_window
 from ..solver._ghm import bucket_size
-from ..solver._mixed import MixedSums, mixed_chunk, mixed_step, ridge_indices
+from ..solver._mixed import MixedSums, mixed_chunk, mixed_response, mixed_step, ridge_indices
 from ._distributed import worker_campaign
 from ._fit import (
     PositionFit,
     SurfaceEffect,
     fit_position,
+    mode_variances,
     position_record,
     scan_arrays,
     sigma_vector,
+    white_sigmas,
 )
 from ._stream import _count_rows, _NpyRows, _progress, peak_rss_gib
 
@@ -238,24 +240,27 @@ def _record(start: PositionFit, st, x, final, var, sums, per_scan, converged, pa
     xs = np.asarray(x)
     cov = float(var[0]) * np.asarray(final.Qxx)
     keep = [i for i, n in enumerate(names) if not n.startswith(ZERNIKE_PREFIX)]
+    response = np.asarray(mixed_response(sums, var, final.Qxx))[:, keep, :]
     modes = [i for i, n in enumerate(names) if n.startswith(ZERNIKE_PREFIX)]
     s = start.surface
     surf = SurfaceEffect(
         cells=s.cells, u=np.asarray(final.U), u_cov=float(var[0]) * np.asarray(final.Quu),
         n=s.n, variances={"noise": float(var[0]), "offset_m2": float(var[1][0]),
                           "tilt_rad2": float(np.mean(np.asarray(var[1])[1:])),
-                          **({"modes_m2": float(var[2][0])} if modes else {})},
+                          **mode_variances(st.ridge, var[2])},
         redundancy={"noise": float(final.redundancy_noise),
                     "offset": float(final.redundancy_cells[0]),
                     "tilt": float(np.sum(np.asarray(final.redundancy_cells)[1:])),
-                    **({"modes": float(final.redundancy_ridge[0])} if modes else {})},
+                    **({"modes": float(np.sum(np.asarray(final.redundancy_ridge)))}
+                       if modes else {})},
         modes={names[i]: (float(xs[i]), math.sqrt(cov[i, i])) for i in modes})
     n_used = float(sums.n_used)
     sigma0 = math.sqrt(float(sums.omega) / max(n_used - len(names), 1.0))
     pf = dataclasses.replace(
         start, names=tuple(names[i] for i in keep), x=xs[keep], cov=cov[np.ix_(keep, keep)],
         sigma0=sigma0, surface=surf, iterations=passes, converged=converged,
-        n_points=int(n_used), mixed=None,
+        n_points=int(n_used), mixed=None, response=response, sigma_white=white_sigmas(
+            response, var[1], cov[np.ix_(keep, keep)]),
         notes=[*start.notes, "streamed: started from a sample of each face, refined from "
                "every row"])
     rec = position_record(pf)

@@ -190,6 +190,12 @@ def _x_response(lin, var, Qxx):
     return jnp.einsum("ij,gkj,gkl,l->gil", Qxx, lin.sg, Dinv, lam)
 
 
+def mixed_response(sums, var: tuple, Qxx: Float[Array, "u u"]) -> Float[Array, "g u k"]:
+    """``d x_hat / d u_g`` per cell from the :class:`MixedSums` of a streamed adjustment (see
+    :attr:`MixedResult.x_response`); ``var`` the variance components, ``Qxx`` the step's."""
+    return _x_response(sums, var, Qxx)
+
+
 def _cell_cofactors(Dinv, sg, Qxx):
     """Prediction-error cofactors of the cells: ``D^-1 + D^-1 s Q_xx s^T D^-1`` per cell."""
     T = jnp.einsum("gkl,gli->gki", Dinv, sg)

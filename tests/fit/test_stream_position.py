@@ -35,6 +35,8 @@ def test_streamed_position_equals_in_memory(campaign, tmp_path):
     for name, v, s in zip(ref.names, ref.x, ref.sigma):
         assert abs(rec[name]["value"] - v) < 0.05 * s, name
         assert rec[name]["sigma"] == pytest.approx(s, rel=0.05), name
+    for name, sw in zip(ref.names, ref.sigma_white):  # the same split into noise and surface
+        assert rec[name]["sigma_white"] == pytest.approx(sw, rel=0.05), name
     assert rec["variance_components"]["surface_m"] == pytest.approx(
         np.sqrt(ref.surface.variances["offset_m2"]), rel=0.05)
     assert abs(rec["n_points"] - ref.n_points) <= 0.001 * ref.n_points

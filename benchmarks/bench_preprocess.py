@@ -2,9 +2,9 @@
 
 One simulated scan (demo scene: reflector, cone, quadrupod, background, mixed pixels, multipath)
 per size, cached as ``.npz``. Every method runs the *same* pipeline
-(:func:`hartrao_jax.preprocess._preprocess.preprocess_scan`: initial values, range and geometry windows,
-angular patches) and differs only in the plane stage, swapped in for
-``_preprocess.fit_planes``:
+(:func:`hartrao_jax.preprocess.preprocess_scan`: initial values, range and geometry windows,
+angular patches) and differs only in the plane stage, swapped in for ``fit_planes`` where the
+pipeline calls it (``_stages``):
 
 * ``jax``: the package (RANSAC vmapped over padded patches, ``lax.map`` chunks, float32,
   hypotheses scored on up to 256 points per patch, TLS refinement on all points), first call
@@ -90,7 +90,7 @@ def load_scan(n_rows: float):
 
 
 # --------------------------------------------------------------------------------------------
-# Peers of the plane stage (same signature and outputs as _preprocess.fit_planes)
+# Peers of the plane stage (same signature and outputs as _planes.fit_planes)
 # --------------------------------------------------------------------------------------------
 
 
@@ -108,7 +108,7 @@ def _three_distinct_np(u, n):
 def numpy_fit_planes(pts, n, eps, *, seed=0, ransac_iterations=64, refine_iterations=2,
                      ransac_float32=True, score_points=256, memory_mb=64.0, ids=None, **_):
     """The package's algorithm in NumPy, chunk by chunk of padded patches."""
-    from hartrao_jax.preprocess._preprocess import ransac_uniforms
+    from hartrao_jax.preprocess._planes import ransac_uniforms
 
     pts = np.asarray(pts)
     n_p, P = pts.shape[:2]
@@ -241,16 +241,16 @@ def gh_comparison(n_rows: float, n_patches: int) -> dict:
     import jax.numpy as jnp
 
     import hartrao_jax  # noqa: F401
+    from hartrao_jax import preprocess as pp
     from hartrao_jax.campaign._campaign import ScanMeta, default_campaign
     from hartrao_jax.geometry._geometry import polar_to_cartesian
-    from hartrao_jax.preprocess import _preprocess as pp
     from hartrao_jax.solver._ghm import gauss_helmert_batch
 
     class PlaneC(eqx.Module):
-        def __call__(self, l, x, c):
+        def __call__(self, obs, x, c):
             v = jnp.stack([x[0], x[1], jnp.ones_like(x[0])])
             nrm = c[:9].reshape(3, 3) @ (v / jnp.sqrt(jnp.sum(v * v)))
-            return nrm @ polar_to_cartesian(l[0], l[1], l[2]) - x[2]
+            return nrm @ polar_to_cartesian(obs[0], obs[1], obs[2]) - x[2]
 
     data, cls, step = load_scan(n_rows)
     camp = default_campaign()
@@ -268,14 +268,14 @@ def gh_comparison(n_rows: float, n_patches: int) -> dict:
     C = np.zeros((len(ids), P, 9))
     X0 = np.zeros((len(ids), 3))
     for b, (i, rr) in enumerate(zip(ids, rows)):
-        l = np.stack([data.range_m[rr], data.phi_rad[rr], data.theta_rad[rr]], 1)
-        L[b, : len(rr)], L[b, len(rr):] = l, l[0]
+        obs = np.stack([data.range_m[rr], data.phi_rad[rr], data.theta_rad[rr]], 1)
+        L[b, : len(rr)], L[b, len(rr):] = obs, obs[0]
         W[b, : len(rr)] = 1.0
         A, B, Cc, D = res.planes[i]
         cond = pp.PlaneCondition.around([A, B, Cc])
         C[b] = np.asarray(cond.R0).ravel()
         X0[b] = [0.0, 0.0, -D]
-        xs = np.asarray(polar_to_cartesian(l[:, 0], l[:, 1], l[:, 2]))
+        xs = np.asarray(polar_to_cartesian(obs[:, 0], obs[:, 1], obs[:, 2]))
         X[b, : len(rr)] = xs - xs.mean(0)
     sig = np.array([camp.scanner.sigma_range_m, camp.scanner.sigma_angle_rad,
                     camp.scanner.sigma_angle_rad])
@@ -309,6 +309,22 @@ def gh_comparison(n_rows: float, n_patches: int) -> dict:
 # --------------------------------------------------------------------------------------------
 
 
+def _plane_stage_modules() -> list:
+    """The pipeline modules that call ``fit_planes`` by their global name (the stages module
+    since the preprocessing was split into stages; ``_preprocess`` before)."""
+    import importlib
+
+    mods = []
+    for name in ("hartrao_jax.preprocess._stages", "hartrao_jax.preprocess._preprocess"):
+        try:
+            m = importlib.import_module(name)
+        except ImportError:
+            continue
+        if hasattr(m, "fit_planes"):
+            mods.append(m)
+    return mods
+
+
 def worker(method: str, n_rows: float, calls: int = 3, xla_cache: str | None = None) -> dict:
     import jax
 
@@ -329,10 +345,10 @@ def worker(method: str, n_rows: float, calls: int = 3, xla_cache: str | None = N
 
         out_cache = any(Path(xla_cache).glob("*")) if Path(xla_cache).exists() else False
         enable_compilation_cache(xla_cache)
-    if method == "numpy":
-        pp.fit_planes = numpy_fit_planes
-    elif method == "open3d":
-        pp.fit_planes = open3d_fit_planes
+    peer = {"numpy": numpy_fit_planes, "open3d": open3d_fit_planes}.get(method)
+    if peer is not None:  # swap the plane stage where the pipeline looks it up
+        for mod in _plane_stage_modules():
+            mod.fit_planes = peer
     cfg = pp.PreprocessConfig()
     out = {"method": method, "n_rows": len(data), "step_rad": step, "baseline_mib": base}
     if method == "jax" and xla_cache:
@@ -355,6 +371,9 @@ def worker(method: str, n_rows: float, calls: int = 3, xla_cache: str | None = N
         out["timing_s"] = {k: min(st[k] for st in stages) for k in stages[0]}
     else:
         out["timing_s"] = res.stats["timing_s"]
+    for k, key in (("init_s", "initial_values"), ("windows_s", "windows"),
+                   ("segmentation_s", "segmentation")):
+        out[k] = out["timing_s"].get(key)
     out["peak_mib"] = peak_mib()
     out["n_patches"] = res.stats["n_patches_fitted"]
     out["points_per_patch"] = res.stats["points_per_patch"]
@@ -462,7 +481,8 @@ def main(argv=None):
                     best[m] = r
                 else:  # best of rounds, per column
                     for k in ("plane_s", "total_s", "cpu_s", "first_s", "first_cached_s",
-                              "first_plane_s", "peak_mib"):
+                              "first_plane_s", "peak_mib", "init_s", "windows_s",
+                              "segmentation_s"):
                         v = [x for x in (b.get(k), r.get(k)) if x is not None]
                         b[k] = min(v) if v else None
         for m in methods:
@@ -495,6 +515,8 @@ def main(argv=None):
         info["open3d"] = f"not available ({type(e).__name__}: {e})"
     cols = [("n_rows", "rows", ",d"), ("method", "plane stage", ""),
             ("n_patches", "patches", ",d"), ("patch_size_m", "patch m", ".2f"),
+            ("init_s", "initial values s", ".2f"), ("windows_s", "windows s", ".2f"),
+            ("segmentation_s", "segmentation s", ".2f"),
             ("plane_s", "plane stage s", ".2f"), ("first_plane_s", "plane 1st call s", ".2f"),
             ("total_s", "total s", ".2f"), ("cpu_s", "total CPU s", ".2f"),
             ("first_s", "first call s", ".2f"),

@@ -9,17 +9,14 @@ from collections.abc import Mapping
 import numpy as np
 
 from ..campaign._campaign import Campaign
-from ..geometry._geometry import (
-    polar_components,
-    scanner_to_telescope,
-)
-from ._initial import InitialValues
+from ..geometry._geometry import polar_components
+from ._initial import InitialValues, scanner_rotation
 from ._types import PreprocessConfig
 
 
 def _rot(rx: float, ry: float) -> np.ndarray:
     """``Ry(ry) Rx(rx)`` (:func:`..geometry._geometry.scanner_to_telescope`) as NumPy."""
-    return np.asarray(scanner_to_telescope(rx, ry))
+    return scanner_rotation(rx, ry)
 
 
 def _pose(x: Mapping[str, float] | InitialValues) -> tuple[np.ndarray, np.ndarray, float]:
@@ -61,6 +58,19 @@ def _normal_distance(xs, p: np.ndarray) -> np.ndarray:
     return _flat_coordinates(xs, x)[0][2]
 
 
+def _least_squares(J: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``argmin |J p - b|`` of a tall ``J`` (n, k): normal equations of the column-scaled ``J``
+    (a k x k solve, ~10x faster than ``lstsq``'s SVD on 20000 x 6), ``lstsq`` when they are
+    ill-conditioned (condition number above 1e10, i.e. ``J``'s above 1e5)."""
+    s = np.sqrt(np.einsum("ij,ij->j", J, J))
+    s = np.where(s > 0, s, 1.0)
+    Js = J / s
+    N = Js.T @ Js
+    if not np.linalg.cond(N) < 1e10:
+        return np.linalg.lstsq(J, b, rcond=None)[0]
+    return np.linalg.solve(N, Js.T @ b) / s
+
+
 def refine_pose(xs: np.ndarray, x: Mapping[str, float], *, iterations: int = 8,
                 min_tol_m: float = 0.003) -> dict[str, float]:
     """Trimmed Gauss-Newton of ``tx ty tz rx ry f`` on scanner points near the paraboloid.
@@ -83,7 +93,7 @@ def refine_pose(xs: np.ndarray, x: Mapping[str, float], *, iterations: int = 8,
         xk, rk = tuple(c[keep] for c in xs), r0[keep]
         J = np.stack([(_normal_distance(xk, p + h[k] * np.eye(6)[k]) - rk) / h[k]
                       for k in range(6)], 1)
-        dp, *_ = np.linalg.lstsq(J, -rk, rcond=None)
+        dp = _least_squares(J, -rk)
         if not np.all(np.isfinite(dp)):
             break
         p = p + dp

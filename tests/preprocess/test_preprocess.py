@@ -199,14 +199,14 @@ def test_refinement_equals_gauss_helmert_plane_in_raw_observations():
     P = P + np.array([4.0, 3.0, 10.5])  # ~12 m from the scanner
     r, phi, th = cartesian_to_raw(P, 1)
     sig = np.array([0.0008, 2e-5, 2e-5])
-    l = np.stack([r, phi, th], 1) + rng.normal(size=(len(r), 3)) * sig
-    xs = np.asarray(polar_to_cartesian(l[:, 0], l[:, 1], l[:, 2]))
+    obs = np.stack([r, phi, th], 1) + rng.normal(size=(len(r), 3)) * sig
+    xs = np.asarray(polar_to_cartesian(obs[:, 0], obs[:, 1], obs[:, 2]))
     cen = xs.mean(0)
     res = fit_planes((xs - cen)[None], [len(xs)], 0.004, ransac_float32=False)
     n_tls = res["normal"][0]
     d_tls = res["d"][0] + n_tls @ (res["centroid"][0] + cen)
     cond = PlaneCondition.around(n_tls)
-    gh = gauss_helmert(cond, l, np.array([0.0, 0.0, d_tls]), sig)
+    gh = gauss_helmert(cond, obs, np.array([0.0, 0.0, d_tls]), sig)
     assert bool(gh.converged) and 0.9 < float(gh.sigma0) < 1.1
     n_gh = np.asarray(cond.normal(jnp.asarray(gh.x)))
     angle = _angle(n_gh, n_tls)

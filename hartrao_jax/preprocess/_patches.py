@@ -28,6 +28,8 @@ class _Bins:
         self.n_phi = np.maximum(1, np.round(self.span * range_m * np.sin(centres) / size_m)
                                 ).astype(np.int64)
         self.J = int(self.n_phi.max())
+        self.n_phi32 = self.n_phi.astype(np.int32)
+        self._n_phi_f = self.n_phi.astype(np.float64)
         self.n_cells = 2 * self.n_band * self.J
         if self.n_cells >= 2**31:
             raise ValueError(f"patch size {size_m} m is too small for this scan")
@@ -73,26 +75,52 @@ class _Bins:
         n_sub = int((a * b).max())
         if n_sub == 1 or self.n_cells * n_sub >= 2**31:
             return False
-        self.sub_a, self.sub_b, self.n_sub = a, b, n_sub
+        self.sub_a, self.sub_b, self.n_sub = a.astype(np.int32), b.astype(np.int32), n_sub
         return True
 
     def keys(self, phi: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """Dense int32 key of every point (raw angles, rad): cell, and sub-cell once
+        :meth:`subdivide` has split the cells. In-place float64/int32 passes (this runs over
+        every point of a scan, up to 1e7)."""
         face2 = theta >= np.pi
-        th0 = np.where(face2, 2 * np.pi - theta, theta)
-        tb = th0 * (1.0 / self.dth)
-        band = np.minimum(tb.astype(np.int64), self.n_band - 1)
-        nb = self.n_phi[band]
-        u = phi - self.lo
-        u = np.where(u < 0, u + 2 * np.pi, u)
-        tj = u * (1.0 / self.span) * nb
-        j = np.minimum(tj.astype(np.int64), nb - 1)
-        cell = (face2 * self.n_band + band) * self.J + j
+        tb = np.where(face2, 2 * np.pi - theta, theta)
+        tb *= 1.0 / self.dth
+        band = tb.astype(np.int32)
+        np.minimum(band, self.n_band - 1, out=band)
+        tj = phi - self.lo
+        tj[tj < 0] += 2 * np.pi
+        tj *= 1.0 / self.span
+        tj *= self._n_phi_f[band]
+        nb = self.n_phi32[band]
+        j = tj.astype(np.int32)
+        np.minimum(j, nb - 1, out=j)
+        cell = face2.astype(np.int32)
+        cell *= self.n_band
+        cell += band
+        cell *= self.J
+        cell += j
         if self.sub_a is None:
-            return cell.astype(np.int32)
+            return cell
         a, b = self.sub_a[cell], self.sub_b[cell]
-        sa = np.clip(((tb - band) * a).astype(np.int64), 0, a - 1)
-        sb = np.clip(((tj - j) * b).astype(np.int64), 0, b - 1)
-        return (cell * self.n_sub + sa * b + sb).astype(np.int32)
+        tb -= band
+        tb *= a
+        sa = np.minimum(tb.astype(np.int32), a - 1)
+        tj -= j
+        tj *= b
+        sb = np.minimum(tj.astype(np.int32), b - 1)
+        cell *= self.n_sub
+        sa *= b
+        cell += sa
+        cell += sb
+        return cell
+
+    def split_keys(self, cells: np.ndarray, phi: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """Keys after :meth:`subdivide` of points whose keys before it were ``cells``: only
+        the points of split cells are keyed afresh (``phi, theta``: all points' angles)."""
+        out = cells * np.int32(self.n_sub)
+        i = np.flatnonzero((self.sub_a * self.sub_b > 1)[cells])
+        out[i] = self.keys(phi[i], theta[i])
+        return out
 
     def merge_sparse(self, keys: np.ndarray, occ: np.ndarray, min_points: int):
         """Move the points of sub-cells with fewer than ``min_points`` (whose cell has enough)
@@ -113,6 +141,19 @@ class _Bins:
             out[s:e] = remap[keys[s:e]]
             new_occ += np.bincount(out[s:e], minlength=self.n_keys)
         return out, new_occ
+
+
+def _split_keys(phi, theta, idx, cells: np.ndarray, bins: _Bins
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`_Bins.split_keys` of the points ``idx`` (cell keys ``cells`` before the split),
+    and the number of points per key."""
+    out = np.empty(len(idx), np.int32)
+    occ = np.zeros(bins.n_keys, np.int64)
+    for s, e in _blocks(len(idx)):
+        i = idx[s:e]
+        out[s:e] = bins.split_keys(cells[s:e], phi[i], theta[i])
+        occ += np.bincount(out[s:e], minlength=bins.n_keys)
+    return out, occ
 
 
 def _keys(phi, theta, idx, bins: _Bins) -> tuple[np.ndarray, np.ndarray]:

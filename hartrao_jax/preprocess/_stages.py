@@ -18,7 +18,7 @@ from ..geometry._geometry import (
 )
 from ._frames import _cartesian, _flat_coordinates, default_range_window, refine_pose
 from ._initial import choose_initial_values
-from ._patches import _Bins, _keys, _next_pow2, _size_buckets
+from ._patches import _Bins, _keys, _next_pow2, _size_buckets, _split_keys
 from ._planes import fit_planes
 from ._types import (
     CHUNK,
@@ -201,8 +201,8 @@ def _subdivide_crowded(w: _Windowed, data: ScanData, angular_step: float,
         q = float(np.quantile(occ, cfg.split_quantile))
         cap = int(min(cap, max(64, _next_pow2(int(math.ceil(q))))))
         step = w.bins.grid_step(w.occ, angular_step)
-        if w.bins.subdivide(w.occ, cap, step):
-            w.keys, w.occ = _keys(data.phi_rad, data.theta_rad, w.idx, w.bins)
+        if w.bins.subdivide(w.occ, cap, step):  # only the split cells' points are re-keyed
+            w.keys, w.occ = _split_keys(data.phi_rad, data.theta_rad, w.idx, w.keys, w.bins)
             w.keys, w.occ = w.bins.merge_sparse(w.keys, w.occ, cfg.min_patch_points)
     return cap
 

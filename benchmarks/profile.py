@@ -128,6 +128,7 @@ def main(argv=None) -> int:
     for label in ("first (cold compile)", "second (warm)"):
         for d in (st.wall, st.cpu, st.calls):
             d.clear()
+        load0 = os.getloadavg()[0]
         t0, c0 = time.perf_counter(), _cpu()
         cf = _fit.fit_campaign(camp, "extended", keep=keep_fn, progress=False)
         t1, c1 = time.perf_counter(), _cpu()
@@ -140,7 +141,8 @@ def main(argv=None) -> int:
                             "random effect", "alignment and products", "write")}
         other = total_w - sum(v["wall_s"] for v in stages.values())
         runs.append({"run": label, "total_wall_s": total_w, "total_cpu_s": total_c,
-                     "other_wall_s": other, "stages": stages})
+                     "other_wall_s": other, "stages": stages,
+                     "load_average_1min": [load0, os.getloadavg()[0]]})
         print(label, f"{total_w:.1f} s wall, {total_c:.1f} s CPU", flush=True)
     doc = {"positions": args.positions, "scans": len(camp.scans), "rows": int(n_rows),
            "step_rad": args.step, "simulate_s": t_sim, "cores": os.cpu_count(),
@@ -161,6 +163,8 @@ def main(argv=None) -> int:
                  + " |")
     lines.append("| **total** | " + " | ".join(
         f"**{r['total_wall_s']:.1f}** ({r['total_cpu_s']:.1f})" for r in runs) + " |")
+    lines.append("| load average (1 min) at start, end | " + " | ".join(
+        "{:.1f}, {:.1f}".format(*r["load_average_1min"]) for r in runs) + " |")
     (OUT / "profile.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0

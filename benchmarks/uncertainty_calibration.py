@@ -60,7 +60,10 @@ def _z(name: str, value: float, truth: float, sigma: float) -> float:
     return d / sigma
 
 
-def run_one(case: str, seed: int, *, preprocess: bool = False) -> dict:
+def run_one(case: str, seed: int, *, preprocess: bool = False,
+            previous: dict | None = None) -> dict:
+    """One (case, seed): per-cycle and two-face z rows. With ``previous`` (a stored part of the
+    same case and seed) only the two-face fit is rerun and the per-cycle rows are kept."""
     from hartrao_jax.campaign._campaign import load_campaign
     from hartrao_jax.fit._fit import fit_campaign
     from hartrao_jax.simulate._simulate import simulate_campaign
@@ -82,9 +85,13 @@ def run_one(case: str, seed: int, *, preprocess: bool = False) -> dict:
             keep = keep_mask_fn(PreprocessConfig(), campaign=camp)
         rows = []
         t0 = time.time()
-        per = fit_campaign(camp, "extended", keep=keep, progress=False, per_cycle=True)
-        t_cycle = time.time() - t0
-        for s in per.scans:
+        per = (None if previous is not None else
+               fit_campaign(camp, "extended", keep=keep, progress=False, per_cycle=True))
+        t_cycle = (previous["seconds"]["per_cycle"] if previous is not None
+                   else time.time() - t0)
+        if previous is not None:
+            rows = [r for r in previous["rows"] if r["mode"] == "per-cycle"]
+        for s in (per.scans if per is not None else ()):
             tr = ts[s.meta.id]
             for n, (v, sg) in s.estimates.items():
                 rows.append({"mode": "per-cycle", "unit": s.meta.id, "param": n,
@@ -110,7 +117,9 @@ def run_one(case: str, seed: int, *, preprocess: bool = False) -> dict:
                              "z": 0.0, "sigma": 0.0,
                              "value": math.sqrt(p.surface.variances["offset_m2"]),
                              "truth": effects.get("panel_offset", 0.0), "elevation_deg": el,
-                             "held": sorted(held_names)})
+                             "held": sorted(held_names),
+                             "mode_tests": p.surface.mode_tests,
+                             "modes_m": math.sqrt(p.surface.variances.get("modes_m2", 0.0))})
         return {"case": case, "seed": seed, "sim_seed": seed + SEED_OFFSET[case], "rows": rows, "held": held,
                 "seconds": {"simulate": t_sim, "per_cycle": t_cycle, "two_face": t_two}}
     finally:
@@ -202,12 +211,22 @@ def markdown(summary: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _revision() -> str:
+    """The repository's commit (the code the two-face rows came from)."""
+    import subprocess
+
+    return subprocess.run(["git", "-C", str(HERE), "rev-parse", "--short", "HEAD"],
+                          capture_output=True, text=True).stdout.strip()
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--cases", default=",".join(c for c in CASES if c != "dense"))
     ap.add_argument("--merge", action="store_true", help="only merge the stored parts")
+    ap.add_argument("--refit-two-face", action="store_true",
+                    help="rerun only the two-face fits of stored parts (per-cycle rows kept)")
     args = ap.parse_args(argv)
     import hartrao_jax  # noqa: F401  (float64)
 
@@ -221,10 +240,13 @@ def main(argv=None) -> int:
         for case in args.cases.split(","):
             for seed in range(args.first_seed, args.first_seed + args.seeds):
                 part = PARTS / f"{case}-{seed}.json"
-                if part.exists():
+                prev = json.loads(part.read_text()) if part.exists() else None
+                if prev is not None and not (args.refit_two_face and prev.get("two_face_rev")
+                                             != _revision()):
                     continue
                 t0 = time.time()
-                res = run_one(case, seed)
+                res = run_one(case, seed, previous=prev if args.refit_two_face else None)
+                res["two_face_rev"] = _revision()
                 tmp = part.with_suffix(".tmp")
                 tmp.write_text(json.dumps(res))
                 tmp.replace(part)

@@ -50,7 +50,7 @@ from ..solver._ghm import (
     gauss_helmert_batch,
     robust_gauss_helmert,
 )
-from ..solver._mixed import gauss_helmert_mixed, unidentifiable
+from ..solver._mixed import gauss_helmert_mixed, ridge_chi2, unidentifiable
 from ._align import Alignment, mean_heading, north_alignment, scan_heading
 
 log = logging.getLogger("hartrao_jax")
@@ -138,7 +138,9 @@ class SurfaceEffect:
     tilts (rad: radial/tangential, or x/y for square cells) with prediction-error covariances
     ``u_cov`` (g, 3, 3); ``n`` points per cell. ``variances``: the estimated components
     (``noise``: factor on the a priori variances; ``offset_m2``, ``tilt_rad2``, ``modes_m2``)
-    and their redundancy shares.
+    and their redundancy shares. ``modes``: the smooth modes carried, ``{name: (value m,
+    sigma m)}``; ``mode_tests``: per group of modes, the test that decided whether it is carried
+    (``chi2``, ``dof``, ``p``, ``carried``).
     """
 
     cells: str
@@ -148,6 +150,7 @@ class SurfaceEffect:
     variances: dict[str, float]
     redundancy: dict[str, float]
     modes: dict[str, tuple[float, float]] = field(default_factory=dict)
+    mode_tests: dict[str, dict] = field(default_factory=dict)
 
 
 @dataclass
@@ -409,6 +412,27 @@ _CELL_VAR0 = (1e-8, 1e-8, 1e-8)
 _MODE_VAR0 = 1e-8
 
 
+#: Level of the test that keeps a group of smooth modes in the random effect (None: keep all).
+MODE_TEST_ALPHA: float | None = 0.01
+
+
+def _absent_modes(rm, ridge: dict | None, tests: dict) -> list[str]:
+    """Groups of smooth modes the data do not show: their coefficients, estimated as fixed
+    effects with the cells still random, are consistent with zero (chi-square test at
+    :data:`MODE_TEST_ALPHA`, :func:`ridge_chi2`). Why: a variance estimated from a handful of
+    coefficients that are noise is itself noise, and one of a few times 1e-4 m on coma (nearly a
+    pose change) inflates the sigmas of the pose several-fold; modes the data do show (gravity's
+    astigmatism) keep their variance. The tests are recorded in ``tests`` (first verdict)."""
+    if MODE_TEST_ALPHA is None or not ridge:
+        return []
+    out = []
+    for k, (t, dof, p) in ridge_chi2(rm, ridge).items():
+        tests.setdefault(k, {"chi2": t, "dof": dof, "p": p, "carried": p <= MODE_TEST_ALPHA})
+        if p > MODE_TEST_ALPHA:
+            out.append(k)
+    return out
+
+
 def white_sigmas(response: np.ndarray, cell_var, cov: np.ndarray) -> np.ndarray:
     """The noise's part of each sigma: ``sqrt(diag(cov) - sum_g R_g diag(cell_var) R_g^T)``
     with ``R_g`` (g, u, k) the estimates' response to each cell (the surface's part)."""
@@ -567,12 +591,13 @@ def fit_position(
         keys = (None if tel.ring_edges_m is not None and tel.panels_per_ring is not None
                 else square_cells(fit1.X_tel, cell_m)[2])
         design = np.column_stack([np.ones(n_pad), local]) * (cell >= 0)[:, None]
-        groups = SURFACE_MODE_GROUPS if tel.offset_m == 0 else {}
-        for _ in range(3):
+        groups = dict(SURFACE_MODE_GROUPS) if tel.offset_m == 0 else {}
+        mode_tests: dict[str, tuple] = {}
+        start = {n_: float(v_) for n_, v_ in zip(mdl.free, np.asarray(res.x))}
+        for _ in range(3 + len(groups)):
             extra = tuple(f"{ZERNIKE_PREFIX}{j}" for g_ in groups.values() for j in g_)
             mdl2 = model_of(free_of(extra), kappa)
-            x0 = np.array([float(res.x[list(mdl.free).index(n_)]) if n_ in mdl.free else 0.0
-                           for n_ in mdl2.free])
+            x0 = np.array([start.get(n_, 0.0) for n_ in mdl2.free])
             ridge = {k_: [mdl2.free.index(f"{ZERNIKE_PREFIX}{j}") for j in g_]
                      for k_, g_ in groups.items()} or None
             rm = gauss_helmert_mixed(
@@ -581,9 +606,20 @@ def fit_position(
                 ridge_var0=_MODE_VAR0, v0=np.asarray(res.v), max_iter=60)
             cand = [n_ for n_ in mdl2.free if n_ in INSTRUMENT]
             bad = unidentifiable(np.asarray(rm.cov), mdl2.free, cand, typical=_typical())
-            if not bad:
+            if bad:
+                _hold(held, fixed, bad, rm.cov, mdl2.free, elevation)
+                continue
+            absent = _absent_modes(rm, ridge, mode_tests)
+            if not absent:
                 break
-            _hold(held, fixed, bad, rm.cov, mdl2.free, elevation)
+            for k_ in absent:  # the data do not show them: not carried (see _absent_modes)
+                groups.pop(k_)
+            start = {n_: float(v_) for n_, v_ in zip(mdl2.free, np.asarray(rm.x))}
+        absent = [k_ for k_, t in mode_tests.items() if not t["carried"]]
+        if absent:
+            notes.append("smooth modes not shown by the data, not carried as a random effect ("
+                         + ", ".join(f"{k_} p = {mode_tests[k_]['p']:.2f}" for k_ in absent)
+                         + "): the panels' random effect covers them")
         keep_idx = [i for i, n_ in enumerate(mdl2.free) if not n_.startswith(ZERNIKE_PREFIX)]
         mode_idx = [i for i, n_ in enumerate(mdl2.free) if n_.startswith(ZERNIKE_PREFIX)]
         xs = np.asarray(rm.x)
@@ -601,7 +637,8 @@ def fit_position(
                         "tilt": float(np.sum(np.asarray(rm.redundancy_cells[1:]))),
                         **({"modes": float(np.sum(np.asarray(rm.redundancy_ridge)))}
                            if mode_idx else {})},
-            modes={mdl2.free[i]: (float(xs[i]), float(np.sqrt(cov[i, i]))) for i in mode_idx})
+            modes={mdl2.free[i]: (float(xs[i]), float(np.sqrt(cov[i, i]))) for i in mode_idx},
+            mode_tests=mode_tests)
         mixed = MixedState(mdl2, xs, np.asarray(rm.u), (float(rm.noise_var), np.asarray(
             rm.cell_var), np.asarray(rm.ridge_var)), (1.0, np.asarray(_CELL_VAR0), np.full(
                 len(ridge or ()), _MODE_VAR0)), ridge, kappa, cell_m, keys,
@@ -730,6 +767,10 @@ def position_record(p: PositionFit) -> dict:
         if p.surface.modes:
             row["surface_modes"] = {k: _value_sigma(a, b, "m") for k, (a, b) in
                                     p.surface.modes.items()}
+        if p.surface.mode_tests:
+            row["surface_mode_tests"] = {
+                k: {"chi2": _num(t["chi2"]), "dof": t["dof"], "p": _num(t["p"]),
+                    "carried": bool(t["carried"])} for k, t in p.surface.mode_tests.items()}
         row["panels"] = panel_predictions(p)
     row["gravity"] = [float(a) for a in s0.gravity]
     row["notes"] = list(p.notes)

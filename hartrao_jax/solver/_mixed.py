@@ -49,6 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
+from scipy.stats import chi2 as chi2_dist
 
 from ._ghm import AbstractAdjustment
 from ._kernel import materialize_trig, point_weights, solve_scaled
@@ -80,6 +81,11 @@ class MixedResult(AbstractAdjustment):
             the estimates (``Q_xx s_g^T D_g^-1 Lambda``). The surface's share of ``cov`` is
             ``sum_g R_g diag(cell_var) R_g^T``; cells seen by other adjustments of the same
             reflector make their estimates' surface errors correlated (``gravity``).
+        ridge_fixed, ridge_fixed_cov: the ridge unknowns estimated as *fixed* effects (no prior:
+            one Newton step from the solution with their priors removed, the cells still
+            random) and their covariance ``s_e^2 Q``: ``ridge_fixed_g^T cov_g^-1 ridge_fixed_g``
+            is chi-square with ``|g|`` degrees of freedom when group ``g``'s modes are absent
+            (the test of whether the data show them at all, :func:`ridge_chi2`).
     """
 
     x: Float[Array, " u"]
@@ -103,6 +109,8 @@ class MixedResult(AbstractAdjustment):
     iterations: Int[Array, ""]
     converged: Bool[Array, ""]
     x_response: Float[Array, "g u k"]
+    ridge_fixed: Float[Array, " r"]
+    ridge_fixed_cov: Float[Array, "r r"]
 
 
 def _linearize(condition, dev_column, on, l0, x, c):
@@ -360,13 +368,18 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
     gi = jnp.where(groups >= 0, groups, 0)
     dev_final = jnp.where(groups >= 0, jnp.sum(design * U[gi], axis=-1), 0.0)
     sigma0 = jnp.sqrt(jnp.sum(weights * omega_pt) / jnp.maximum(n_used - u, 1))
+    dx0, _, Q0, _ = _reduce(lin.N, lin.nv, lin.S, lin.sg, lin.tg, U, x, se2 / var[1],
+                            ridge_idx, jnp.zeros_like(ridge_idx, f))
+    ridge_fixed = (x + dx0)[ridge_idx]
+    ridge_fixed_cov = se2 * Q0[ridge_idx][:, ridge_idx]
     return MixedResult(
         x=x, cov=se2 * up.Qxx, Qxx=up.Qxx, u=U, u_cov=se2 * up.Quu, noise_var=se2,
         cell_var=var[1], ridge_var=var[2], redundancy_noise=up.r_e, redundancy_cells=up.r_cells,
         redundancy_ridge=up.r_ridge, sigma0=sigma0, v=V,
         normalized=jnp.sqrt(omega_pt) / jnp.sqrt(se2), dev=dev_final, omega_point=omega_pt,
         weights=weights, n_used=n_used, iterations=it, converged=done,
-        x_response=_x_response(lin, var, up.Qxx))
+        x_response=_x_response(lin, var, up.Qxx), ridge_fixed=ridge_fixed,
+        ridge_fixed_cov=ridge_fixed_cov)
 
 
 def gauss_helmert_mixed(
@@ -565,6 +578,23 @@ def mixed_step(
     sd = jnp.sqrt(jnp.where(jnp.diagonal(up.Qxx) > 0, jnp.diagonal(up.Qxx), 1.0))
     return MixedStep(x + up.dx, U + up.dU, var, up.Qxx, up.Quu, up.r_e, up.r_cells, up.r_ridge,
                      jnp.max(jnp.abs(up.dx) / sd))
+
+
+def ridge_chi2(result: MixedResult, ridge: dict[str, list[int]] | None) -> dict[str, tuple]:
+    """Per ridge group: ``(chi2, dof, p)`` of its modes estimated as fixed effects against zero
+    (``shared/spec/physics.md``, Statistics): whether the data show the group at all, beyond
+    the noise and the cells' random effect. ``p`` large: the data do not show these modes, and
+    a variance estimated for them is noise (a few coefficients cannot carry a variance)."""
+    out, start = {}, 0
+    xf = np.asarray(result.ridge_fixed)
+    C = np.asarray(result.ridge_fixed_cov)
+    for name, idx in (ridge or {}).items():
+        sl = slice(start, start + len(idx))
+        start += len(idx)
+        c = C[sl, sl]
+        t = float(xf[sl] @ np.linalg.lstsq(c, xf[sl], rcond=1e-12)[0])
+        out[name] = (t, len(idx), float(chi2_dist.sf(t, len(idx))))
+    return out
 
 
 def ridge_indices(ridge: dict[str, list[int]] | None) -> tuple[Array, Array, int]:

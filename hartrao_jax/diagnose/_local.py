@@ -26,18 +26,49 @@ import numpy as np
 
 from ..geometry._geometry import polar_to_cartesian
 from ..model._model import bump_names
-from ._locate import NOT_DISTINGUISHABLE, covered_ids, scan_point, search
-from ._state import Finding, _global_sigma0, _refit_all, _restore, _rms, _save
+from ._locate import NOT_DISTINGUISHABLE, coherent, covered_ids, scan_point, search
+from ._state import Finding, _evaluate, _global_sigma0, _refit_all, _restore, _rms, _save
 
 ALPHA_LOCAL = 1e-3  # of the maximum over the reflector's placements
-MAX_BUMPS = 2
+MAX_BUMPS = 4  # rounds of search and model; each stops at the first insignificant candidate
 
 
-def search_points(S):
-    """Aperture positions (m) and residual normal deviations (m) of the points the fit keeps,
-    all scans together: what the search sees."""
-    xy = np.concatenate([sc.X_tel[sc.used, :2] for sc in S])
-    r = np.concatenate([sc.mismatch_m[sc.used] for sc in S])
+def rejection_limit(sc, robust_k: float | None) -> np.ndarray:
+    """Every point's rejection limit as a normal deviation (m): ``k`` a-posteriori sigmas of
+    its misclosure, ``k sigma0 sqrt(m_i) / s_i`` (the robust adjustment's test; infinite when
+    the fit is not robust)."""
+    if robust_k is None or not np.isfinite(sc.sigma0) or sc.m is None:
+        return np.full(len(sc.s_rho), np.inf)
+    return robust_k * sc.sigma0 * np.sqrt(np.maximum(sc.m, 0.0)) / sc.s_rho
+
+
+def readmitted(S, robust_k: float | None = 4.0) -> list[np.ndarray]:
+    """Per scan, the points the robust fit rejected that the search takes back (bool masks
+    over the scan's points): rejected points of the window that agree with their neighbours
+    (:func:`._locate.coherent`; the neighbourhood spans all scans, the reflector being
+    common to them)."""
+    sel = [sc.window & ~sc.cut for sc in S]
+    xy = np.concatenate([sc.X_tel[s, :2] for sc, s in zip(S, sel)])
+    r = np.concatenate([sc.mismatch_m[s] for sc, s in zip(S, sel)])
+    kept = np.concatenate([sc.used[s] for sc, s in zip(S, sel)])
+    lim = np.concatenate([rejection_limit(sc, robust_k)[s] for sc, s in zip(S, sel)])
+    adm = coherent(xy, r, kept, lim)
+    out, k = [], 0
+    for sc, s in zip(S, sel):
+        m = np.zeros(len(s), bool)
+        m[np.flatnonzero(s)] = adm[k:k + int(s.sum())]
+        k += int(s.sum())
+        out.append(m)
+    return out
+
+
+def search_points(S, robust_k: float | None = 4.0, back=None):
+    """Aperture positions (m) and residual normal deviations (m) of what the search sees, all
+    scans together: the points the fit keeps and the rejected ones that agree with their
+    neighbours (:func:`readmitted`, or the masks ``back`` when given)."""
+    back = readmitted(S, robust_k) if back is None else back
+    xy = np.concatenate([sc.X_tel[sc.used | b, :2] for sc, b in zip(S, back)])
+    r = np.concatenate([sc.mismatch_m[sc.used | b] for sc, b in zip(S, back)])
     return xy, r
 
 
@@ -86,7 +117,8 @@ def local_step(ctx, S: Sequence, spec, record: list[dict], notes: list[str]) -> 
 
     out = []
     for k in range(1, MAX_BUMPS + 1):
-        xy, r = search_points(S)
+        back = readmitted(S, ctx.config.robust_k)
+        xy, r = search_points(S, back=back)
         exclude = [(b["values"][b["names"][0]], b["values"][b["names"][1]],
                     abs(b["values"][b["names"][3]])) for b in spec.bumps]
         srch = search(xy, r, alpha=ALPHA_LOCAL, min_amplitude_m=ctx.config.min_effect_m * 5,
@@ -98,23 +130,30 @@ def local_step(ctx, S: Sequence, spec, record: list[dict], notes: list[str]) -> 
                            "skipped_widths_m": srch.skipped_widths, "_maps": srch.maps})
             break
         desc = _describe(c, ctx, S)
-        desc.update(search=k, skipped_widths_m=srch.skipped_widths, _maps=srch.maps)
+        desc.update(search=k, skipped_widths_m=srch.skipped_widths, _maps=srch.maps,
+                    readmitted_points=int(sum(b.sum() for b in back)))
         record.append(desc)
         if not c.significant:
             break
         # ---- model it: the catalog term, free in the scans that cover it
         names = bump_names(k)
         hint = dict(zip(names, (c.x_m, c.y_m, c.amplitude_m, c.width_m)))
-        covering = [sc.id for sc in S if int(np.sum(np.hypot(
-            sc.X_tel[sc.used, 0] - c.x_m, sc.X_tel[sc.used, 1] - c.y_m) < 2 * c.width_m)) >= 20]
+        covering = [sc.id for sc, b in zip(S, back) if int(np.sum(np.hypot(
+            sc.X_tel[sc.used | b, 0] - c.x_m, sc.X_tel[sc.used | b, 1] - c.y_m)
+            < 2 * c.width_m)) >= 20]
         if not covering:
             break
-        before = (_global_sigma0(S), _rms(S))
         saved = _save(S, spec)
+        # the refit sees the candidate's re-admitted points (its core, when the start fit
+        # rejected it); sigma0 and rms before are taken on the same points
+        _readmit_near(ctx, S, spec, back, covering, c)
+        before = (_global_sigma0(S), _rms(S))
         # all four parameters free; when that nonlinear refit fails (a compact bump of low
         # signal can send the width through zero), the amplitude alone, centre and width held
         # at the search's values (linear: it converges)
         for free in (names, names[2:3]):
+            if free is not names:
+                _readmit_near(ctx, S, spec, back, covering, c)
             spec.bumps.append({"names": names, "values": dict(hint), "scans": covering,
                                "free": list(free)})
             _refit_all(ctx, S, spec, only=[sc for sc in S if sc.id in covering],
@@ -181,6 +220,16 @@ def local_step(ctx, S: Sequence, spec, record: list[dict], notes: list[str]) -> 
                    "sigma_note": "sigmas are the adjustment's times the roughness factor "
                                  f"{f_:.2f} (correlated panel-scale roughness)"}))
     return out
+
+
+def _readmit_near(ctx, S, spec, back, covering, c) -> None:
+    """Give the covering scans' re-admitted points within ``3 w`` of candidate ``c`` back to
+    the adjustment (its robust rejection may drop them again) and re-evaluate those scans."""
+    for sc, b in zip(S, back):
+        near = b & (np.hypot(sc.X_tel[:, 0] - c.x_m, sc.X_tel[:, 1] - c.y_m) < 3 * c.width_m)
+        if sc.id in covering and near.any():
+            sc.used = sc.used | near
+            _evaluate(ctx, sc, spec)
 
 
 def _combine(S, ids, names):

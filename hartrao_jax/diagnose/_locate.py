@@ -45,6 +45,24 @@ A candidate that does not stand out is reported as the largest local structure, 
 size, as "not distinguishable from the reflector's panel-scale roughness". An accepted one is
 modelled by the ``bump_*`` parameters of the model and refitted by the diagnosis.
 
+Which points: what the robust fit rejected but the surface confirms
+-------------------------------------------------------------------
+The robust fit drops every point whose residual exceeds ``k`` a-posteriori sigmas (about 3 mm
+on the GBT recordings), so without help the search would see only the rim of any structure
+deeper than that: the deformation it is meant to find hidden by the fit. A rejected point is
+given back to the search (:func:`coherent`) when it agrees with its own neighbourhood: when
+its residual lies within its rejection limit of the *median residual of its neighbours*
+(:func:`local_level`; all points of the window within :data:`COHERENCE_RADIUS_M`, the
+smallest search width, or the :data:`COHERENCE_NEIGHBOURS` nearest when fewer lie there, up
+to :data:`COHERENCE_MAX_RADIUS_M`; rejected ones included, the point itself not). That is the
+fit's own test, ``|r_i - level| <= limit_i``, made against the local surface instead of the
+global model: an isolated outlier (a mixed pixel, a return from the feed arm among surface
+points) departs from a neighbourhood that sits near zero and stays out; the core of a
+deformation sits among neighbours that deviate with it and comes back. A structure narrower
+than the neighbourhood (a panel gap one or two centimetres wide) does not move the median and
+stays out too. The null is computed from the same point set (the search is run once, on it),
+so the reflector's own deep structures enter the null with their cores as well.
+
 NumPy/SciPy on grids; units metres.
 """
 
@@ -62,6 +80,9 @@ BACKGROUND = 3.0  # background window (Gaussian sigma) in units of the width
 TAIL_QUANTILE = 0.8  # 0.5 when there are fewer than 100 peaks (a strip, a small patch)
 MIN_PEAKS = 16  # fewer peaks: no calibrated significance
 MIN_PLACEMENTS = 12.0  # valid area of a width in discs of radius w: fewer, the width is skipped
+COHERENCE_RADIUS_M = 0.3  # neighbourhood of a rejected point (m): the smallest search width
+COHERENCE_NEIGHBOURS = 6  # at least this many neighbours (nearest ones where the data are sparse)
+COHERENCE_MAX_RADIUS_M = 1.0  # ... but none farther than this (m)
 NOT_DISTINGUISHABLE = "not distinguishable from the reflector's panel-scale roughness"
 
 
@@ -176,7 +197,8 @@ def width_map(xy: np.ndarray, r: np.ndarray, w: float, sigma: float, density: fl
     if valid.sum() * h * h < MIN_PLACEMENTS * math.pi * w * w:
         return None  # too few independent placements to measure the roughness at this width
     if valid.sum() < 16:
-        return WidthMap(w, h, lo, a, z, np.zeros_like(z), valid, float("nan"), np.zeros((0, 2), int))
+        return WidthMap(w, h, lo, a, z, np.zeros_like(z), valid, float("nan"),
+                        np.zeros((0, 2), int))
     zv = z[valid]
     s_w = float(1.4826 * np.median(np.abs(zv - np.median(zv))))
     s_w = max(s_w, 1.0)  # never below the white noise
@@ -237,25 +259,19 @@ def _p_tail(t: float, tail: dict) -> float:
     return tail["fraction"] * math.exp(-(t - tail["threshold"]) / tail["scale"])
 
 
-def search(xy: np.ndarray, r: np.ndarray, *, widths: Sequence[float] = WIDTHS_M,
-           alpha: float = 1e-3, min_amplitude_m: float = 5e-5,
-           exclude: Sequence[tuple[float, float, float]] = ()) -> Search:
-    """Matched-filter search of residuals ``r`` (m, normal) at aperture positions ``xy`` (m).
-
-    ``exclude``: centres ``(x, y, w)`` of deformations already modelled (their neighbourhood
-    of ``2 w`` is no candidate). Returns the maps, the best candidate with its p-value against
-    the reflector's own peaks and whether it is significant (``p < alpha`` and ``|a| >=
-    min_amplitude_m``).
-    """
+def width_maps(xy: np.ndarray, r: np.ndarray, widths: Sequence[float] = WIDTHS_M):
+    """The matched-filter maps of residuals ``r`` (m, normal) at aperture positions ``xy`` (m)
+    for every width: ``(maps, sigma, skipped widths)``; ``sigma`` is the residuals' robust
+    spread (m). Residuals are taken about their median and clipped to 5 sigma (no single
+    point, a mixed pixel or the deep core of a structure, weighs more than that)."""
     xy = np.asarray(xy, float)
     r = np.asarray(r, float)
     ok = np.all(np.isfinite(xy), 1) & np.isfinite(r)
     xy, r = xy[ok], r[ok]
     if len(r) < 16:  # nothing to search (every point rejected, or an empty recording)
-        return Search([], None, float("nan"), [float(w) for w in widths])
+        return [], float("nan"), [float(w) for w in widths]
     med = float(np.median(r))
     sigma = float(1.4826 * np.median(np.abs(r - med))) or float(np.std(r)) or 1e-4
-    # gross outliers (mixed pixels, edges) clipped to 5 sigma: they are not deformations
     r = np.clip(r - med, -5 * sigma, 5 * sigma)
     dens = _density(xy)
     maps, skipped = [], []
@@ -265,6 +281,15 @@ def search(xy: np.ndarray, r: np.ndarray, *, widths: Sequence[float] = WIDTHS_M,
             skipped.append(float(w))
             continue
         maps.append(m)
+    return maps, sigma, skipped
+
+
+def judge(maps: Sequence[WidthMap], sigma: float, skipped: Sequence[float], *,
+          alpha: float = 1e-3, min_amplitude_m: float = 5e-5,
+          exclude: Sequence[tuple[float, float, float]] = ()) -> Search:
+    """The best candidate of the maps and its p-value against the other distinct peaks (the
+    reflector's own; see the module docstring), peaks near ``exclude`` left out."""
+    maps, skipped = list(maps), list(skipped)
     if not maps:
         return Search(maps, None, sigma, skipped)
     peaks = _distinct_peaks(maps, exclude)
@@ -289,6 +314,78 @@ def search(xy: np.ndarray, r: np.ndarray, *, widths: Sequence[float] = WIDTHS_M,
     return Search(maps, cand, sigma, skipped)
 
 
+def search(xy: np.ndarray, r: np.ndarray, *, widths: Sequence[float] = WIDTHS_M,
+           alpha: float = 1e-3, min_amplitude_m: float = 5e-5,
+           exclude: Sequence[tuple[float, float, float]] = ()) -> Search:
+    """Matched-filter search of residuals ``r`` (m, normal) at aperture positions ``xy`` (m):
+    :func:`width_maps` then :func:`judge`.
+
+    ``exclude``: centres ``(x, y, w)`` of deformations already modelled (their neighbourhood
+    of ``2 w`` is no candidate). Returns the maps, the best candidate with its p-value against
+    the reflector's own peaks and whether it is significant (``p < alpha`` and ``|a| >=
+    min_amplitude_m``).
+    """
+    return judge(*width_maps(xy, r, widths), alpha=alpha, min_amplitude_m=min_amplitude_m,
+                 exclude=exclude)
+
+
+def local_level(xy: np.ndarray, r: np.ndarray, at: np.ndarray, *,
+                radius: float = COHERENCE_RADIUS_M, k_min: int = COHERENCE_NEIGHBOURS,
+                radius_max: float = COHERENCE_MAX_RADIUS_M) -> tuple[np.ndarray, np.ndarray]:
+    """Median residual (m) of the neighbours of the points ``at`` (indices into ``xy``, ``r``).
+
+    Neighbours of point ``i``: every other point within ``radius`` (m) of it in the aperture
+    plane, or, where fewer than ``k_min`` lie there, its ``k_min`` nearest ones within
+    ``radius_max``. Returns ``(level, n)``: the median (NaN without neighbours) and how many
+    neighbours it was taken over.
+    """
+    from scipy.spatial import cKDTree
+
+    at = np.asarray(at, np.int64)
+    level = np.full(len(at), np.nan)
+    n = np.zeros(len(at), np.int64)
+    if len(at) == 0 or len(r) < 2:
+        return level, n
+    tree = cKDTree(xy)
+    k = min(k_min + 1, len(r))
+    dk, jk = tree.query(xy[at], k=k, distance_upper_bound=radius_max)
+    dk, jk = dk.reshape(len(at), k), jk.reshape(len(at), k)
+    balls = tree.query_ball_point(xy[at], radius)
+    for q, i in enumerate(at):
+        nb = [j for j in balls[q] if j != i]
+        if len(nb) < k_min:
+            nb = [int(j) for j, d in zip(jk[q], dk[q]) if np.isfinite(d) and j != i]
+        if nb:
+            level[q] = float(np.median(r[nb]))
+            n[q] = len(nb)
+    return level, n
+
+
+def coherent(xy: np.ndarray, r: np.ndarray, kept: np.ndarray, limit: np.ndarray, *,
+             min_neighbours: int = 3, **kw) -> np.ndarray:
+    """The rejected points (``~kept``) that agree with their neighbourhood (bool mask).
+
+    ``xy``: aperture positions (m) of all points of the window, ``r`` their residual normal
+    deviations (m), ``kept`` what the robust fit kept, ``limit`` each point's rejection limit
+    in the same units as ``r`` (``k`` a-posteriori sigmas). A rejected point comes back when it
+    has at least ``min_neighbours`` neighbours and ``|r_i - level_i| <= limit_i``, ``level_i``
+    the median residual of its neighbours (:func:`local_level`, keywords passed on; rejected
+    neighbours count): it is part of a structure the surface shows around it, not an outlier
+    (see the module docstring).
+    """
+    kept = np.asarray(kept, bool)
+    out = np.zeros(len(r), bool)
+    rej = np.flatnonzero(~kept & np.isfinite(r))
+    if len(rej) == 0:
+        return out
+    ok = np.all(np.isfinite(xy), 1) & np.isfinite(r)
+    idx = np.flatnonzero(ok)
+    pos = np.searchsorted(idx, rej)
+    level, n = local_level(xy[idx], r[idx], pos, **kw)
+    out[rej] = (n >= min_neighbours) & (np.abs(r[rej] - level) <= np.asarray(limit)[rej])
+    return out
+
+
 def covered_ids(xy: np.ndarray, ids: np.ndarray, x0: float, y0: float, radius: float,
                 limit: int = 12) -> list[int]:
     """Ids (panels or cells) of the points within ``radius`` of ``(x0, y0)``, most points first."""
@@ -297,7 +394,8 @@ def covered_ids(xy: np.ndarray, ids: np.ndarray, x0: float, y0: float, radius: f
     return [int(v) for v in u[np.argsort(-c)][:limit]]
 
 
-def scan_point(xy: np.ndarray, xs: np.ndarray, x0: float, y0: float, w: float) -> list[float] | None:
+def scan_point(xy: np.ndarray, xs: np.ndarray, x0: float, y0: float,
+               w: float) -> list[float] | None:
     """The surface point above ``(x0, y0)`` in the scan's own Cartesian frame: a plane of the
     recorded coordinates ``xs`` (n, 3) against the aperture positions ``xy`` of the points
     within ``w`` (at least 6), evaluated at the centre."""

@@ -20,7 +20,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import jax
 import numpy as np
+from jaxtyping import Array, Float
 
 from ..campaign._format import Campaign, ScanData, ScanMeta
 from ..geometry._geometry import (
@@ -79,15 +81,13 @@ def gimbal_rotation(g: np.ndarray) -> np.ndarray:
 class _Basis:
     """A sample's trial frames for any heading: ``Ra Rz(k) x = cos(k) u + sin(k) v + w``.
 
-    ``u, v, w``: (3, n) components (m) of three vectors per point (``Rz(k)`` turns ``(x, y)``
-    into ``(c x - s y, s x + c y)``, so every heading mixes the same three); ``r2``: (n,) the
-    squared range (m^2, unchanged by any rotation); ``valid``: (n,) the finite points. The
-    points' rotation and trigonometry are computed once, not once per heading.
+    ``m``: (3, 3, n), ``m[i] = (u_i, v_i, w_i)`` the ``i``-th components (m) of three vectors per
+    point (``Rz(k)`` turns ``(x, y)`` into ``(c x - s y, s x + c y)``, so every heading mixes the
+    same three); ``r2``: (n,) the squared range (m^2, unchanged by any rotation); ``valid``:
+    (n,) the finite points. The points' rotation is computed once, not once per heading.
     """
 
-    u: np.ndarray
-    v: np.ndarray
-    w: np.ndarray
+    m: np.ndarray
     r2: np.ndarray
     valid: np.ndarray
 
@@ -98,19 +98,31 @@ class _Basis:
         valid = np.all(np.isfinite(xs), axis=1)
         xs = np.where(valid[:, None], xs, 0.0)
         x, y, z = xs[:, 0], xs[:, 1], xs[:, 2]
-        return _Basis(Ra[:, 0:1] * x + Ra[:, 1:2] * y, Ra[:, 1:2] * x - Ra[:, 0:1] * y,
-                      Ra[:, 2:3] * z, x * x + y * y + z * z, valid)
+        u = Ra[:, 0:1] * x + Ra[:, 1:2] * y
+        v = Ra[:, 1:2] * x - Ra[:, 0:1] * y
+        w = Ra[:, 2:3] * z
+        return _Basis(np.ascontiguousarray(np.stack([u, v, w], axis=1)), x * x + y * y + z * z,
+                      valid)
 
-    def take(self, sel: slice) -> _Basis:
-        """The basis of the points ``sel`` (a slice: the first ``n``, or every ``k``-th)."""
-        return _Basis(self.u[:, sel], self.v[:, sel], self.w[:, sel], self.r2[sel],
-                      self.valid[sel])
+    def head(self, n: int) -> _Basis:
+        """The basis of the first ``n`` points."""
+        return _Basis(np.ascontiguousarray(self.m[:, :, :n]), self.r2[:n], self.valid[:n])
 
     def frames(self, kappa: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(X, Y, Z)``, each (K, n): the points (m) in the trial frames of the headings
-        ``kappa`` (K,) (rad)."""
-        c, s = np.cos(kappa)[:, None], np.sin(kappa)[:, None]
-        return tuple(c * self.u[i] + s * self.v[i] + self.w[i] for i in range(3))
+        ``kappa`` (K,) (rad); one product ``(cos k, sin k, 1) m[i]`` per coordinate."""
+        coef = np.stack([np.cos(kappa), np.sin(kappa), np.ones_like(kappa)], axis=1)
+        return tuple(coef @ self.m[i] for i in range(3))
+
+
+@jax.jit
+def _pose_of_heading(Ra: Float[Array, "3 3"], heading: Float[Array, ""],
+                     t: Float[Array, " 3"]) -> tuple[Array, Array, Array, Float[Array, " 3"]]:
+    """``(kappa, ry, rx, t_fit)`` (rad, m) of the frame ``Ra Rz(heading)`` and its translation
+    ``t``: the seed's parameterisation (:func:`decompose_zyx`), ``t`` turned by ``-kappa``
+    (one compiled call instead of some 30 eager ones)."""
+    kappa, ry, rx = decompose_zyx(Ra @ rot_z(heading))
+    return kappa, ry, rx, rot_z(-kappa) @ t
 
 
 def _rowwise_median(a: np.ndarray, keep: np.ndarray) -> np.ndarray:
@@ -319,7 +331,7 @@ def initial_values(
 
     grid = np.linspace(0, 2 * np.pi, n_headings, endpoint=False)
     nc = min(n_coarse, n_s)
-    sc = _heading_scores(basis.take(slice(nc)), grid, f0, tol_m, nc)[0]
+    sc = _heading_scores(basis.head(nc), grid, f0, tol_m, nc)[0]
     best = grid[int(np.argmax(sc))]
     step = grid[1] - grid[0]
     done: dict[int, tuple] = {}  # heading (nrad) -> its score, t, f, inliers on the sample
@@ -332,9 +344,9 @@ def initial_values(
         i = int(np.argmax([done[k][0] for k in keys]))
         best, (_, t, f, inl) = cand[i], done[keys[i]]
         step /= 4
-    R_full = gimbal_rotation(gravity) @ np.asarray(rot_z(best))
-    kappa, ry, rx = (float(a) for a in decompose_zyx(R_full))
-    t_fit = np.asarray(rot_z(-kappa)) @ t
+    kappa, ry, rx, t_fit = (np.asarray(a) for a in _pose_of_heading(
+        gimbal_rotation(gravity), np.float64(best), np.asarray(t, float)))
+    kappa, ry, rx = float(kappa), float(ry), float(rx)
     return InitialValues(
         x={"tx": float(t_fit[0]), "ty": float(t_fit[1]), "tz": float(t_fit[2]),
            "rx": rx, "ry": ry, "f": float(f)},

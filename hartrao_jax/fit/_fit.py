@@ -594,6 +594,8 @@ def fit_position(
         groups = dict(SURFACE_MODE_GROUPS) if tel.offset_m == 0 else {}
         mode_tests: dict[str, tuple] = {}
         start = {n_: float(v_) for n_, v_ in zip(mdl.free, np.asarray(res.x))}
+        warm: dict = {"v0": np.asarray(res.v), "cell_var0": np.asarray(_CELL_VAR0)}
+        w_mixed = used.astype(float)
         for _ in range(3 + len(groups)):
             extra = tuple(f"{ZERNIKE_PREFIX}{j}" for g_ in groups.values() for j in g_)
             mdl2 = model_of(free_of(extra), kappa)
@@ -601,9 +603,8 @@ def fit_position(
             ridge = {k_: [mdl2.free.index(f"{ZERNIKE_PREFIX}{j}") for j in g_]
                      for k_, g_ in groups.items()} or None
             rm = gauss_helmert_mixed(
-                mdl2, l, x0, sig, c, used.astype(float), cell, design, n_cells,
-                robust_k=robust_k, cell_var0=np.asarray(_CELL_VAR0), ridge=ridge,
-                ridge_var0=_MODE_VAR0, v0=np.asarray(res.v), max_iter=60)
+                mdl2, l, x0, sig, c, w_mixed, cell, design, n_cells,
+                robust_k=robust_k, ridge=ridge, ridge_var0=_MODE_VAR0, max_iter=60, **warm)
             cand = [n_ for n_ in mdl2.free if n_ in INSTRUMENT]
             bad = unidentifiable(np.asarray(rm.cov), mdl2.free, cand, typical=_typical())
             if bad:
@@ -614,7 +615,12 @@ def fit_position(
                 break
             for k_ in absent:  # the data do not show them: not carried (see _absent_modes)
                 groups.pop(k_)
+            # refit without them from where this one ended (same points, cells, variances)
             start = {n_: float(v_) for n_, v_ in zip(mdl2.free, np.asarray(rm.x))}
+            warm = {"v0": np.asarray(rm.v), "u0": np.asarray(rm.u),
+                    "cell_var0": np.maximum(np.asarray(rm.cell_var), np.asarray(_CELL_VAR0)),
+                    "noise_var0": float(rm.noise_var)}
+            w_mixed = np.asarray(rm.weights)
         absent = [k_ for k_, t in mode_tests.items() if not t["carried"]]
         if absent:
             notes.append("smooth modes not shown by the data, not carried as a random effect ("

@@ -199,13 +199,18 @@ def stream_bandwidth(n_bytes: int = 1 << 30, repeat: int = 5) -> dict[str, float
     ``np.add.reduce`` on a float64 array reads ``n`` bytes; ``np.copyto`` reads and writes
     ``n`` bytes (counted as 2n). Best of ``repeat``. Single-threaded (NumPy's elementwise code).
     """
+    t_sum, t_copy = _stream_times(n_bytes, repeat)
+    gc.collect()  # the arrays went out of scope with _stream_times
+    return {"read_GBps": n_bytes / t_sum / 1e9, "copy_GBps": 2 * n_bytes / t_copy / 1e9}
+
+
+def _stream_times(n_bytes: int, repeat: int) -> tuple[float, float]:
+    """Best seconds of ``a.sum()`` and ``np.copyto(b, a)`` on ``n_bytes`` float64 arrays."""
     a = np.ones(n_bytes // 8)
     b = np.empty_like(a)
     t_sum = min(_t(lambda: a.sum()) for _ in range(repeat))
     t_copy = min(_t(lambda: np.copyto(b, a)) for _ in range(repeat))
-    del a, b
-    gc.collect()
-    return {"read_GBps": n_bytes / t_sum / 1e9, "copy_GBps": 2 * n_bytes / t_copy / 1e9}
+    return t_sum, t_copy
 
 
 def _t(fn) -> float:
@@ -215,7 +220,8 @@ def _t(fn) -> float:
 
 
 def machine_info() -> dict:
-    info = {"python": platform.python_version(), "machine": platform.machine(), "cores": os.cpu_count()}
+    info = {"python": platform.python_version(), "machine": platform.machine(),
+            "cores": os.cpu_count()}
     try:
         with open("/proc/cpuinfo") as fh:
             for line in fh:

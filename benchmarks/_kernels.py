@@ -19,9 +19,6 @@ from hartrao_jax.solver._kernel import (  # noqa: F401
     materialize_trig,
     sincos,
 )
-from hartrao_jax.solver._kernel import (
-    solve_scaled as _solve,
-)
 
 
 def linearize_fwd(condition, l, x, c, on=None):

@@ -417,7 +417,8 @@ def report(d: dict) -> str:
               f"| time per pass | {st['s_per_pass']:.1f} s |",
               f"| rows per chunk | {st['rows_per_chunk']:,} |",
               f"| peak RSS of the process | {st['peak_rss_gib']:.2f} GiB |",
-              f"| per-point state left on disk (v, weights, residuals) | {st['store_gib']:.2f} GiB |",
+              "| per-point state left on disk (v, weights, residuals) | "
+              f"{st['store_gib']:.2f} GiB |",
               f"| sigma0 | {st['sigma0']:.4f} |",
               f"| f | {st['f'][0]:.6f} ± {st['f'][1]:.6f} m |", ""]
         # projection
@@ -433,8 +434,9 @@ def report(d: dict) -> str:
                  "scaled linearly)")
               + f"; one scan per worker at a time, each worker one core and about {mem:.1f} GiB "
               "(the chunk buffers do not grow with the scan; the per-point state lives in "
-              "files on disk, read and written chunk by chunk). The scans are independent, so the wall time divides by the "
-              "number of workers until the disks saturate (one pass reads the scan file once: "
+              "files on disk, read and written chunk by chunk). The scans are independent, "
+              "so the wall time divides by the number of workers until the disks saturate "
+              "(one pass reads the scan file once: "
               f"{st['passes']} passes x "
               f"{sf.get('file_gib', st.get('file_gib', float('nan'))) * scale:.2f} GiB per "
               "scan). The joint adjustment adds one pass per Schur iteration over the "

@@ -243,7 +243,8 @@ def work_odr(l, partol):
     dt, dc = time.perf_counter() - t, time.process_time() - c
     return _result(r.beta, None, dt, r.niter, n, "ODRPACK iterations",
                    {"cpu_s": dc, "callbacks_s": cb[0], "nfev": int(r.nfev), "njev": int(r.njev),
-                    "stopreason": r.stopreason, "partol": partol, "sigma": list(map(float, r.sd_beta)),
+                    "stopreason": r.stopreason, "partol": partol,
+                    "sigma": list(map(float, r.sd_beta)),
                     "rss_before_fit_mib": rss0})
 
 
@@ -302,7 +303,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="1e5,1e6,1.3e7")
     ap.add_argument("--quick", action="store_true", help="1e5 points only, one repeat")
-    ap.add_argument("--methods", default=None, help=f"comma-separated, default all: {','.join(METHODS)}")
+    ap.add_argument("--methods", default=None,
+                    help=f"comma-separated, default all: {','.join(METHODS)}")
     ap.add_argument("--odr-max", type=float, default=1e6, help="largest size odrpack is run at")
     ap.add_argument("--odr-default-max", type=float, default=1e5,
                     help="largest size odrpack with default tolerances is run at")
@@ -362,7 +364,8 @@ def main(argv=None):
         if ref is not None:
             r["df_ref_m"] = abs(r["f"] - ref["f"])
             sig = np.asarray(ref["sigma"])
-            r["dx_ref_sigma"] = float(np.max(np.abs(np.asarray(r["x"]) - np.asarray(ref["x"])) / sig))
+            dx = np.abs(np.asarray(r["x"]) - np.asarray(ref["x"]))
+            r["dx_ref_sigma"] = float(np.max(dx / sig))
         r["points_per_s"] = n / r["t_run_s"]
         r["points_per_s_iter"] = n / r["t_iter_s"]
         r["bw_bound_ms"] = BYTES_MIN * n / bw_copy * 1e3
@@ -385,11 +388,14 @@ def main(argv=None):
             ("t_iter_s", "s / iteration", ".3f"), ("iterations", "iterations", "d"),
             ("t_run_s", "s to convergence", ".2f"), ("cpu_s", "CPU s", ".2f"),
             ("points_per_s", "points/s (fit)", ".3g"),
-            ("points_per_s_iter", "points/s (iteration)", ".3g"), ("peak_gib", "peak RSS GiB", ".2f"),
+            ("points_per_s_iter", "points/s (iteration)", ".3g"),
+            ("peak_gib", "peak RSS GiB", ".2f"),
             ("fit_gib", "RSS added by fit GiB", ".2f"), ("df_ref_m", "abs(f - f_ref) m", ".1e"),
-            ("dx_ref_sigma", "max abs(x - x_ref)/sigma", ".1e"), ("odr_over_ours", "odrpack / onepass-rev", ".1f"),
+            ("dx_ref_sigma", "max abs(x - x_ref)/sigma", ".1e"),
+            ("odr_over_ours", "odrpack / onepass-rev", ".1f"),
             ("odr_over_ours_cpu", "same, CPU time", ".1f"),
-            ("odr_over_pkg", "odrpack / pkg", ".1f"), ("iter_over_hand", "iteration / hand-JAX", ".2f"),
+            ("odr_over_pkg", "odrpack / pkg", ".1f"),
+            ("iter_over_hand", "iteration / hand-JAX", ".2f"),
             ("iter_over_bw", "iteration / bandwidth bound", ".0f")]
     errs = [f"- {r['method']} at {fmt_n(r['n'])}: {r['error']}" for r in rows if "error" in r]
     mi = machine_info()
@@ -399,9 +405,10 @@ def main(argv=None):
         "rx 0.3, ry pi-0.5, x4/x6/x7 applied, noise 0.8 mm / 20 urad / 20 urad), x0 off by cm/mrad "
         f"with the calibration at zero; convergence when every step < {TOL:g} of its sigma. "
         "float64 throughout. `f_ref`/`x_ref`: the `pkg` solution at the same size.\n",
-        "Columns: compile = ahead-of-time lower + compile of the jitted solver; s / iteration = time to convergence / "
-        "iterations (pkg: each iteration is 2 linearisation passes, plus 2 final passes in the total; "
-        "onepass: 1 pass, plus a store sweep); peak RSS of the worker process (data + JAX runtime "
+        "Columns: compile = ahead-of-time lower + compile of the jitted solver; "
+        "s / iteration = time to convergence / iterations (pkg: each iteration is "
+        "2 linearisation passes, plus 2 final passes in the total; onepass: 1 pass, "
+        "plus a store sweep); peak RSS of the worker process (data + JAX runtime "
         "included; the next column subtracts the RSS before the fit); bandwidth bound = one pass "
         f"reading the observations, constants and weights ({BYTES_MIN} B/point) at the measured "
         f"copy bandwidth (the one-pass iteration moves {BYTES_ONEPASS} B/point with its store).\n",
@@ -411,7 +418,8 @@ def main(argv=None):
         md.append("\nFailed runs:\n" + "\n".join(errs) + "\n")
     md.append(
         f"\nStreaming bandwidth (NumPy, 1 GiB, single thread): read (sum) "
-        f"{bw.get('read_GBps', float('nan')):.1f} GB/s, copy (read+write) {bw.get('copy_GBps', float('nan')):.1f} GB/s.\n"
+        f"{bw.get('read_GBps', float('nan')):.1f} GB/s, copy (read+write) "
+        f"{bw.get('copy_GBps', float('nan')):.1f} GB/s.\n"
         f"Load average before/after: {load0[0]:.1f} / {load1[0]:.1f} on {os.cpu_count()} cores "
         "(the machine is shared with other jobs; wall times are inflated by them). "
         f"Total benchmark time {time.perf_counter() - t_start:.0f} s.\n")

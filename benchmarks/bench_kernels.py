@@ -2,8 +2,8 @@
 
 Times the work of ONE iteration over all points, for
 
-* ``pkg two-pass``: what ``hartrao_jax.solver._ghm`` does now (``_pass_normals`` + ``_pass_residuals``,
-  i.e. two linearisations per point and iteration);
+* ``pkg two-pass``: what ``hartrao_jax.solver._ghm`` does now (``_pass_normals`` +
+  ``_pass_residuals``, i.e. two linearisations per point and iteration);
 * ``one-pass``: the fused pass of ``_kernels.make_pass`` (residual update of iteration k-1 from
   the stored ``a, b, w, m`` + ONE linearisation + normal equations + in-place store), with
   kernel ``rev`` (``value_and_grad`` under ``vmap``), ``fwd`` (``jacfwd`` over ``(x, l)``) or
@@ -129,7 +129,8 @@ def run_variants(n: int, rounds: int, variants: list[dict]) -> list[dict]:
 def variant_list(quick: bool, flags_child: bool = False) -> list[dict]:
     one = dict(method="one-pass", chunk=1 << 16, store="f32", trig=True, mat=True)
     if flags_child:
-        return [dict(method="pkg two-pass", lin="rev", chunk=1 << 16, store="", trig=False, mat=False),
+        return [dict(method="pkg two-pass", lin="rev", chunk=1 << 16, store="", trig=False,
+                     mat=False),
                 {**one, "lin": "rev"}, {**one, "lin": "hand"}]
     V = [dict(method="pkg two-pass", lin="rev", chunk=1 << 16, store="", trig=False, mat=False)]
     for lin in ("rev", "fwd", "hand"):
@@ -177,7 +178,8 @@ def main(argv=None):
             if flags:
                 env["XLA_FLAGS"] = flags
             p = subprocess.run([sys.executable, __file__, "--child", "--n", args.n,
-                                "--rounds", str(args.rounds)], env=env, capture_output=True, text=True)
+                                "--rounds", str(args.rounds)],
+                               env=env, capture_output=True, text=True)
             line = [s for s in p.stdout.splitlines() if s.startswith("JSON:")]
             label = f"`XLA_FLAGS={flags}`" if flags else "no XLA_FLAGS (default)"
             if p.returncode == 0 and line:

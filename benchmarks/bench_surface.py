@@ -6,8 +6,8 @@ spots displaced by 3 mm (what two cycles of one position look like after the adj
 shuffled, with the two-face error of opposite sign. 1.3e7 points per cycle is the paper's
 0.63 mrad grid (6.3 mm at 10 m) over the reflector.
 
-Timed stages of :mod:`hartrao_jax.surface._surface` (each size in its own subprocess, so that peak memory
-is its own):
+Timed stages of :mod:`hartrao_jax.surface._surface` (each size in its own subprocess, so that
+peak memory is its own):
 
 * ``panel_mask``: panel ids and the 2 cm edge masks of both cycles;
 * ``cycle_average``: cells of the 1 cm circles keyed by panel, per-cycle means, cross-cycle

@@ -3,10 +3,11 @@
 
     python benchmarks/prove.py [--out DIR] [--seeds N] [--cases a,b] [--step RAD]
 
-For every case of :data:`hartrao_jax.prove._prove.CASES` (one effect class concealed below the noise,
-absorbed by the model, masked by panel deviations or confined to a small part of one scan; plus
-clean controls) it simulates ``--seeds`` campaigns, diagnoses them blind and scores the findings
-against the truth. Prints the table and writes ``DIR/prove.json``, ``prove.md``, ``prove.png``.
+For every case of :data:`hartrao_jax.prove._prove.CASES` (one effect class concealed below the
+noise, absorbed by the model, masked by panel deviations or confined to a small part of one scan;
+plus clean controls) it simulates ``--seeds`` campaigns, diagnoses them blind and scores the
+findings against the truth. Prints the table and writes ``DIR/prove.json``, ``prove.md``,
+``prove.png``.
 """
 
 from __future__ import annotations

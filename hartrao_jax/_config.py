@@ -19,7 +19,8 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     Default location ``$HARTRAO_JAX_CACHE`` or ``~/.cache/hartrao-jax/xla``; every compiled
     program is cached (minimum compile time 0 s).
     """
-    p = Path(path or os.environ.get("HARTRAO_JAX_CACHE") or Path.home() / ".cache" / "hartrao-jax" / "xla")
+    p = Path(path or os.environ.get("HARTRAO_JAX_CACHE")
+             or Path.home() / ".cache" / "hartrao-jax" / "xla")
     p.mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", str(p))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)

@@ -56,7 +56,8 @@ def synthetic_scan(n=20000, *, cycle=1, seed=0, noise=True, pose=None, f=F_TRUE,
 
         target = l.copy()
         for _ in range(20):  # raw + correction(raw) = target
-            dr, dphi, dth = (np.asarray(a) for a in instrument_corrections(l[:, 0], l[:, 1], l[:, 2], params))
+            dr, dphi, dth = (np.asarray(a)
+                             for a in instrument_corrections(l[:, 0], l[:, 1], l[:, 2], params))
             l = target - np.stack([dr, dphi, dth], 1)
     if noise:
         rng = np.random.default_rng(seed + 1000)

@@ -30,10 +30,11 @@ What the importer does, and the choices it makes:
   ``sigma_angle_rad = 1.5e-5`` (3"). Leica's phase/pulse scanners of the P class specify a range
   noise of 0.4-0.5 mm rms at 10-50 m on good targets; a point of a real panelled reflector adds
   its micro-roughness and the export's processing, and on the GBT scan 10 these values give
-  sigma0 = 0.94 (with 2 mm / 4e-5 rad sigma0 was 0.37, i.e. far too pessimistic). ``angular_step_rad`` is estimated from the
-  data: PTX the median angle between grid neighbours; XYZ and E57 the median angle to the nearest
-  neighbour (for a subsampled export this is the spacing of the points in the file, larger than
-  the instrument's step); `DEFAULT_ANGULAR_STEP_RAD` when it cannot be estimated.
+  sigma0 = 0.94 (with 2 mm / 4e-5 rad sigma0 was 0.37, i.e. far too pessimistic).
+  ``angular_step_rad`` is estimated from the data: PTX the median angle between grid neighbours;
+  XYZ and E57 the median angle to the nearest neighbour (for a subsampled export this is the
+  spacing of the points in the file, larger than the instrument's step);
+  `DEFAULT_ANGULAR_STEP_RAD` when it cannot be estimated.
 * **Pointing.** Without ``--elevation-deg``, an alt-az scan gets ``elevation_deg = 90`` and
   ``elevation_assumed = true`` in its extra (``azimuth_deg = 0``, ``azimuth_assumed = true``:
   the gravity of an alt-az mount does not depend on the azimuth). An HA-DEC telescope converts a

@@ -4,7 +4,6 @@ the paraboloid, panels and panel cells, Zernike polynomials."""
 from ._geometry import (
     face_of,
     panel_cells,
-    square_cells,
     panel_geometry,
     panel_ids,
     paraboloid_deviation,
@@ -14,6 +13,7 @@ from ._geometry import (
     rot_y,
     rot_z,
     scanner_to_telescope,
+    square_cells,
     zernike,
 )
 

@@ -55,7 +55,7 @@ def rot_axis(axis: ArrayLike, angle: ArrayLike) -> Float[Array, "3 3"]:
     return jnp.eye(3) + jnp.sin(angle) * kx + (1.0 - jnp.cos(angle)) * (kx @ kx)
 
 
-def rotation_from_vector(w: Float[Array, "3"]) -> Float[Array, "3 3"]:
+def rotation_from_vector(w: Float[Array, " 3"]) -> Float[Array, "3 3"]:
     """Rotation matrix of the rotation vector ``w`` (axis times angle, rad); exact, safe at 0."""
     theta2 = jnp.sum(w * w)
     small = theta2 < 1e-16
@@ -67,7 +67,8 @@ def rotation_from_vector(w: Float[Array, "3"]) -> Float[Array, "3 3"]:
 
 
 def scanner_to_telescope(rx: ArrayLike, ry: ArrayLike) -> Float[Array, "3 3"]:
-    """Seed eq. (6) rotation ``Ry(ry) . Rx(rx)`` from the scanner to the (fitted) telescope frame."""
+    """Seed eq. (6) rotation ``Ry(ry) . Rx(rx)`` from the scanner to the (fitted) telescope
+    frame."""
     return rot_y(ry) @ rot_x(rx)
 
 
@@ -117,7 +118,7 @@ def telescope_axes_altaz(elevation_rad: ArrayLike, azimuth_rad: ArrayLike) -> Ar
     return rot_axis(_U, -azimuth_rad) @ rot_axis(_E, elevation_rad - jnp.pi / 2) @ _BASE
 
 
-def gravity_in_telescope(F: Float[Array, "3 3"]) -> Float[Array, "3"]:
+def gravity_in_telescope(F: Float[Array, "3 3"]) -> Float[Array, " 3"]:
     """Unit gravity vector in the telescope frame, ``g = F^T (0, 0, -1)``."""
     return F.T @ jnp.array([0.0, 0.0, -1.0])
 
@@ -130,7 +131,8 @@ def elevation_of(F: Float[Array, "3 3"]) -> Array:
 def pointing_axes(meta, telescope, site) -> np.ndarray:
     """Telescope axes ``F`` (3x3 NumPy, columns in ENU) of a scan from its campaign metadata."""
     if telescope.mount == "alt-az":
-        F = telescope_axes_altaz(np.radians(meta.elevation_deg), np.radians(meta.azimuth_deg or 0.0))
+        F = telescope_axes_altaz(np.radians(meta.elevation_deg),
+                                 np.radians(meta.azimuth_deg or 0.0))
     else:
         F = telescope_axes_hadec(
             np.radians(meta.ha_deg), np.radians(meta.dec_deg), np.radians(site.latitude_deg)
@@ -162,7 +164,8 @@ def polar_components(r: ArrayLike, phi: ArrayLike, theta: ArrayLike, xp=jnp):
 
 
 def polar_to_cartesian(r: ArrayLike, phi: ArrayLike, theta: ArrayLike) -> Array:
-    """Seed eq. (2): ``(r sin(theta) sin(phi), r sin(theta) cos(phi), r cos(theta))``, last axis 3."""
+    """Seed eq. (2): ``(r sin(theta) sin(phi), r sin(theta) cos(phi), r cos(theta))``, last
+    axis 3."""
     return jnp.stack(polar_components(r, phi, theta), axis=-1)
 
 
@@ -353,7 +356,8 @@ def zernike(j: int, u: ArrayLike, psi: ArrayLike, xp=jnp) -> Array:
     u = xp.asarray(u, dtype=float)
     R = xp.zeros_like(u)
     for s in range((n - ma) // 2 + 1):
-        c = (-1) ** s * factorial(n - s) / (factorial(s) * factorial((n + ma) // 2 - s) * factorial((n - ma) // 2 - s))
+        c = (-1) ** s * factorial(n - s) / (
+            factorial(s) * factorial((n + ma) // 2 - s) * factorial((n - ma) // 2 - s))
         R = R + c * u ** (n - 2 * s)
     if m == 0:
         return np.sqrt(n + 1.0) * R

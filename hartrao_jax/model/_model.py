@@ -76,7 +76,8 @@ def known_parameter(name: str) -> bool:
     return (
         name in OBJECT_PARAMETERS or name in INSTRUMENT or name in SHIFT or name in OSCILLATION
         or name == OSC_FREQUENCY
-        or name in DRIFT or (name.startswith(ZERNIKE_PREFIX) and name[len(ZERNIKE_PREFIX):].isdigit())
+        or name in DRIFT
+        or (name.startswith(ZERNIKE_PREFIX) and name[len(ZERNIKE_PREFIX):].isdigit())
         or _bump_key(name) is not None
     )
 
@@ -122,7 +123,7 @@ class ParaboloidModel(eqx.Module):
     free: tuple[str, ...] = eqx.field(static=True)
     fixed_names: tuple[str, ...] = eqx.field(static=True)
     fixed_values: Float[Array, " p"]
-    shift_window_s: Float[Array, "2"]
+    shift_window_s: Float[Array, " 2"]
     osc_period_s: Float[Array, ""]
     kappa_rad: Float[Array, ""]
     aperture_radius_m: float = eqx.field(static=True, default=12.95)
@@ -133,7 +134,7 @@ class ParaboloidModel(eqx.Module):
         p.update({n: x[i] for i, n in enumerate(self.free)})
         return p
 
-    def telescope_point(self, l: Float[Array, "3"], x: Float[Array, " u"], c: Float[Array, " k"]):
+    def telescope_point(self, l: Float[Array, " 3"], x: Float[Array, " u"], c: Float[Array, " k"]):
         """Telescope-frame (fitted frame) coordinates of one observation (m)."""
         p = self.params(x)
         r, phi, theta = correct_observations(l[0], l[1], l[2], p)
@@ -161,15 +162,17 @@ class ParaboloidModel(eqx.Module):
             w, d = w + dw, d + dd
         return apply_pose(xs, R, t, w, d)
 
-    def deviation(self, X: Float[Array, "3"], p: Mapping[str, Array], c) -> Array:
+    def deviation(self, X: Float[Array, " 3"], p: Mapping[str, Array], c) -> Array:
         """Modelled normal deviation (m) of the reflector at ``X``: known part + Zernike terms."""
         dev = c[1]
-        zs = [(int(n[len(ZERNIKE_PREFIX):]), v) for n, v in p.items() if n.startswith(ZERNIKE_PREFIX)]
+        zs = [(int(n[len(ZERNIKE_PREFIX):]), v)
+              for n, v in p.items() if n.startswith(ZERNIKE_PREFIX)]
         if zs:
             Xt = rot_z(self.kappa_rad) @ X
             u = jnp.hypot(Xt[0], Xt[1]) / self.aperture_radius_m
             psi = jnp.arctan2(Xt[1], Xt[0])
-            dev = dev + zernike_deviation(u, psi, jnp.stack([v for _, v in zs]), tuple(j for j, _ in zs))
+            dev = dev + zernike_deviation(u, psi, jnp.stack([v for _, v in zs]),
+                                          tuple(j for j, _ in zs))
         bumps: dict[int, dict[str, Array]] = {}
         for n, v in p.items():
             key = _bump_key(n)
@@ -182,7 +185,9 @@ class ParaboloidModel(eqx.Module):
                                               b.get("amp_m", 0.0), b.get("width_m", 1.0))
         return dev
 
-    def __call__(self, l: Float[Array, "3"], x: Float[Array, " u"], c: Float[Array, " k"]) -> Array:
+    def __call__(
+        self, l: Float[Array, " 3"], x: Float[Array, " u"], c: Float[Array, " k"]
+    ) -> Array:
         p = self.params(x)
         X = self.telescope_point(l, x, c)
         return paraboloid_condition(X, p["f"], self.deviation(X, p, c))

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from ..geometry._geometry import paraboloid_normal_scale, polar_to_cartesian, zernike
+from ..geometry._geometry import polar_to_cartesian, zernike
 
 # --------------------------------------------------------------------------------------------
 # Instrument: calibration parameters (NIST / Muralikrishnan names)
@@ -277,7 +277,9 @@ def face_signatures(names, r: np.ndarray, a: np.ndarray, theta0: np.ndarray):
     return np.asarray(odd), np.asarray(even)
 
 
-def inseparable_pairs(names, *, threshold: float = 0.9999, seed: int = 0) -> list[tuple[str, str, float]]:
+def inseparable_pairs(
+    names, *, threshold: float = 0.9999, seed: int = 0
+) -> list[tuple[str, str, float]]:
     """Pairs of instrument parameters that cannot be estimated together (same column shape).
 
     Two-face scans separate the instrument from the object through the part of each effect
@@ -369,7 +371,9 @@ def drift(time_s: ArrayLike, rate_m_s: ArrayLike, rate_rad_s: ArrayLike) -> tupl
     return t * jnp.asarray(rate_rad_s, dtype=float), t * jnp.asarray(rate_m_s, dtype=float)
 
 
-def apply_pose(x_s: Array, R: Array, t: Array, w: Array | None = None, d: Array | None = None) -> Array:
+def apply_pose(
+    x_s: Array, R: Array, t: Array, w: Array | None = None, d: Array | None = None
+) -> Array:
     """Telescope-frame point ``R (x + w x x) + t + d`` of scanner-frame points ``x_s`` (..., 3)."""
     if w is not None:
         x_s = x_s + jnp.cross(w, x_s)
@@ -496,7 +500,8 @@ EFFECTS: dict[str, Effect] = {
         "a jump of the residuals along one horizontal angle", "time (one phi range)"),
     "oscillation": Effect(
         "oscillation", "motion", "oscillation",
-        "the gimbal swung periodically during the scan: residuals periodic in time", "time (periodic)"),
+        "the gimbal swung periodically during the scan: residuals periodic in time",
+        "time (periodic)"),
     "drift": Effect(
         "drift", "motion", "drift",
         "slow steady motion of the scanner during the scan: residuals growing linearly in time",

@@ -529,8 +529,9 @@ def _surface(tel, refl: Reflector, kappa: float, zern: np.ndarray, extra) -> _Su
         edges, counts = tel.ring_edges_m, tel.panels_per_ring
         geo = panel_geometry(edges, counts)
     keep = [i for i, c in enumerate(zern) if c != 0.0]
-    return _Surface(f64(kappa), f64(edges), f64(counts), f64(refl.offset_m), f64(refl.tilt_radial_rad),
-                    f64(refl.tilt_tangential_rad), f64(geo["rho_c"]), f64(geo["psi_c"]),
+    return _Surface(f64(kappa), f64(edges), f64(counts), f64(refl.offset_m),
+                    f64(refl.tilt_radial_rad), f64(refl.tilt_tangential_rad),
+                    f64(geo["rho_c"]), f64(geo["psi_c"]),
                     f64(np.asarray(zern)[keep]), f64(_bumps(refl)), tel.diameter_m / 2,
                     tuple(refl.zernike_modes[i] for i in keep), extra)
 

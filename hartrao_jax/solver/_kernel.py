@@ -22,7 +22,6 @@ from functools import partial
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax import lax
 from jax.extend import core as jcore
 
@@ -298,7 +297,8 @@ def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *,
         x, dx_prev, store, it, _, _, _ = state
         N, nv, store = one_pass(x, dx_prev, store)
         dx, Ninv = solve_scaled(N, -nv)
-        ratio = jnp.max(jnp.abs(dx) / jnp.sqrt(jnp.where(jnp.diagonal(Ninv) > 0, jnp.diagonal(Ninv), 1.0)))
+        dN = jnp.diagonal(Ninv)
+        ratio = jnp.max(jnp.abs(dx) / jnp.sqrt(jnp.where(dN > 0, dN, 1.0)))
         return x + dx, dx, store, it + 1, N, Ninv, ratio < tol
 
     def cond(state):

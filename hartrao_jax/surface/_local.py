@@ -72,7 +72,8 @@ def _bandpass_z(xy, dev, sigma_dev, scale, cell, origin, shape):
 def _bump(params, x, y):
     A, x0, y0, lw, b0, bx, by = params
     w = np.exp(lw)
-    return A * np.exp(-((x - x0) ** 2 + (y - y0) ** 2) / (2 * w * w)) + b0 + bx * (x - x0) + by * (y - y0)
+    return (A * np.exp(-((x - x0) ** 2 + (y - y0) ** 2) / (2 * w * w))
+            + b0 + bx * (x - x0) + by * (y - y0))
 
 
 def _coverage(xy: np.ndarray, x0: float, y0: float, w: float, n: int = 15) -> float:

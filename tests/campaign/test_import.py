@@ -297,7 +297,8 @@ def test_presets(tmp_path):
     assert tel.panels_per_ring is None and tel.quadrupod_azimuths_deg is None
     assert tel.cone_radius_m == 0.0
     assert (site.latitude_deg, site.longitude_deg) == (38.433, -79.84)
-    assert sc == LEICA_EXPORT_SCANNER and sc.sigma_range_m == 0.0008 and sc.sigma_angle_rad == 1.5e-5
+    assert sc == LEICA_EXPORT_SCANNER
+    assert sc.sigma_range_m == 0.0008 and sc.sigma_angle_rad == 1.5e-5
     site, tel, _ = telescope_preset("HartRAO")
     assert (tel.mount, tel.focal_length_m, tel.diameter_m) == ("ha-dec", 10.9816, 25.9)
     assert sum(tel.panels_per_ring) == 255 and site.latitude_deg == -25.8897

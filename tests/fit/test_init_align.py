@@ -22,7 +22,8 @@ LEGS = [45.0, 135.0, 225.0, 315.0]
 
 
 def _scan(ha_deg, dec_deg, heading, n=30000, seed=0, scatter=0.15, legs=False):
-    g = np.asarray(gravity_in_telescope(telescope_axes_hadec(np.radians(ha_deg), np.radians(dec_deg), LAT)))
+    g = np.asarray(gravity_in_telescope(
+        telescope_axes_hadec(np.radians(ha_deg), np.radians(dec_deg), LAT)))
     R = gimbal_rotation(g) @ np.asarray(rot_z(heading))
     X = paraboloid_points(n, F, seed)
     if legs:
@@ -80,7 +81,8 @@ def test_kappa_at_zenith_from_quadrupod_shadows():
 
     X_fit = np.asarray(polar_to_cartesian(l[:, 0], l[:, 1], l[:, 2])) @ np.asarray(
         rot_y(ry) @ rot_x(rx)).T + np.asarray(rot_z(-kappa)) @ T_TEL
-    al = north_alignment(float(rx), float(ry), g, X_fit, leg_azimuths_deg=LEGS, heading_hint_rad=0.7)
+    al = north_alignment(float(rx), float(ry), g, X_fit, leg_azimuths_deg=LEGS,
+                         heading_hint_rad=0.7)
     assert al.source == "quadrupod+heading"
     assert abs((al.kappa_rad - kappa + np.pi) % (2 * np.pi) - np.pi) < np.radians(0.2)
     # without a hint: right modulo the legs' 90-degree symmetry, and the ambiguity is reported

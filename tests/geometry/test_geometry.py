@@ -85,7 +85,8 @@ def test_panel_ids_numbering_and_count():
     assert len(geo["ring"]) == 255
     ids = panel_ids(geo["rho_c"], geo["psi_c"], EDGES, PANELS)
     np.testing.assert_array_equal(ids, np.arange(255))
-    assert panel_ids(np.array([1.0, 13.0]), np.array([0.0, 0.0]), EDGES, PANELS).tolist() == [-1, -1]
+    outside = panel_ids(np.array([1.0, 13.0]), np.array([0.0, 0.0]), EDGES, PANELS)
+    assert outside.tolist() == [-1, -1]
     # ring 0, first panel counter-clockwise from psi = 0
     assert panel_ids(np.array([2.0]), np.array([0.01]), EDGES, PANELS)[0] == 0
     assert panel_ids(np.array([2.0]), np.array([2 * np.pi - 0.01]), EDGES, PANELS)[0] == 14

@@ -28,8 +28,10 @@ def test_jacobians_match_finite_differences():
     c = jnp.zeros(2)
     for i in range(len(l)):
         F, a, b = _linearize(m, jnp.asarray(l[i]), jnp.asarray(x), c)
-        a_fd = finite_difference(lambda xx: float(m(jnp.asarray(l[i]), jnp.asarray(xx), c)), x, 1e-6)
-        b_fd = finite_difference(lambda ll: float(m(jnp.asarray(ll), jnp.asarray(x), c)), l[i], 1e-7)
+        a_fd = finite_difference(
+            lambda xx: float(m(jnp.asarray(l[i]), jnp.asarray(xx), c)), x, 1e-6)
+        b_fd = finite_difference(
+            lambda ll: float(m(jnp.asarray(ll), jnp.asarray(x), c)), l[i], 1e-7)
         np.testing.assert_allclose(np.asarray(a), a_fd, rtol=1e-5, atol=1e-7)
         np.testing.assert_allclose(np.asarray(b), b_fd, rtol=1e-5, atol=1e-7)
 

@@ -120,7 +120,8 @@ def run_one(case: str, seed: int, *, preprocess: bool = False,
                              "held": sorted(held_names),
                              "mode_tests": p.surface.mode_tests,
                              "modes_m": math.sqrt(p.surface.variances.get("modes_m2", 0.0))})
-        return {"case": case, "seed": seed, "sim_seed": seed + SEED_OFFSET[case], "rows": rows, "held": held,
+        return {"case": case, "seed": seed, "sim_seed": seed + SEED_OFFSET[case], "rows": rows,
+                "held": held,
                 "seconds": {"simulate": t_sim, "per_cycle": t_cycle, "two_face": t_two}}
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -173,7 +174,8 @@ def markdown(summary: dict) -> str:
     for mode in ("per-cycle", "two-face"):
         o = summary["overall"][mode]
         lines += [f"## All cases, {mode}", "",
-                  "| parameter | n | mean z | std z | rms z | max abs z |", "|---|---|---|---|---|---|"]
+                  "| parameter | n | mean z | std z | rms z | max abs z |",
+                  "|---|---|---|---|---|---|"]
         for prm in PARAMS:
             if prm in o:
                 s = o[prm]
@@ -250,7 +252,8 @@ def main(argv=None) -> int:
                 tmp = part.with_suffix(".tmp")
                 tmp.write_text(json.dumps(res))
                 tmp.replace(part)
-                two = [r for r in res["rows"] if r["mode"] == "two-face" and r["param"] != "_surface"]
+                two = [r for r in res["rows"]
+                       if r["mode"] == "two-face" and r["param"] != "_surface"]
                 print(f"{case} seed {seed}: {time.time() - t0:.0f} s, two-face max |z| "
                       f"{max(abs(r['z']) for r in two):.2f}", flush=True)
     parts = [json.loads(p.read_text()) for p in sorted(PARTS.glob("*.json"))]

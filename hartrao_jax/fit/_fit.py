@@ -359,7 +359,8 @@ def fit_scan(
 
 def finish_scan_fit(
     campaign: Campaign, meta: ScanMeta, mdl: ParaboloidModel, data: ScanData, res: GHResult,
-    g: np.ndarray, init: InitialValues, window: np.ndarray, *, heading_hint_rad: float | None = None,
+    g: np.ndarray, init: InitialValues, window: np.ndarray, *,
+    heading_hint_rad: float | None = None,
 ) -> ScanFit:
     """Turn a GH result into a :class:`ScanFit`: alignment, deviations, bookkeeping."""
 

@@ -30,7 +30,8 @@ Per iteration, with ``lambda = s_e^2 / s^2`` per component and the per-cell sums
 ``d_i = dF/ddev * D_i``), the cell parameters are eliminated by Schur complement, so the cost is
 linear in points and in cells (one small k x k block per cell)::
 
-    (N - sum_g s_g^T (S_g + Lambda)^-1 s_g + Lambda_R) dx = -(n - sum_g s_g^T (S_g + Lambda)^-1 (t_g + Lambda u_g) + Lambda_R x)
+    (N - sum_g s_g^T (S_g + Lambda)^-1 s_g + Lambda_R) dx
+        = -(n - sum_g s_g^T (S_g + Lambda)^-1 (t_g + Lambda u_g) + Lambda_R x)
     du_g = -(S_g + Lambda)^-1 (t_g + Lambda u_g + s_g dx)
 
 ``cov(x) = s_e^2 Q_xx`` with ``Q_xx`` the inverse of the reduced matrix: the generalised least
@@ -386,7 +387,7 @@ def gauss_helmert_mixed(
     condition,
     l: Float[Array, "n 3"],
     x0: Float[Array, " u"],
-    sigma_l: Float[Array, "3"] | Float[Array, "n 3"],
+    sigma_l: Float[Array, " 3"] | Float[Array, "n 3"],
     consts: Float[Array, "n c"],
     weights: Float[Array, " n"],
     groups: Int[Array, " n"],
@@ -479,7 +480,7 @@ class MixedSums(eqx.Module):
     n_used: Float[Array, ""]
     omega: Float[Array, ""]
 
-    def __add__(self, other: "MixedSums") -> "MixedSums":
+    def __add__(self, other: MixedSums) -> MixedSums:
         return jax.tree.map(jnp.add, self, other)
 
 

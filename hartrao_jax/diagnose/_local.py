@@ -3,7 +3,12 @@
 The residual surface of the start fit (recording minus simulation along the normal, all scans
 together: the reflector is common to them) is searched by :func:`._locate.search` (matched
 filter over centres and widths, significance against the maximum the reflector's own roughness
-produces). An accepted candidate becomes the catalog's ``local_deformation`` term of the model
+produces). The search sees the points the robust fit keeps and the rejected ones that agree
+with their neighbours (:func:`readmitted`, :func:`._locate.coherent`): a structure deeper than
+the rejection limit is searched with its core, not only its rim; the refit of a candidate gets
+those points back near it (its robust rejection may drop them again). Up to
+:data:`MAX_BUMPS` rounds, each stopping at the first candidate that does not stand out.
+An accepted candidate becomes the catalog's ``local_deformation`` term of the model
 (``bump_x_m, bump_y_m, bump_amp_m, bump_width_m``, :func:`._physics.local_deformation`), free
 in the Gauss-Helmert adjustment of every scan that covers it; the scans are refitted and the
 finding must survive the refit (sigma0 drops, the amplitude stays clear of zero). A candidate

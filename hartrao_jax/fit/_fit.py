@@ -523,8 +523,9 @@ def fit_position(
     2. A robust Gauss-Helmert adjustment of all points (white noise) rejects outliers and gives
        the pose for the north alignment, hence each point's panel (surface cell).
     3. The adjustment with the surface as a random effect (:mod:`._mixed`): panel offsets and
-       tilts (and, on a centred reflector, the smooth modes of :data:`SURFACE_MODES`) with
-       variances estimated from the data; sigmas include the surface's blur.
+       tilts (and, on a centred reflector, the smooth modes of :data:`SURFACE_MODES` where the
+       data show them: :func:`_absent_modes`) with variances estimated from the data; sigmas
+       include the surface's blur.
     4. Identifiability: two-face parameters are held on a one-face position; any calibration
        parameter the normal matrix cannot separate (``|correlation| > 0.99``, e.g. x6/x7 near
        the zenith) is held at its fixed/prior value with a note, and the position refitted.

@@ -441,9 +441,9 @@ def white_sigmas(response: np.ndarray, cell_var, cov: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(np.diag(cov) - surf, 0.0))
 
 
-def mode_variances(ridge: dict | None, ridge_var) -> dict[str, float]:
-    """The smooth modes' variance components for ``SurfaceEffect.variances``: ``modes_m2`` the
-    mean variance per mode (m^2) and, with several groups, ``mode_groups_m2`` each group's."""
+def _mode_variances(ridge: dict | None, ridge_var) -> dict[str, float]:
+    """The smooth modes' variance components: ``modes_m2`` the mean variance per mode (m^2)
+    and, with several groups, ``mode_groups_m2`` each group's."""
     if not ridge:
         return {}
     rv = np.asarray(ridge_var, float)
@@ -452,6 +452,21 @@ def mode_variances(ridge: dict | None, ridge_var) -> dict[str, float]:
     if len(ridge) > 1:
         out["mode_groups_m2"] = {k: float(v) for k, v in zip(ridge, rv)}
     return out
+
+
+def surface_components(var: tuple, redundancy: tuple, ridge: dict | None) -> tuple[dict, dict]:
+    """``SurfaceEffect.variances`` and ``.redundancy`` from a mixed adjustment's variance
+    components ``var = (noise factor, cell variances (k,), ridge variances (r,))`` and their
+    redundancy shares in the same order (in-memory and streamed adjustments alike)."""
+    noise, cells, modes = var
+    r_noise, r_cells, r_modes = redundancy
+    cells, r_cells = np.asarray(cells, float), np.asarray(r_cells, float)
+    variances = {"noise": float(noise), "offset_m2": float(cells[0]),
+                 "tilt_rad2": float(np.mean(cells[1:])), **_mode_variances(ridge, modes)}
+    shares = {"noise": float(r_noise), "offset": float(r_cells[0]),
+              "tilt": float(np.sum(r_cells[1:])),
+              **({"modes": float(np.sum(np.asarray(r_modes)))} if ridge else {})}
+    return variances, shares
 
 
 def two_face_parameters(names: Iterable[str]) -> tuple[str, ...]:
@@ -595,13 +610,13 @@ def fit_position(
         design = np.column_stack([np.ones(n_pad), local]) * (cell >= 0)[:, None]
         groups = dict(SURFACE_MODE_GROUPS) if tel.offset_m == 0 else {}
         mode_tests: dict[str, tuple] = {}
-        start = {n_: float(v_) for n_, v_ in zip(mdl.free, np.asarray(res.x))}
+        x_start = {n_: float(v_) for n_, v_ in zip(mdl.free, np.asarray(res.x))}
         warm: dict = {"v0": np.asarray(res.v), "cell_var0": np.asarray(_CELL_VAR0)}
         w_mixed = used.astype(float)
         for _ in range(3 + len(groups)):
             extra = tuple(f"{ZERNIKE_PREFIX}{j}" for g_ in groups.values() for j in g_)
             mdl2 = model_of(free_of(extra), kappa)
-            x0 = np.array([start.get(n_, 0.0) for n_ in mdl2.free])
+            x0 = np.array([x_start.get(n_, 0.0) for n_ in mdl2.free])
             ridge = {k_: [mdl2.free.index(f"{ZERNIKE_PREFIX}{j}") for j in g_]
                      for k_, g_ in groups.items()} or None
             rm = gauss_helmert_mixed(
@@ -618,7 +633,7 @@ def fit_position(
             for k_ in absent:  # the data do not show them: not carried (see _absent_modes)
                 groups.pop(k_)
             # refit without them from where this one ended (same points, cells, variances)
-            start = {n_: float(v_) for n_, v_ in zip(mdl2.free, np.asarray(rm.x))}
+            x_start = {n_: float(v_) for n_, v_ in zip(mdl2.free, np.asarray(rm.x))}
             warm = {"v0": np.asarray(rm.v), "u0": np.asarray(rm.u),
                     "cell_var0": np.maximum(np.asarray(rm.cell_var), np.asarray(_CELL_VAR0)),
                     "noise_var0": float(rm.noise_var)}
@@ -634,17 +649,12 @@ def fit_position(
         cov = np.asarray(rm.cov)
         counts = np.bincount(cell[(cell >= 0) & (np.asarray(rm.weights) > 0)],
                              minlength=n_cells)
+        variances, shares = surface_components(
+            (rm.noise_var, rm.cell_var, rm.ridge_var),
+            (rm.redundancy_noise, rm.redundancy_cells, rm.redundancy_ridge), ridge)
         surf = SurfaceEffect(
             cells=desc, u=np.asarray(rm.u), u_cov=np.asarray(rm.u_cov), n=counts,
-            variances={"noise": float(rm.noise_var),
-                       "offset_m2": float(rm.cell_var[0]), "tilt_rad2": float(
-                           np.mean(np.asarray(rm.cell_var[1:]))),
-                       **mode_variances(ridge, rm.ridge_var)},
-            redundancy={"noise": float(rm.redundancy_noise),
-                        "offset": float(rm.redundancy_cells[0]),
-                        "tilt": float(np.sum(np.asarray(rm.redundancy_cells[1:]))),
-                        **({"modes": float(np.sum(np.asarray(rm.redundancy_ridge)))}
-                           if mode_idx else {})},
+            variances=variances, redundancy=shares,
             modes={mdl2.free[i]: (float(xs[i]), float(np.sqrt(cov[i, i]))) for i in mode_idx},
             mode_tests=mode_tests)
         mixed = MixedState(mdl2, xs, np.asarray(rm.u), (float(rm.noise_var), np.asarray(

@@ -50,10 +50,10 @@ from ._fit import (
     PositionFit,
     SurfaceEffect,
     fit_position,
-    mode_variances,
     position_record,
     scan_arrays,
     sigma_vector,
+    surface_components,
     white_sigmas,
 )
 from ._stream import _count_rows, _NpyRows, _progress, peak_rss_gib
@@ -240,27 +240,23 @@ def _record(start: PositionFit, st, x, final, var, sums, per_scan, converged, pa
     xs = np.asarray(x)
     cov = float(var[0]) * np.asarray(final.Qxx)
     keep = [i for i, n in enumerate(names) if not n.startswith(ZERNIKE_PREFIX)]
+    cov_keep = cov[np.ix_(keep, keep)]
     response = np.asarray(mixed_response(sums, var, final.Qxx))[:, keep, :]
     modes = [i for i, n in enumerate(names) if n.startswith(ZERNIKE_PREFIX)]
     s = start.surface
+    variances, shares = surface_components(
+        var, (final.redundancy_noise, final.redundancy_cells, final.redundancy_ridge), st.ridge)
     surf = SurfaceEffect(
         cells=s.cells, u=np.asarray(final.U), u_cov=float(var[0]) * np.asarray(final.Quu),
-        n=s.n, variances={"noise": float(var[0]), "offset_m2": float(var[1][0]),
-                          "tilt_rad2": float(np.mean(np.asarray(var[1])[1:])),
-                          **mode_variances(st.ridge, var[2])},
-        redundancy={"noise": float(final.redundancy_noise),
-                    "offset": float(final.redundancy_cells[0]),
-                    "tilt": float(np.sum(np.asarray(final.redundancy_cells)[1:])),
-                    **({"modes": float(np.sum(np.asarray(final.redundancy_ridge)))}
-                       if modes else {})},
+        n=s.n, variances=variances, redundancy=shares,
         modes={names[i]: (float(xs[i]), math.sqrt(cov[i, i])) for i in modes})
     n_used = float(sums.n_used)
     sigma0 = math.sqrt(float(sums.omega) / max(n_used - len(names), 1.0))
     pf = dataclasses.replace(
-        start, names=tuple(names[i] for i in keep), x=xs[keep], cov=cov[np.ix_(keep, keep)],
+        start, names=tuple(names[i] for i in keep), x=xs[keep], cov=cov_keep,
         sigma0=sigma0, surface=surf, iterations=passes, converged=converged,
-        n_points=int(n_used), mixed=None, response=response, sigma_white=white_sigmas(
-            response, var[1], cov[np.ix_(keep, keep)]),
+        n_points=int(n_used), mixed=None, response=response,
+        sigma_white=white_sigmas(response, var[1], cov_keep),
         notes=[*start.notes, "streamed: started from a sample of each face, refined from "
                "every row"])
     rec = position_record(pf)

@@ -369,10 +369,13 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
     gi = jnp.where(groups >= 0, groups, 0)
     dev_final = jnp.where(groups >= 0, jnp.sum(design * U[gi], axis=-1), 0.0)
     sigma0 = jnp.sqrt(jnp.sum(weights * omega_pt) / jnp.maximum(n_used - u, 1))
-    dx0, _, Q0, _ = _reduce(lin.N, lin.nv, lin.S, lin.sg, lin.tg, U, x, se2 / var[1],
-                            ridge_idx, jnp.zeros_like(ridge_idx, f))
-    ridge_fixed = (x + dx0)[ridge_idx]
-    ridge_fixed_cov = se2 * Q0[ridge_idx][:, ridge_idx]
+    if n_ridge_groups:  # the modes as fixed effects: one step with their priors removed
+        dx0, _, Q0, _ = _reduce(lin.N, lin.nv, lin.S, lin.sg, lin.tg, U, x, se2 / var[1],
+                                ridge_idx, jnp.zeros_like(ridge_idx, f))
+        ridge_fixed = (x + dx0)[ridge_idx]
+        ridge_fixed_cov = se2 * Q0[ridge_idx][:, ridge_idx]
+    else:
+        ridge_fixed, ridge_fixed_cov = jnp.zeros((0,), f), jnp.zeros((0, 0), f)
     return MixedResult(
         x=x, cov=se2 * up.Qxx, Qxx=up.Qxx, u=U, u_cov=se2 * up.Quu, noise_var=se2,
         cell_var=var[1], ridge_var=var[2], redundancy_noise=up.r_e, redundancy_cells=up.r_cells,

@@ -113,7 +113,8 @@ def _keep(camp, preprocess: bool):
 def stage_fit_local(a) -> None:
     from hartrao_jax._config import enable_compilation_cache
     from hartrao_jax.campaign._campaign import load_campaign
-    from hartrao_jax.fit._fit import fit_campaign, write_fit
+    from hartrao_jax.fit._fit import fit_campaign
+    from hartrao_jax.fit._records import write_fit
 
     enable_compilation_cache()
     camp = load_campaign(a.camp)

@@ -87,7 +87,7 @@ def main(argv=None) -> int:
     from hartrao_jax._config import enable_compilation_cache
     from hartrao_jax.campaign import _campaign
     from hartrao_jax.campaign._campaign import load_campaign
-    from hartrao_jax.fit import _fit
+    from hartrao_jax.fit import _fit, _records
     from hartrao_jax.preprocess import preprocess_keep
     from hartrao_jax.simulate._simulate import simulate_campaign
 
@@ -132,7 +132,7 @@ def main(argv=None) -> int:
         t0, c0 = time.perf_counter(), _cpu()
         cf = _fit.fit_campaign(camp, "extended", keep=keep_fn, progress=False)
         t1, c1 = time.perf_counter(), _cpu()
-        _fit.write_fit(tmp / "out", cf)
+        _records.write_fit(tmp / "out", cf)
         st.wall["write"] += time.perf_counter() - t1
         st.cpu["write"] += _cpu() - c1
         total_w, total_c = time.perf_counter() - t0, _cpu() - c0

@@ -12,7 +12,8 @@ from pathlib import Path
 import click
 
 from ..campaign._campaign import load_campaign
-from ..fit._fit import fit_campaign, write_fit
+from ..fit._fit import fit_campaign
+from ..fit._records import write_fit
 from ..physics._catalog import CALIBRATION
 from ..preprocess import preprocess_keep
 from ..report import write_report

@@ -8,8 +8,9 @@ from pathlib import Path
 import click
 
 from ..campaign._campaign import load_campaign
-from ..fit._fit import fit_campaign, write_fit
+from ..fit._fit import fit_campaign
 from ..fit._joint import fit_joint, write_joint_fit
+from ..fit._records import write_fit
 from ..physics._catalog import CALIBRATION_OPTION
 from ..preprocess import (
     PreprocessConfig,

@@ -48,17 +48,7 @@ from ..geometry._geometry import pointing_gravity
 from ..model._model import parse_model
 from ..preprocess._preprocess import preprocess_keep
 from ._align import MIN_TILT_RAD, Alignment, mean_heading, scan_heading
-from ._fit import (
-    FIT_SCHEMA,
-    CampaignFit,
-    ScanFit,
-    fit_position,
-    fit_scan,
-    position_record,
-    scan_record,
-    sigma_vector,
-    write_residuals,
-)
+from ._fit import CampaignFit, ScanFit, fit_position, fit_scan, position_record, sigma_vector
 from ._joint import (
     DEFAULT_SHARED,
     JointFit,
@@ -70,6 +60,7 @@ from ._joint import (
     joint_scan_fit,
     schur_iterate,
 )
+from ._records import FIT_SCHEMA, scan_record, write_residuals
 
 log = logging.getLogger("hartrao_jax")
 
@@ -367,7 +358,7 @@ def thin_scan_fit(summary: ScanSummary, meta):
 
 def fit_document(campaign, names, summaries: Sequence[ScanSummary],
                  positions: Sequence[dict] | None = None) -> dict:
-    """``fit.json`` from worker summaries, in the form :func:`._fit.fit_json` gives
+    """``fit.json`` from worker summaries, in the form :func:`._records.fit_json` gives
     (``positions``: the records of two-face position adjustments; None: per-cycle fits)."""
 
     thin = [thin_scan_fit(s, campaign.scan(s.id)) for s in summaries]

@@ -54,16 +54,8 @@ from ..solver._ghm import (
     normal_equations,
 )
 from ._align import mean_heading, scan_heading
-from ._fit import (
-    CampaignFit,
-    ScanFit,
-    finish_scan_fit,
-    fit_campaign,
-    fit_json,
-    scan_arrays,
-    sigma_vector,
-    write_fit_dir,
-)
+from ._fit import CampaignFit, ScanFit, finish_scan_fit, fit_campaign, scan_arrays, sigma_vector
+from ._records import fit_json, write_fit_dir
 
 log = logging.getLogger("hartrao_jax")
 
@@ -625,7 +617,7 @@ def joint_json(jf: JointFit, *, base: dict | None = None) -> dict:
 def write_joint_fit(out_dir, jf: JointFit, *, residuals: bool = True) -> Path:
     """Write ``fit.json`` (with ``shared``) and ``residuals/<scan>.parquet`` of a joint fit.
 
-    Crash-safe like :func:`._fit.write_fit`: tables first under temporary names, ``fit.json``
+    Crash-safe like :func:`._records.write_fit`: tables first under temporary names, ``fit.json``
     last, strict, with the ``"files"`` manifest.
     """
 

@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from ..fit._fit import read_residuals
+from ..fit._records import read_residuals
 
 DISTURBED_SCHEMA = "hartrao-disturbed/1"
 

@@ -11,7 +11,8 @@ import hartrao_jax  # noqa: F401  (float64)
 from hartrao_jax._config import enable_compilation_cache
 from hartrao_jax.campaign._campaign import read_scan
 from hartrao_jax.campaign._schedule import find_position
-from hartrao_jax.fit._fit import fit_campaign, fit_json, fit_scan, prepare_scan
+from hartrao_jax.fit._fit import fit_campaign, fit_scan, prepare_scan
+from hartrao_jax.fit._records import fit_json
 from hartrao_jax.fit._stream import peak_rss_gib, stream_fit_scan
 from hartrao_jax.simulate._simulate import simulate_campaign
 

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from hartrao_jax.campaign._campaign import load_campaign
-from hartrao_jax.fit._fit import fit_campaign, fit_json
+from hartrao_jax.fit._fit import fit_campaign
+from hartrao_jax.fit._records import fit_json
 from hartrao_jax.simulate._simulate import simulate_campaign
 
 EFFECTS = {"x4": 1.5e-4, "x6": 3e-5, "x7": -4e-5, "panel_offset": 1.5e-4}

@@ -10,7 +10,8 @@ import re
 import numpy as np
 import pytest
 
-from hartrao_jax.fit._fit import fit_campaign, write_fit
+from hartrao_jax.fit._fit import fit_campaign
+from hartrao_jax.fit._records import write_fit
 from hartrao_jax.geometry._geometry import face_of
 from hartrao_jax.report import (
     face_boundary,

@@ -8,7 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from hartrao_jax.fit._fit import fit_campaign, fit_scan, write_fit
+from hartrao_jax.fit._fit import fit_campaign, fit_scan
+from hartrao_jax.fit._records import write_fit
 from hartrao_jax.simulate._simulate import simulate_campaign
 from hartrao_jax.surface._disturbed import (
     DisturbedConfig,

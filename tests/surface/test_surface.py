@@ -12,7 +12,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from hartrao_jax.campaign._campaign import load_campaign
-from hartrao_jax.fit._fit import fit_campaign, write_fit
+from hartrao_jax.fit._fit import fit_campaign
+from hartrao_jax.fit._records import write_fit
 from hartrao_jax.geometry._geometry import panel_ids
 from hartrao_jax.simulate._simulate import SimConfig, simulate_campaign
 from hartrao_jax.surface._surface import (

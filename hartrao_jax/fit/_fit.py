@@ -13,6 +13,7 @@ import math
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -272,6 +273,30 @@ def scan_arrays(data: ScanData) -> tuple[np.ndarray, np.ndarray]:
     c = np.zeros((len(data), N_CONSTS))
     c[:, 0] = data.time_s
     return l, c
+
+
+@eqx.filter_jit
+def hit_points(model: ParaboloidModel, l, x, c, sigma_l, kappa_rad) -> jax.Array:
+    """Where each beam met the reflector: north-aligned telescope-frame points (m, (n, 3)).
+
+    The raw point is off the surface by its noise, and on an oblique ray the range noise
+    (0.8 mm) moves it *across* the surface too: cells assigned from raw points give the
+    points near a panel edge to the neighbour panel together with the noise that carried them
+    there, an edge pattern of one sign that the panels' random effect turns into a bias of f
+    and the pose (f -0.18 mm, 2.2 of its sigmas on average at the paper's 3 mrad resolution).
+    Here each observation first moves onto the fitted surface ``model(l, x, c) = 0`` along its
+    weighted least-squares direction (one Gauss-Helmert projection,
+    ``v = -Sigma b^T F / (b Sigma b^T)``), then into the telescope frame (``Rz(kappa)``).
+    """
+    s2 = jnp.broadcast_to(jnp.asarray(sigma_l, jnp.float64) ** 2, (3,))
+
+    def one(li, ci):
+        F, b = jax.value_and_grad(lambda q: model(q, x, ci))(li)
+        m = jnp.sum(b * b * s2)
+        v = -s2 * b * F / jnp.where(m > 0, m, 1.0)
+        return model.telescope_point(li + v, x, ci)
+
+    return jax.vmap(one)(l, c) @ rot_z(kappa_rad).T
 
 
 def sigma_vector(campaign: Campaign) -> np.ndarray:
@@ -600,10 +625,11 @@ def fit_position(
     surf, mdl_final, notes, mixed = None, mdl, [], None
     if surface:
         cell_m = float(tel.extra.get("panel_cell_m", 2.0)) if tel.extra else 2.0
-        cell, local, n_cells, desc = panel_cells(
-            fit1.X_tel, tel.ring_edges_m, tel.panels_per_ring, cell_m=cell_m)
+        X_hit = np.asarray(hit_points(mdl, l, res.x, c, sig, kappa))
         keys = (None if tel.ring_edges_m is not None and tel.panels_per_ring is not None
-                else square_cells(fit1.X_tel, cell_m)[2])
+                else square_cells(X_hit[used], cell_m)[2])
+        cell, local, n_cells, desc = panel_cells(
+            X_hit, tel.ring_edges_m, tel.panels_per_ring, cell_m=cell_m, keys=keys)
         design = np.column_stack([np.ones(n_pad), local]) * (cell >= 0)[:, None]
         groups = dict(SURFACE_MODE_GROUPS) if tel.offset_m == 0 else {}
         mode_tests: dict[str, tuple] = {}

@@ -33,14 +33,12 @@ import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
-import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..campaign._campaign import Campaign, ScanMeta, iter_scan_chunks
 from ..campaign._campaign import _concat as concat_scans
-from ..geometry._geometry import panel_cells, rot_z, square_cells
+from ..geometry._geometry import panel_cells, square_cells
 from ..model._model import ZERNIKE_PREFIX
 from ..preprocess._initial import geometry_window
 from ..solver._ghm import bucket_size
@@ -50,6 +48,7 @@ from ._fit import (
     PositionFit,
     SurfaceEffect,
     fit_position,
+    hit_points,
     position_record,
     scan_arrays,
     sigma_vector,
@@ -57,13 +56,6 @@ from ._fit import (
     white_sigmas,
 )
 from ._stream import _count_rows, _NpyRows, _progress, peak_rss_gib
-
-
-@eqx.filter_jit
-def _telescope_points(model, l, x, c, kappa):
-    """North-aligned telescope-frame points (m) of the rows at the solution ``x``."""
-    X = jax.vmap(model.telescope_point, in_axes=(0, None, 0))(l, x, c)
-    return X @ rot_z(kappa).T
 
 
 def _sample_rows(campaign: Campaign, meta: ScanMeta, rows_per_chunk: int, n_sample: int,
@@ -92,8 +84,8 @@ def _chunk_inputs(campaign, st, ch, init, window_m, x):
     n = len(ch)
     l, c = scan_arrays(ch)
     w = geometry_window(ch.range_m, ch.phi_rad, ch.theta_rad, init.x, window_m).astype(float)
-    X_tel = np.asarray(_telescope_points(st.model, l, x, c, st.kappa_rad))
-    cell, design = _cells(st, campaign.telescope, X_tel)
+    X_hit = np.asarray(hit_points(st.model, l, x, c, sigma_vector(campaign), st.kappa_rad))
+    cell, design = _cells(st, campaign.telescope, X_hit)
     size = bucket_size(n)
     if size > n:
         pad = np.zeros(size - n, np.int64)

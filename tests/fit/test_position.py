@@ -82,3 +82,38 @@ def test_cli_prints_not_identifiable_in_one_line(positions, capsys):
     out = capsys.readouterr().out
     lines = [ln for ln in out.splitlines() if ln.startswith("not identifiable:")]
     assert len(lines) == 1 and "z0" in lines[0] and "x6 and x7" in lines[0]
+
+
+def test_cells_come_from_where_the_beam_met_the_surface():
+    """The surface cells are assigned from the observations moved onto the fitted surface
+    (:func:`hit_points`), not from the raw points: on oblique rays the range noise carries a raw
+    point across the surface as well, so raw points near a panel edge land in the neighbour panel
+    together with the noise that put them there (a bias of f at high point density)."""
+    import jax
+
+    from hartrao_jax.fit._fit import hit_points
+    from hartrao_jax.geometry._geometry import panel_cells
+    from hartrao_jax.model._model import make_model
+    from tests.helpers import F_TRUE, POSE, SIGMA, paraboloid_points, synthetic_scan
+
+    edges, counts = (1.6, 3.2, 4.8, 6.4, 8.0, 9.6, 11.2, 12.95), (15, 24, 30, 36, 42, 48, 60)
+    n = 200_000
+    X = paraboloid_points(n, F_TRUE, seed=5)
+    lobs = synthetic_scan(n, seed=5)
+    model = make_model(["tx", "ty", "tz", "rx", "ry", "f"])
+    x = np.array([{**POSE, "f": F_TRUE}[k] for k in model.free])
+    c = np.zeros((n, 2))
+    raw = np.asarray(jax.vmap(model.telescope_point, in_axes=(0, None, 0))(lobs, x, c))
+    hit = np.asarray(hit_points(model, lobs, x, c, SIGMA, 0.0))
+    # on the surface to < 0.1 um (one projection; the raw points are 0.1-0.8 mm off it) and
+    # laterally close to the truth
+    on = hit[:, 2] - (hit[:, 0] ** 2 + hit[:, 1] ** 2) / (4 * F_TRUE)
+    off = raw[:, 2] - (raw[:, 0] ** 2 + raw[:, 1] ** 2) / (4 * F_TRUE)
+    assert np.sqrt(np.mean(on**2)) < 1e-7 < 1e-4 < np.sqrt(np.mean(off**2))
+    lat_raw = np.sqrt(np.mean(np.sum((raw - X)[:, :2] ** 2, 1)))
+    lat_hit = np.sqrt(np.mean(np.sum((hit - X)[:, :2] ** 2, 1)))
+    assert lat_hit < 0.6 * lat_raw, (lat_hit, lat_raw)
+    true_cell = panel_cells(X, edges, counts)[0]
+    wrong_raw = np.mean(panel_cells(raw, edges, counts)[0] != true_cell)
+    wrong_hit = np.mean(panel_cells(hit, edges, counts)[0] != true_cell)
+    assert wrong_hit < 0.6 * wrong_raw, (wrong_hit, wrong_raw)

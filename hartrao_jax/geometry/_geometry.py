@@ -13,6 +13,7 @@ Everything differentiable is written in ``jax.numpy``; panel bookkeeping is NumP
 
 from __future__ import annotations
 
+from functools import lru_cache
 from math import factorial
 
 import jax.numpy as jnp
@@ -128,26 +129,42 @@ def elevation_of(F: Float[Array, "3 3"]) -> Array:
     return jnp.arcsin(jnp.clip(F[2, 2], -1.0, 1.0))
 
 
+@lru_cache(maxsize=4096)
+def _pointing(mount: str, a: float, b: float, lat: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """Axes, gravity vector and elevation (deg) of one pointing, computed once: the eager JAX
+    rotations take ~15 ms a call, and every scan asks for its pointing several times
+    (preprocessing, initial values, fit, alignment) with the same values. The arrays are
+    read-only; the public functions return copies."""
+    F = telescope_axes_altaz(a, b) if mount == "alt-az" else telescope_axes_hadec(a, b, lat)
+    g = np.asarray(gravity_in_telescope(F))
+    el = float(np.degrees(elevation_of(F)))
+    F = np.asarray(F)
+    F.setflags(write=False)
+    g.setflags(write=False)
+    return F, g, el
+
+
+def _pointing_key(meta, telescope, site) -> tuple[str, float, float, float]:
+    if telescope.mount == "alt-az":
+        return ("alt-az", float(np.radians(meta.elevation_deg)),
+                float(np.radians(meta.azimuth_deg or 0.0)), 0.0)
+    return ("ha-dec", float(np.radians(meta.ha_deg)), float(np.radians(meta.dec_deg)),
+            float(np.radians(site.latitude_deg)))
+
+
 def pointing_axes(meta, telescope, site) -> np.ndarray:
     """Telescope axes ``F`` (3x3 NumPy, columns in ENU) of a scan from its campaign metadata."""
-    if telescope.mount == "alt-az":
-        F = telescope_axes_altaz(np.radians(meta.elevation_deg),
-                                 np.radians(meta.azimuth_deg or 0.0))
-    else:
-        F = telescope_axes_hadec(
-            np.radians(meta.ha_deg), np.radians(meta.dec_deg), np.radians(site.latitude_deg)
-        )
-    return np.asarray(F)
+    return _pointing(*_pointing_key(meta, telescope, site))[0].copy()
 
 
 def pointing_gravity(meta, telescope, site) -> np.ndarray:
     """Unit gravity vector (telescope frame) of a scan, from HA/DEC or elevation/azimuth."""
-    return np.asarray(gravity_in_telescope(pointing_axes(meta, telescope, site)))
+    return _pointing(*_pointing_key(meta, telescope, site))[1].copy()
 
 
 def pointing_elevation_deg(meta, telescope, site) -> float:
     """Elevation of the boresight (deg) of a scan."""
-    return float(np.degrees(elevation_of(pointing_axes(meta, telescope, site))))
+    return _pointing(*_pointing_key(meta, telescope, site))[2]
 
 
 # --------------------------------------------------------------------------------------------

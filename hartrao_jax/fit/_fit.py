@@ -315,11 +315,15 @@ def prepare_scan(
     """Read a scan, find initial values and the points inside the geometry window.
 
     Returns ``(data, gravity, init, window)`` where ``window`` marks points within
-    ``window_m`` (vertical) of the initial paraboloid (and inside ``keep`` if given).
+    ``window_m`` (vertical) of the initial paraboloid (and inside ``keep`` if given). A
+    ``keep`` mask from the preprocessing (``preprocess.KeepMask``) brings its initial values
+    (the same estimator on a sample of the same scan): they are used instead of a new search.
     """
     data = read_scan(campaign, meta) if data is None else data
     g = pointing_gravity(meta, campaign.telescope, campaign.site)
-    init = choose_initial_values(campaign, meta, data, g, seed=seed)
+    init = getattr(keep, "init", None)
+    if init is None:
+        init = choose_initial_values(campaign, meta, data, g, seed=seed)
     window = geometry_window(data.range_m, data.phi_rad, data.theta_rad, init.x, window_m)
     if keep is not None:
         window &= keep

@@ -114,6 +114,7 @@ from ._stages import (
 )
 from ._types import (
     KEPT,
+    KeepMask,
     NON_FINITE,
     SPARSE_SHARE,
     PreprocessConfig,
@@ -245,7 +246,8 @@ def preprocess_campaign(
 def keep_mask_fn(
     config: PreprocessConfig | None = None, campaign: Campaign | None = None,
 ) -> Callable[[ScanMeta, ScanData], np.ndarray] | Callable[..., np.ndarray]:
-    """``keep(meta, data) -> bool mask`` for ``fit_campaign(keep=...)``.
+    """``keep(meta, data) -> bool mask`` for ``fit_campaign(keep=...)``; the mask is a
+    :class:`KeepMask` carrying the preprocessing's initial values, which the fitter reuses.
 
     The preprocessing needs the campaign (telescope geometry, scanner sigmas): pass it here.
     Without it the callable accepts ``keep(meta, data, campaign)`` or falls back to the HartRAO
@@ -258,7 +260,7 @@ def keep_mask_fn(
         if c is None:
             log.warning("keep_mask_fn: no campaign given, using the HartRAO defaults")
             c = default_campaign()
-        return preprocess_scan(c, meta, data, cfg).keep
+        return KeepMask.of(preprocess_scan(c, meta, data, cfg))
 
     return keep
 

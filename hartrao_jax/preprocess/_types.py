@@ -150,6 +150,31 @@ class PreprocessResult:
         return {REASONS[k]: int(counts[k]) for k in REASONS if k != KEPT}
 
 
+class KeepMask(np.ndarray):
+    """The keep mask of one scan (bool, like :attr:`PreprocessResult.keep`) carrying the
+    preprocessing's initial values as ``init`` (or None): the fitter starts from them instead
+    of searching the heading again (the same estimator on a seeded sample of the same scan).
+
+    Anything computed from the mask (reductions, ``mask & other``) is a plain ndarray or
+    scalar; only the mask itself and its views carry ``init``.
+    """
+
+    init: InitialValues | None = None
+
+    def __array_finalize__(self, obj):
+        self.init = getattr(obj, "init", None)
+
+    def __array_wrap__(self, arr, context=None, return_scalar=False):
+        arr = np.asarray(arr)
+        return arr[()] if return_scalar else arr
+
+    @classmethod
+    def of(cls, result: PreprocessResult) -> KeepMask:
+        m = np.asarray(result.keep, bool).view(cls)
+        m.init = result.init
+        return m
+
+
 CHUNK = 1 << 20
 """Points per block of the per-point NumPy stages. Blocks keep every temporary below glibc's
 mmap threshold (32 MiB), so its memory is reused instead of page-faulted afresh for each

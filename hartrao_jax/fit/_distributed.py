@@ -68,6 +68,9 @@ WORKER_ENV = {
     "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false",
     "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
     "JAX_ENABLE_X64": "1", "JAX_PLATFORMS": "cpu",
+    # one part per pass in the random-effect adjustment (solver.mixed_threads): a worker is
+    # one core, the workers together use the machine
+    "HARTRAO_JAX_THREADS": "1",
 }
 MALLOC_VAR = "MALLOC_TRIM_THRESHOLD_"  # see _pre_spawn_environ
 

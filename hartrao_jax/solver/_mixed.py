@@ -42,6 +42,8 @@ covariance ``s_e^2 [(S_g + Lambda)^-1 + (S_g + Lambda)^-1 s_g Q_xx s_g^T (S_g + 
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 
 import equinox as eqx
@@ -282,9 +284,13 @@ def _update(lin, var, var0, x, U, n_used, ridge_idx, ridge_group, ridge_count,
 
 def _point_residuals(lin, up, groups):
     """``k_i = -(a.dx + d.du_g + w) / m`` of every point after the step."""
+    return _residual_k(lin.a, lin.d, lin.wm, lin.m, up.dx, up.dU, groups)
+
+
+def _residual_k(a, d, wm, m, dx, dU, groups):
     gi = jnp.where(groups >= 0, groups, 0)
-    du_pt = jnp.where(groups >= 0, jnp.sum(lin.d * up.dU[gi], axis=-1), 0.0)
-    return -(lin.a @ up.dx + du_pt + lin.wm) / jnp.where(lin.m > 0, lin.m, 1.0)
+    du_pt = jnp.where(groups >= 0, jnp.sum(d * dU[gi], axis=-1), 0.0)
+    return -(a @ dx + du_pt + wm) / jnp.where(m > 0, m, 1.0)
 
 
 def _settled(new, old, var0):
@@ -389,6 +395,185 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
         ridge_fixed_cov=ridge_fixed_cov)
 
 
+# --------------------------------------------------------------------------------------------
+# The same iteration with each pass split over the cores
+# --------------------------------------------------------------------------------------------
+
+#: Points per part below which a pass is not split (one part, the single jitted loop above).
+PARALLEL_MIN_POINTS = 1 << 17
+THREADS_ENV = "HARTRAO_JAX_THREADS"
+_POOL: dict[int, ThreadPoolExecutor] = {}
+
+
+def mixed_threads(n: int) -> int:
+    """Parts (threads) a pass over ``n`` points is split into: ``$HARTRAO_JAX_THREADS``, else
+    the cores this process may use; at most one part per :data:`PARALLEL_MIN_POINTS` points.
+
+    XLA runs one fusion on one core, and the pass is one loop of fusions: one jitted call uses
+    one core whatever the machine. Two calls from two threads run at the same time (the
+    runtime executes concurrent calls concurrently), so the points are split into parts, each
+    part's pass runs in its own thread, and the sums are added."""
+    env = os.environ.get(THREADS_ENV)
+    t = int(env) if env else len(os.sched_getaffinity(0))
+    return int(max(1, min(t, 8, n // PARALLEL_MIN_POINTS)))
+
+
+def _pool(threads: int) -> ThreadPoolExecutor:
+    if threads not in _POOL:
+        _POOL[threads] = ThreadPoolExecutor(threads, thread_name_prefix="hartrao-mixed")
+    return _POOL[threads]
+
+
+@eqx.filter_jit
+def _part_pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U):
+    sums, (a, b, d, wm, m, _) = _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W,
+                                      S2, G, DM, x, U)
+    return sums, (a, b, d, wm, m), jnp.sum(W > 0)
+
+
+@eqx.filter_jit
+def _part_update(sums, var, var0, x, U, n_used, ridge_idx, ridge_group, n_ridge_groups,
+                 estimate_variances, tol):
+    """Variance components (Foerstner) and the step from the added sums, as one step of
+    :func:`_solve`."""
+    upd = partial(_update, var0=var0, **_ridge_args(ridge_idx, ridge_group, n_ridge_groups))
+    lin = _Linearization(*sums, None, None, None, None, None)
+    if estimate_variances:
+        var = _vce(upd, lin, var, var0, x, U, n_used)
+    up = upd(lin, var, x=x, U=U, n_used=n_used)
+    sd = jnp.sqrt(jnp.where(jnp.diagonal(up.Qxx) > 0, jnp.diagonal(up.Qxx), 1.0))
+    return var, up, jnp.max(jnp.abs(up.dx) / sd) < tol
+
+
+@eqx.filter_jit
+def _part_residuals(per, G, S2, W, dx, dU, se2, it, robust_k):
+    """A part's residuals after the step and its robust rejection (as :func:`_solve`)."""
+    a, b, d, wm, m = per
+    kk = _residual_k(a, d, wm, m, dx, dU, G)
+    ok = (W > 0) & (m > 0)
+    e = jnp.sqrt(jnp.where(ok, kk * kk * m, 0.0) / se2)
+    bad = (e > robust_k) & (W > 0) & (it >= 1)
+    return S2 * b * kk[:, None], jnp.where(bad, 0.0, W), jnp.any(bad)
+
+
+@eqx.filter_jit
+def _part_final(per, G, S2, W, DM, U, dx, dU, se2):
+    """A part's per-point statistics at the solution (as :func:`_solve`)."""
+    a, b, d, wm, m = per
+    kk = _residual_k(a, d, wm, m, dx, dU, G)
+    ok = (W > 0) & (m > 0)
+    omega_pt = jnp.where(ok, kk * kk * jnp.where(m > 0, m, 1.0), 0.0)
+    gi = jnp.where(G >= 0, G, 0)
+    dev = jnp.where(G >= 0, jnp.sum(DM * U[gi], axis=-1), 0.0)
+    return (S2 * b * kk[:, None], jnp.sqrt(omega_pt) / jnp.sqrt(se2), dev, omega_pt,
+            jnp.sum(W * omega_pt))
+
+
+@eqx.filter_jit
+def _part_stats(sums, var, x, U, Qxx, ridge_idx, n_ridge_groups):
+    """The modes as fixed effects and the cells' responses (as :func:`_solve`)."""
+    f = x.dtype
+    lin = _Linearization(*sums, None, None, None, None, None)
+    if n_ridge_groups:
+        dx0, _, Q0, _ = _reduce(lin.N, lin.nv, lin.S, lin.sg, lin.tg, U, x, var[0] / var[1],
+                                ridge_idx, jnp.zeros_like(ridge_idx, f))
+        ridge_fixed = (x + dx0)[ridge_idx]
+        ridge_fixed_cov = var[0] * Q0[ridge_idx][:, ridge_idx]
+    else:
+        ridge_fixed, ridge_fixed_cov = jnp.zeros((0,), f), jnp.zeros((0, 0), f)
+    return ridge_fixed, ridge_fixed_cov, _x_response(lin, var, Qxx)
+
+
+def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_group,
+                 n_ridge_groups, tol, max_iter, chunk, n_cells, estimate_variances, robust_k):
+    """:func:`_solve` with every pass split into ``parts`` (dicts of equal-length point
+    arrays ``L, C, S2, G, DM, W, V``), each part's pass in its own thread; the normal-equation
+    sums of the parts are added, the step and the variance components computed from them as
+    before. Same iteration, same arithmetic up to the order of the sums' additions."""
+    on = jnp.ones((), bool)
+    pool = _pool(len(parts))
+
+    def linearize(x, U):
+        def one(p):
+            return jax.block_until_ready(_part_pass(
+                condition, dev_column, on, n_cells, chunk, p["L"], p["V"], p["C"], p["W"],
+                p["S2"], p["G"], p["DM"], x, U))
+        outs = list(pool.map(one, parts))
+        sums = outs[0][0]
+        for o in outs[1:]:
+            sums = jax.tree.map(jnp.add, sums, o[0])
+        return sums, [o[1] for o in outs], sum(o[2] for o in outs[1:]) + outs[0][2]
+
+    def update(sums, var, x, U, n_used):
+        return _part_update(sums, var, var0, x, U, n_used, ridge_idx, ridge_group,
+                            n_ridge_groups, estimate_variances, tol)
+
+    x, U, var, it, done = x0, U0, var0, 0, False
+    while it < max_iter and not done:
+        sums, pers, n_used = linearize(x, U)
+        var, up, step_ok = update(sums, var, x, U, n_used)
+        any_bad = False
+        for p, per in zip(parts, pers):
+            p["V"], p["W"], bad = _part_residuals(per, p["G"], p["S2"], p["W"], up.dx, up.dU,
+                                                  var[0], jnp.asarray(it), robust_k)
+            any_bad = any_bad or bool(bad)
+        x, U = x + up.dx, U + up.dU
+        it += 1
+        done = bool(step_ok) and not any_bad
+    # statistics at the solution: one more linearisation (the step is ~0)
+    sums, pers, n_used = linearize(x, U)
+    var, up, _ = update(sums, var, x, U, n_used)
+    x, U = x + up.dx, U + up.dU
+    se2 = var[0]
+    fin = [_part_final(per, p["G"], p["S2"], p["W"], p["DM"], U, up.dx, up.dU, se2)
+           for p, per in zip(parts, pers)]
+    u = x.shape[0]
+    sigma0 = jnp.sqrt((sum(fp[4] for fp in fin[1:]) + fin[0][4]) / jnp.maximum(n_used - u, 1))
+    ridge_fixed, ridge_fixed_cov, response = _part_stats(sums, var, x, U, up.Qxx, ridge_idx,
+                                                          n_ridge_groups)
+
+    def cat(i):
+        return jnp.concatenate([fp[i] for fp in fin])
+
+    return MixedResult(
+        x=x, cov=se2 * up.Qxx, Qxx=up.Qxx, u=U, u_cov=se2 * up.Quu, noise_var=se2,
+        cell_var=var[1], ridge_var=var[2], redundancy_noise=up.r_e, redundancy_cells=up.r_cells,
+        redundancy_ridge=up.r_ridge, sigma0=sigma0, v=cat(0), normalized=cat(1), dev=cat(2),
+        omega_point=cat(3), weights=jnp.concatenate([p["W"] for p in parts]),
+        n_used=n_used, iterations=jnp.asarray(it), converged=jnp.asarray(done),
+        x_response=response, ridge_fixed=ridge_fixed, ridge_fixed_cov=ridge_fixed_cov)
+
+
+def _solve_split(condition, dev_column, threads, L, x0, S2, C, W, G, DM, U0, V0, var0,
+                 ridge_idx, ridge_group, n_ridge_groups, tol, max_iter, chunk, n_cells,
+                 estimate_variances, robust_k):
+    """The cell-sorted points cut into ``threads`` equal parts (whole chunks; the tail padded
+    with copies of the last point at weight 0, outside every cell), :func:`_solve_parts`, the
+    per-point results cut back to the points."""
+    n = L.shape[0]
+    m = -(-n // (threads * chunk)) * chunk
+    pad = threads * m - n
+
+    def padded(a, value=None):
+        if not pad:
+            return a
+        tail = jnp.broadcast_to(a[-1:], (pad,) + a.shape[1:]) if value is None else jnp.full(
+            (pad,) + a.shape[1:], value, a.dtype)
+        return jnp.concatenate([a, tail])
+
+    arrays = {"L": padded(L), "C": padded(C), "S2": padded(S2), "G": padded(G, -1),
+              "DM": padded(DM), "W": padded(W, 0.0), "V": padded(V0)}
+    parts = [{k: a[i * m:(i + 1) * m] for k, a in arrays.items()} for i in range(threads)]
+    res = _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_group,
+                       n_ridge_groups, tol, max_iter, chunk, n_cells, estimate_variances,
+                       robust_k)
+    if not pad:
+        return res
+    return eqx.tree_at(lambda r: (r.v, r.normalized, r.dev, r.omega_point, r.weights), res,
+                       (res.v[:n], res.normalized[:n], res.dev[:n], res.omega_point[:n],
+                        res.weights[:n]))
+
+
 def gauss_helmert_mixed(
     condition,
     l: Float[Array, "n 3"],
@@ -412,6 +597,7 @@ def gauss_helmert_mixed(
     tol: float = 1e-3,
     max_iter: int = 60,
     chunk_size: int = 8192,
+    threads: int | None = None,
 ) -> MixedResult:
     """Gauss-Helmert adjustment of ``condition`` with the surface as a random effect.
 
@@ -432,6 +618,8 @@ def gauss_helmert_mixed(
             stays rejected.
         tol: convergence when every step is below ``tol`` times its sigma and every variance
             component changed by less than 0.5 %.
+        threads: parts each pass over the points is split into, one thread each (None:
+            :func:`mixed_threads`); the estimates do not depend on it beyond round-off.
     """
     l = jnp.asarray(l, jnp.float64)
     n = l.shape[0]
@@ -452,12 +640,23 @@ def gauss_helmert_mixed(
     inv[order] = np.arange(n)
     o = jnp.asarray(order)
     s2o = s2[o]
-    res = _solve(condition, int(dev_column), l[o], jnp.asarray(x0, f), s2o,
-                 jnp.asarray(consts, f)[o], jnp.asarray(weights, f)[o],
-                 jnp.asarray(g_np[order], jnp.int32), jnp.asarray(design, f)[o], U0, V0[o], var0,
-                 ridge_idx, ridge_group, n_groups, float(tol), int(max_iter), chunk,
-                 int(n_cells), bool(estimate_variances),
-                 jnp.asarray(np.inf if robust_k is None else robust_k, f), jnp.ones((), bool))
+    threads = mixed_threads(n) if threads is None else max(1, int(threads))
+    if threads > 1:
+        res = _solve_split(condition, int(dev_column), threads, l[o], jnp.asarray(x0, f), s2o,
+                           jnp.asarray(consts, f)[o], jnp.asarray(weights, f)[o],
+                           jnp.asarray(g_np[order], jnp.int32), jnp.asarray(design, f)[o], U0,
+                           V0[o], var0, ridge_idx, ridge_group, n_groups, float(tol),
+                           int(max_iter), chunk, int(n_cells), bool(estimate_variances),
+                           jnp.asarray(np.inf if robust_k is None else robust_k, f))
+    else:
+        res = _solve(condition, int(dev_column), l[o], jnp.asarray(x0, f), s2o,
+                     jnp.asarray(consts, f)[o], jnp.asarray(weights, f)[o],
+                     jnp.asarray(g_np[order], jnp.int32), jnp.asarray(design, f)[o], U0, V0[o],
+                     var0,
+                     ridge_idx, ridge_group, n_groups, float(tol), int(max_iter), chunk,
+                     int(n_cells), bool(estimate_variances),
+                     jnp.asarray(np.inf if robust_k is None else robust_k, f),
+                     jnp.ones((), bool))
     back = jnp.asarray(inv)
     return eqx.tree_at(lambda r: (r.v, r.normalized, r.dev, r.omega_point, r.weights), res,
                        (res.v[back], res.normalized[back], res.dev[back],

@@ -114,9 +114,9 @@ from ._stages import (
 )
 from ._types import (
     KEPT,
-    KeepMask,
     NON_FINITE,
     SPARSE_SHARE,
+    KeepMask,
     PreprocessConfig,
     PreprocessResult,
 )

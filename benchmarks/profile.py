@@ -11,6 +11,11 @@ effect, preprocessing on) are timed by wrapping the functions that carry them ou
 * alignment and products: north alignment, deviations, per-scan views (``finish_scan_fit``)
 * write: ``fit.json`` and the residual tables
 
+Then the peer of issue 15 on the same scans: a plain vectorised NumPy Gauss-Helmert
+(:func:`numpy_peer`, written without the package: pyarrow columns, forward-difference
+derivatives, 7 iterations, no preprocessing, no surface random effect); the ratio of its time to
+the warm ``fit`` is the end-to-end target (5x).
+
     python benchmarks/profile.py                 # 6 positions x 2 cycles at 6 mrad (~2.5e6 rows)
     python benchmarks/profile.py --positions 2 --step 0.01
 
@@ -31,6 +36,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import jax
+import numpy as np
 
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "results"
@@ -76,11 +82,109 @@ class Stages:
         setattr(module, name, timed)
 
 
+# --------------------------------------------------------------------------------------------
+# The peer: a plain vectorised NumPy Gauss-Helmert, written independently of the package
+# --------------------------------------------------------------------------------------------
+
+PEER_ITERATIONS = 7
+
+
+def _peer_condition(r, phi, theta, x):
+    """Paraboloid condition of raw observations (extended model: tx ty tz rx ry f x4 x6 x7),
+    plain NumPy: point = Ry(ry) Rx(rx) polar(r, phi + (2 x6 + x7 cos th) / sin th, th) + t,
+    th = theta + x4; F = rho^2 / 4f - Z."""
+    cx, sx, cy, sy = np.cos(x[3]), np.sin(x[3]), np.cos(x[4]), np.sin(x[4])
+    R = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]]) @ np.array(
+        [[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    th = theta + x[6]
+    s, c = np.sin(th), np.cos(th)
+    ph = phi + (2.0 * x[7] + x[8] * c) / s
+    p = np.stack([r * s * np.sin(ph), r * s * np.cos(ph), r * c])
+    X = R @ p + np.asarray(x[:3])[:, None]
+    return (X[0] ** 2 + X[1] ** 2) / (4.0 * x[5]) - X[2]
+
+
+def numpy_peer_fit(l, x0, sigma, iterations=PEER_ITERATIONS, chunk=1 << 16):
+    """Gauss-Helmert with numerical (forward-difference) derivatives, ``iterations`` steps,
+    every point weighted by ``1 / (b Sigma b^T)``; returns ``(x, sigma0)``."""
+    n, u = len(l), len(x0)
+    s2 = np.asarray(sigma, float) ** 2
+    hx = np.array([1e-6, 1e-6, 1e-6, 1e-7, 1e-7, 1e-6, 1e-8, 1e-8, 1e-8])
+    hl = np.array([1e-6, 1e-8, 1e-8])
+    x = np.array(x0, float)
+    V = np.zeros_like(l)
+    omega = 0.0
+    for _ in range(iterations):
+        N, nv, parts = np.zeros((u, u)), np.zeros(u), []
+        for s in range(0, n, chunk):
+            lv = l[s:s + chunk] + V[s:s + chunk]
+            F = _peer_condition(lv[:, 0], lv[:, 1], lv[:, 2], x)
+            a = np.empty((len(F), u))
+            for j in range(u):
+                e = np.zeros(u)
+                e[j] = hx[j]
+                a[:, j] = (_peer_condition(lv[:, 0], lv[:, 1], lv[:, 2], x + e) - F) / hx[j]
+            b = np.empty((len(F), 3))
+            for j in range(3):
+                d = np.zeros(3)
+                d[j] = hl[j]
+                b[:, j] = (_peer_condition(*(lv + d).T, x) - F) / hl[j]
+            w = F - np.sum(b * V[s:s + chunk], axis=1)
+            m = (b * b) @ s2
+            aq = a / m[:, None]
+            N += aq.T @ a
+            nv += aq.T @ w
+            parts.append((a, b, w, m))
+        dx = -np.linalg.solve(N, nv)
+        x = x + dx
+        omega = 0.0
+        for i, (a, b, w, m) in enumerate(parts):
+            k = -(a @ dx + w) / m
+            V[i * chunk:(i + 1) * chunk] = s2 * b * k[:, None]
+            omega += float(np.sum(k * k * m))
+    return x, float(np.sqrt(omega / max(n - u, 1)))
+
+
+def numpy_peer(camp_dir: Path) -> dict:
+    """The peer on every scan of the campaign: Parquet columns read with pyarrow, the points
+    within 0.1 m (height) of the paraboloid of a first guess (the simulator's truth off by
+    cm/mrad, calibration at zero: what initial values give), then ``PEER_ITERATIONS`` steps.
+    No preprocessing, no robust rejection, no surface random effect."""
+    import tomllib
+
+    import pyarrow.parquet as pq
+
+    toml = tomllib.loads((camp_dir / "campaign.toml").read_text())
+    sc = toml["scanner"]
+    sigma = np.array([sc["sigma_range_m"], sc["sigma_angle_rad"], sc["sigma_angle_rad"]])
+    truth = {s["id"]: s["model_parameters"] for s in
+             json.loads((camp_dir / "truth.json").read_text())["scans"]}
+    names = ("tx", "ty", "tz", "rx", "ry", "f", "x4", "x6", "x7")
+    offset = np.array([0.02, -0.015, 0.03, 2e-3, -1.5e-3, 0.02, 0.0, 0.0, 0.0])
+    t0, c0 = time.perf_counter(), _cpu()
+    points, out = 0, {}
+    for scan in toml["scan"]:
+        tab = pq.read_table(camp_dir / scan["file"], columns=["range_m", "phi_rad", "theta_rad"])
+        l = np.column_stack([tab.column(k).to_numpy() for k in ("range_m", "phi_rad",
+                                                                 "theta_rad")])
+        l = l[np.all(np.isfinite(l), axis=1)]
+        x0 = np.array([truth[scan["id"]][k] for k in names]) + offset
+        x0[6:] = 0.0
+        near = np.abs(_peer_condition(l[:, 0], l[:, 1], l[:, 2], x0)) < 0.1
+        x, s0 = numpy_peer_fit(l[near], x0, sigma)
+        points += int(near.sum())
+        out[scan["id"]] = {"f": float(x[5]), "sigma0": s0}
+    return {"wall_s": time.perf_counter() - t0, "cpu_s": _cpu() - c0, "points": points,
+            "iterations": PEER_ITERATIONS, "scans": out}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--positions", type=int, default=6)
     ap.add_argument("--step", type=float, default=0.006, help="angular step of the scans (rad)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--no-peer", dest="peer", action="store_false",
+                    help="skip the plain NumPy Gauss-Helmert peer on the same scans")
     args = ap.parse_args(argv)
 
     import hartrao_jax  # noqa: F401  (float64)
@@ -144,9 +248,15 @@ def main(argv=None) -> int:
                      "other_wall_s": other, "stages": stages,
                      "load_average_1min": [load0, os.getloadavg()[0]]})
         print(label, f"{total_w:.1f} s wall, {total_c:.1f} s CPU", flush=True)
+    peer = None
+    if args.peer:
+        load0 = os.getloadavg()[0]
+        peer = numpy_peer(tmp / "camp")
+        peer["load_average_1min"] = [load0, os.getloadavg()[0]]
+        print(f"peer {peer['wall_s']:.1f} s wall, {peer['cpu_s']:.1f} s CPU", flush=True)
     doc = {"positions": args.positions, "scans": len(camp.scans), "rows": int(n_rows),
            "step_rad": args.step, "simulate_s": t_sim, "cores": os.cpu_count(),
-           "load_average": os.getloadavg(), "runs": runs}
+           "load_average": os.getloadavg(), "runs": runs, "peer": peer}
     OUT.mkdir(exist_ok=True)
     (OUT / "profile.json").write_text(json.dumps(doc, indent=2))
     lines = ["# Where the time of `fit` goes", "",
@@ -165,6 +275,15 @@ def main(argv=None) -> int:
         f"**{r['total_wall_s']:.1f}** ({r['total_cpu_s']:.1f})" for r in runs) + " |")
     lines.append("| load average (1 min) at start, end | " + " | ".join(
         "{:.1f}, {:.1f}".format(*r["load_average_1min"]) for r in runs) + " |")
+    if peer is not None:
+        warm = runs[-1]
+        lines += ["", f"Peer (plain NumPy Gauss-Helmert, forward-difference derivatives, "
+                  f"{peer['iterations']} iterations, no preprocessing, {peer['points']:,} points "
+                  f"within 0.1 m of a first guess): {peer['wall_s']:.1f} s wall "
+                  f"({peer['cpu_s']:.1f} CPU s), load {peer['load_average_1min'][0]:.1f}, "
+                  f"{peer['load_average_1min'][1]:.1f}; warm `fit` / peer: "
+                  f"{peer['wall_s'] / warm['total_wall_s']:.2f}x wall, "
+                  f"{peer['cpu_s'] / warm['total_cpu_s']:.2f}x CPU (target 5x)."]
     (OUT / "profile.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0

@@ -62,7 +62,7 @@ from ._checks import _alternatives, _signature_check
 from ._detectability import _detectability
 from ._explain import _candidates, _Joint, _local_candidates, _log_sf, _want
 from ._find import _covariate_cv, _locate_time
-from ._local import local_step
+from ._local import final_estimates, local_step
 from ._options import (
     UNEXPLAINED_MIN_DROP,
     UNEXPLAINED_MIN_DROP_M,
@@ -361,14 +361,15 @@ def diagnose(
                  f.effect, ",".join(f.scans), best.T, best.dof, f.sigma0_before,
                  f.sigma0_after, 1e3 * f.rms_before_m, 1e3 * f.rms_after_m)
     timing["loop"] = time.time() - t_loop
-    if (_want(wanted, "local_deformation") and not spec.bumps
+    if (_want(wanted, "local_deformation") and not spec.bumps and not ctx.has_layout
             and any(f.effect == "panel_offset" for f in findings)):
-        # the panel pattern modelled: search again on residuals without it (before, the
-        # panels' own roughness set the bar a compact bump inside one panel had to pass)
+        # the grid cells' offsets modelled: search again on residuals without them (a known
+        # panel layout needs no second search: its panels are the first search's nuisance)
         t_l = time.time()
         _local_search(ctx, S, spec, local_search, notes, findings, history,
                       "after the panel offsets were modelled")
         timing["local_search"] = timing.get("local_search", 0.0) + time.time() - t_l
+    final_estimates(ctx, S, spec, findings)
     if _want(wanted, "thermal"):
         th = _thermal(ctx, S, len(last_rows) + 1)
         if th is not None and th[0] == "finding":

@@ -5,13 +5,18 @@ together: the reflector is common to them) is searched by :func:`._locate.search
 filter over centres and widths, significance against the maximum the reflector's own roughness
 produces). The search sees the points the robust fit keeps and the rejected ones that agree
 with their neighbours (:func:`readmitted`, :func:`._locate.coherent`): a structure deeper than
-the rejection limit is searched with its core, not only its rim; the refit of a candidate gets
+the rejection limit is searched with its core, not only its rim. On a reflector of known panel
+layout the panels' offsets and tilts are the filter's nuisance (the "Panels" section of
+:mod:`._locate`), so the search runs once, on the start model, and a bump inside a panel is
+neither hidden by the panel pattern nor taken by its panel's offset; the refit of a candidate gets
 those points back near it (its robust rejection may drop them again). Up to
 :data:`MAX_BUMPS` rounds, each stopping at the first candidate that does not stand out.
 An accepted candidate becomes the catalog's ``local_deformation`` term of the model
 (``bump_x_m, bump_y_m, bump_amp_m, bump_width_m``, :func:`._physics.local_deformation`), free
 in the Gauss-Helmert adjustment of every scan that covers it; the scans are refitted and the
-finding must survive the refit (sigma0 drops, the amplitude stays clear of zero). A candidate
+finding must survive the refit (sigma0 drops, the amplitude stays clear of zero). Its
+parameters stay free there, so what is modelled after it (the panel offsets above all) refines
+them: the finding reports the final model's estimates (:func:`final_estimates`). A candidate
 that does not stand out is described as the largest local structure and never as a finding.
 
 Sigmas: the adjustment's sigmas treat the points as independent; on a real reflector the
@@ -67,13 +72,16 @@ def readmitted(S, robust_k: float | None = 4.0) -> list[np.ndarray]:
     return out
 
 
-def search_points(S, robust_k: float | None = 4.0, back=None):
+def search_points(S, robust_k: float | None = 4.0, back=None, panels: bool = False):
     """Aperture positions (m) and residual normal deviations (m) of what the search sees, all
     scans together: the points the fit keeps and the rejected ones that agree with their
-    neighbours (:func:`readmitted`, or the masks ``back`` when given)."""
+    neighbours (:func:`readmitted`, or the masks ``back`` when given); with ``panels`` also
+    their panel ids (-1: none)."""
     back = readmitted(S, robust_k) if back is None else back
     xy = np.concatenate([sc.X_tel[sc.used | b, :2] for sc, b in zip(S, back)])
     r = np.concatenate([sc.mismatch_m[sc.used | b] for sc, b in zip(S, back)])
+    if panels:
+        return xy, r, np.concatenate([sc.panel[sc.used | b] for sc, b in zip(S, back)])
     return xy, r
 
 
@@ -123,11 +131,13 @@ def local_step(ctx, S: Sequence, spec, record: list[dict], notes: list[str]) -> 
     out = []
     for k in range(1, MAX_BUMPS + 1):
         back = readmitted(S, ctx.config.robust_k)
-        xy, r = search_points(S, back=back)
+        # on a reflector of known panels, the panels' offsets and tilts are the filter's
+        # nuisance (a grid of cells is no physical structure: the local background there)
+        xy, r, ids = search_points(S, back=back, panels=True)
         exclude = [(b["values"][b["names"][0]], b["values"][b["names"][1]],
                     abs(b["values"][b["names"][3]])) for b in spec.bumps]
         srch = search(xy, r, alpha=ALPHA_LOCAL, min_amplitude_m=ctx.config.min_effect_m * 5,
-                      exclude=exclude)
+                      exclude=exclude, groups=ids if ctx.has_layout else None)
         c = srch.candidate
         if c is None:
             record.append({"search": k, "statement": "no place of the surface is covered densely "
@@ -188,27 +198,9 @@ def local_step(ctx, S: Sequence, spec, record: list[dict], notes: list[str]) -> 
                                                    else "not finite)"))
             break
         spec.bumps[-1]["values"] = {n: est[n][0] for n in names}
-        x, y, a, w = (est[n][0] for n in names)
+        estimate, where, pt, sid = _estimate(ctx, S, names, est, c.roughness)
+        expl = _sentence(estimate, c.p_value, c.n_peaks, before[1], after[1])
         f_ = c.roughness
-        where, pt, sid = _place(ctx, S, x, y, abs(w))
-
-        def _vs(name, value):
-            s = est[name][1]
-            if s is None:  # held at the search's grid value
-                return {"value": value, "sigma": None, "held": "at the search's grid value"}
-            return {"value": value, "sigma": s * f_, "sigma_white": s}
-
-        estimate = {"amplitude_m": _vs(names[2], a), "width_m": _vs(names[3], abs(w)),
-                    "x_m": _vs(names[0], x), "y_m": _vs(names[1], y)}
-        kind = "bump" if a > 0 else "dent"
-        held = est[names[3]][1] is None
-        wtxt = (f"width {abs(w):.2f} m (held at the search's value: the free refit did not "
-                f"converge)" if held else f"width {abs(w):.2f} ± {est[names[3]][1] * f_:.2f} m")
-        expl = (f"a smooth local {kind} of {1e3 * a:+.2f} ± {1e3 * est[names[2]][1] * f_:.2f} mm "
-                f"and {wtxt} at x {x:.2f} m, y "
-                f"{y:.2f} m of the aperture stands out from the reflector's own roughness "
-                f"(p = {c.p_value:.2g} against its {c.n_peaks} local structures); modelled as "
-                f"local_deformation, rms {1e3 * before[1]:.4f} -> {1e3 * after[1]:.4f} mm")
         desc.update(accepted=True, statement=expl, estimate=estimate, where=where,
                     centre_scan_m=pt)
         p = c.p_value if c.p_value is not None else 1.0
@@ -216,7 +208,8 @@ def local_step(ctx, S: Sequence, spec, record: list[dict], notes: list[str]) -> 
             effect="local_deformation", family="reflector", scans=covering, where=where,
             estimate=estimate, statistic=c.t * c.t, dof=1, p_value=p,
             sigma0_before=before[0], sigma0_after=after[0], rms_before_m=before[1],
-            rms_after_m=after[1], explanation=expl, effect_size_m=abs(a),
+            rms_after_m=after[1], explanation=expl,
+            effect_size_m=abs(estimate["amplitude_m"]["value"]),
             extra={"centre_scan_m": pt, "centre_scan_of": sid, "parameters": list(names),
                    "null": {"method": "maximum of the matched filter over the reflector's own "
                                       "placements (peak-height tail, same surface)",
@@ -225,6 +218,67 @@ def local_step(ctx, S: Sequence, spec, record: list[dict], notes: list[str]) -> 
                    "sigma_note": "sigmas are the adjustment's times the roughness factor "
                                  f"{f_:.2f} (correlated panel-scale roughness)"}))
     return out
+
+
+def _estimate(ctx, S, names, est, f_):
+    """``estimate`` of a finding from the combined bump parameters ``est`` (``{name: (value,
+    sigma)}``; sigma None: held), its sigmas times the roughness factor ``f_``; with its
+    ``where``, scan-frame centre and the scan that gives it."""
+
+    def vs(name):
+        v, s = est[name]
+        v = abs(v) if name == names[3] else v
+        if s is None:  # held at the search's grid value
+            return {"value": v, "sigma": None, "held": "at the search's grid value"}
+        return {"value": v, "sigma": s * f_, "sigma_white": s}
+
+    estimate = {"amplitude_m": vs(names[2]), "width_m": vs(names[3]), "x_m": vs(names[0]),
+                "y_m": vs(names[1])}
+    where, pt, sid = _place(ctx, S, est[names[0]][0], est[names[1]][0], abs(est[names[3]][0]))
+    return estimate, where, pt, sid
+
+
+def _sentence(estimate: dict, p_value, n_peaks: int, rms_before: float, rms_after: float,
+              final: bool = False) -> str:
+    """The finding's one sentence (metres in, millimetres out)."""
+    a, w = estimate["amplitude_m"], estimate["width_m"]
+    x, y = estimate["x_m"]["value"], estimate["y_m"]["value"]
+    kind = "bump" if a["value"] > 0 else "dent"
+    wtxt = (f"width {w['value']:.2f} m (held at the search's value: the free refit did not "
+            f"converge)" if w["sigma"] is None else f"width {w['value']:.2f} ± {w['sigma']:.2f} m")
+    p = "no calibrated significance" if p_value is None else f"p = {p_value:.2g}"
+    return (f"a smooth local {kind} of {1e3 * a['value']:+.2f} ± {1e3 * a['sigma']:.2f} mm and "
+            f"{wtxt} at x {x:.2f} m, y {y:.2f} m of the aperture stands out from the "
+            f"reflector's own roughness ({p} against its {n_peaks} local structures); modelled "
+            f"as local_deformation, rms {1e3 * rms_before:.4f} -> {1e3 * rms_after:.4f} mm"
+            + ("; estimates of the final model (every finding modelled)" if final else ""))
+
+
+def final_estimates(ctx, S, spec, findings) -> None:
+    """Each local-deformation finding's estimate in the final model: its parameters stay free
+    in the scans that cover it, so the steps after it (the panel offsets above all, which it
+    had to share its panels' points with) refine them. ``estimate``, ``where`` and the
+    sentence are updated; the values at acceptance are kept as ``estimate_at_acceptance``."""
+    for f in findings:
+        if f.effect != "local_deformation":
+            continue
+        names = f.extra["parameters"]
+        b = next((b for b in spec.bumps if list(b["names"]) == list(names)), None)
+        if b is None:
+            continue
+        free = [n for n in names if n in b.get("free", names)]
+        est = _combine(S, b["scans"], free)
+        if est is None:
+            continue
+        est.update({n: (b["values"][n], None) for n in names if n not in free})
+        null = f.extra["null"]
+        estimate, where, pt, sid = _estimate(ctx, S, names, est, null["roughness_factor"])
+        f.extra["estimate_at_acceptance"] = f.estimate
+        f.estimate, f.where = estimate, where
+        f.extra.update(centre_scan_m=pt, centre_scan_of=sid)
+        f.effect_size_m = abs(estimate["amplitude_m"]["value"])
+        f.explanation = _sentence(estimate, null["p_value"], null["n_peaks"], f.rms_before_m,
+                                  f.rms_after_m, final=True)
 
 
 def _readmit_near(ctx, S, spec, back, covering, c) -> None:

@@ -50,3 +50,30 @@ def test_merge_gives_one_table_of_the_parts(tmp_path):
     assert rows["oscillation"]["seeds"] == 2
     doc = json.loads((tmp_path / "m" / "prove.json").read_text())
     assert len(doc["runs"]) == 5 and doc["elapsed_s"] == 10.0
+
+
+def test_a_compact_bump_is_found_as_the_catalog_local_deformation():
+    """The concealed Gaussian bump is the catalog's shape: a local_deformation finding at its
+    place is the bump found (and scored against its amplitude and width)."""
+    import math
+
+    truth = {"reflector": {"bump": [3e-3, 5.0, math.radians(30.0), 0.3]}, "scans": [],
+             "effects": {}}
+    x0, y0 = 5.0 * math.cos(math.radians(30.0)), 5.0 * math.sin(math.radians(30.0))
+    f = {"effect": "local_deformation", "scans": ["a"], "where": {"x_m": x0 + 0.05, "y_m": y0},
+         "estimate": {"amplitude_m": {"value": 2.9e-3, "sigma": 1e-4},
+                      "width_m": {"value": 0.31, "sigma": 0.02}},
+         "sigma0_before": 1.01, "sigma0_after": 1.0, "rms_before_m": 8e-4, "rms_after_m": 7e-4}
+    s = score(_case("unexplained_bump"), _doc([f]), truth, 1, 1.0)
+    assert (s.found, s.located, s.estimate_ok, s.false) == (True, True, True, [])
+    f["where"]["x_m"] += 2.0
+    assert score(_case("unexplained_bump"), _doc([f]), truth, 1, 1.0).located is False
+
+
+def test_a_held_width_scores_the_amplitude_alone():
+    truth = {"reflector": {"local": [1e-3, 4.0, 3.0, 0.6]}, "scans": [], "effects": {}}
+    f = {"effect": "local_deformation", "scans": ["a"], "where": {"x_m": 4.0, "y_m": 3.0},
+         "estimate": {"amplitude_m": {"value": 0.95e-3, "sigma": 1e-4},
+                      "width_m": {"value": 0.5, "sigma": None}},
+         "sigma0_before": 1.01, "sigma0_after": 1.0, "rms_before_m": 8e-4, "rms_after_m": 7e-4}
+    assert score(_case("local_deformation"), _doc([f]), truth, 1, 1.0).estimate_ok is True

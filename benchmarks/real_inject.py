@@ -58,7 +58,7 @@ pose than about the search).
 
 ``python benchmarks/real_inject.py [--quick] [--all-amplitudes] [--placements N] [--end-to-end K]
 [--regions N] [--amplitudes-mm A,...] [--widths-m W,...] [--recordings scan10,bump1]
-[--no-readmit]``; the data are
+[--no-readmit] [--merge A.json,B.json]``; the data are
 found through :func:`hartrao_jax._config.real_data_dir` (``$HARTRAO_REAL_DATA``); results in
 ``benchmarks/results/real_inject{,_quick}{,_kept}.{json,md}``.
 """
@@ -641,6 +641,33 @@ def _rounded(x, digits: int = 5):
     return x
 
 
+def merge(parts) -> dict:
+    """One result from the ``.json`` files of several runs (e.g. more amplitudes run later on
+    the same recordings and widths): their placements together, amplitudes in the order
+    0.1, -0.1, 0.2, ...; nulls and end-to-end runs of every part (an unmodified recording's
+    null once), start fits of the first part, run times added."""
+    docs = [json.loads(Path(q).read_text()) for q in parts]
+    res = dict(docs[0])
+    res["rows"] = [r for d in docs for r in d["rows"]]
+    amps = {a for d in docs for a in d["amplitudes_m"]}
+    res["amplitudes_m"] = sorted(amps, key=lambda a: (abs(a), -a))
+    res["extension_m"] = sorted({a for d in docs for a in d.get("extension_m", [])},
+                                key=lambda a: (abs(a), -a))
+    seen, nulls = set(), []
+    for d in docs:
+        for r in d["nulls"]:
+            key = (r["recording"], r["kind"])
+            if r["kind"] == "unmodified" and key in seen:
+                continue
+            seen.add(key)
+            nulls.append(r)
+    res["nulls"] = nulls
+    res["end_to_end"] = [r for d in docs for r in d["end_to_end"]]
+    res["elapsed_s"] = sum(float(d.get("elapsed_s", 0.0)) for d in docs)
+    res["parts"] = [str(q) for q in parts]
+    return res
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true")
@@ -657,7 +684,23 @@ def main(argv=None) -> int:
     ap.add_argument("--widths-m", default=None, help="comma-separated widths in m")
     ap.add_argument("--recordings", default=None, help="comma-separated: scan10,bump1")
     ap.add_argument("--out", default=str(OUT))
+    ap.add_argument("--merge", default=None,
+                    help="comma-separated result .json files of earlier runs: one table "
+                         "(written as real_inject.{json,md} in --out)")
     a = ap.parse_args(argv)
+    if a.merge:
+        parts = a.merge.split(",")
+        bad = [q for q in parts if not Path(q).is_file()]
+        if bad:
+            print(f"error: --merge: {bad[0]}: no such file", file=sys.stderr)
+            return 2
+        res = merge(parts)
+        out = Path(a.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "real_inject.json").write_text(json.dumps(_rounded(res), separators=(",", ":")))
+        (out / "real_inject.md").write_text(summarize(res))
+        print(summarize(res))
+        return 0
     missing = real_data_missing()
     if missing:
         print(f"error: {missing}", file=sys.stderr)

@@ -166,3 +166,36 @@ def test_design_splits_sigma_f_into_white_and_surface(fitted):
     ratio = rows[0.003]["sigma_f_two_face_m"] / rows[0.006]["sigma_f_two_face_m"]
     assert 0.5 < ratio < 1.0
     assert "surface" in sensitivity_table(cs)
+
+
+def test_two_face_derivatives_match_refits_of_the_position(fitted, tmp_path):
+    """The positions' derivatives are those of the two-face adjustment with the surface random
+    effect (the estimates ``fit`` reports): central differences of refits with p +- 1 arcsec
+    (same points and cells, variance components held) agree, and sensitivity.json says so."""
+    from hartrao_jax.sensitivity._sensitivity import position_sensitivity, refit_position_with
+
+    camp, start, _ = fitted
+    two = fit_campaign(camp, "extended", progress=False)
+    pf = two.position_fits[0]
+    ps = position_sensitivity(camp, pf, PARAMS)
+    assert ps.names == tuple(n for n in pf.mixed.model.free if n not in PARAMS)
+    cols = []
+    for j in range(len(PARAMS)):
+        e = np.zeros(len(PARAMS))
+        e[j] = ARCSEC
+        names, xp = refit_position_with(camp, pf, PARAMS, ps.p + e)
+        _, xm = refit_position_with(camp, pf, PARAMS, ps.p - e)
+        cols.append((xp - xm) / (2 * ARCSEC))
+    assert names == ps.names
+    fd = np.array(cols).T
+    np.testing.assert_allclose(ps.dxdp, fd, atol=0.005 * np.max(np.abs(fd)))
+    i_f = ps.names.index("f")
+    np.testing.assert_allclose(ps.df_dp, fd[i_f], atol=0.005 * np.max(np.abs(fd[i_f])))
+    assert np.all(np.isfinite(ps.panel_dp[pf.surface.n > 0]))
+    cs = sensitivity(camp, start, PARAMS, panels=False, design=False,
+                     positions=two.position_fits)
+    doc = json.loads(write_sensitivity(tmp_path / "s.json", cs).read_text())
+    row = next(r for r in doc["positions"] if r["position"] == pf.position)
+    assert row["method"].startswith("two-face adjustment")
+    assert row["df_dp_m_per_unit"]["x4"] == pytest.approx(float(ps.df_dp[0]))
+    assert "df_dp_per_cycle_m_per_unit" in row

@@ -140,13 +140,18 @@ def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U
     per-cell sums; keep per point what the residual update needs."""
     u, k = x.shape[0], U.shape[1]
     lin = jax.vmap(partial(_linearize, condition, dev_column, on), in_axes=(0, None, 0))
-    # the tail is padded with copies of the last point: weight 0 there (never in any sum)
-    (Lc, Vc, Cc, Wc, S2c, Gc, Dc), pad = _chunks([L, V, C, W, S2, G, DM], chunk)
+    # the tail is padded with copies of the last point: weight 0 there (never in any sum);
+    # S2 is per point (n, 3) or one vector (3,) for all
+    per_s2 = S2.ndim == 2
+    (Lc, Vc, Cc, Wc, Gc, Dc, *S2c), pad = _chunks([L, V, C, W, G, DM] + ([S2] if per_s2 else []),
+                                                 chunk)
+    S2c = S2c[0] if per_s2 else jnp.zeros((Lc.shape[0], 0), S2.dtype)
     Wc = Wc.reshape(-1).at[Wc.size - pad:].set(0.0).reshape(Wc.shape) if pad else Wc
 
     def body(carry, ch):
         N, nv, S, sg, tg, wmw = carry
         l, v, c, w8, s2, g, dm = ch
+        s2 = s2 if per_s2 else S2
         live = g >= 0
         gi = jnp.where(live, g, 0)
         dev = jnp.where(live, jnp.sum(dm * U[gi], axis=-1), 0.0)
@@ -520,6 +525,7 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
         x, U = x + up.dx, U + up.dU
         it += 1
         done = bool(step_ok) and not any_bad
+        pers = per = None  # free this linearisation's per-point terms before the next pass
     # statistics at the solution: one more linearisation (the step is ~0)
     sums, pers, n_used = linearize(x, U)
     var, up, _ = update(sums, var, x, U, n_used)
@@ -544,34 +550,44 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
         x_response=response, ridge_fixed=ridge_fixed, ridge_fixed_cov=ridge_fixed_cov)
 
 
-def _solve_split(condition, dev_column, threads, L, x0, S2, C, W, G, DM, U0, V0, var0,
+def _solve_split(condition, dev_column, threads, order, L, x0, S2, C, W, G, DM, U0, V0, var0,
                  ridge_idx, ridge_group, n_ridge_groups, tol, max_iter, chunk, n_cells,
                  estimate_variances, robust_k):
-    """The cell-sorted points cut into ``threads`` equal parts (whole chunks; the tail padded
-    with copies of the last point at weight 0, outside every cell), :func:`_solve_parts`, the
-    per-point results cut back to the points."""
+    """The points in cell order (``order``) cut into ``threads`` equal parts (whole chunks;
+    the last part's tail padded with copies of its last point at weight 0, outside every
+    cell), each part gathered straight from the caller's arrays; :func:`_solve_parts`; the
+    per-point results in the caller's order. ``S2``: (n, 3) or (3,)."""
     n = L.shape[0]
     m = -(-n // (threads * chunk)) * chunk
-    pad = threads * m - n
+    parts = []
+    for i in range(threads):
+        idx = order[i * m:(i + 1) * m]
+        pad = m - idx.shape[0]
 
-    def padded(a, value=None):
-        if not pad:
-            return a
-        tail = jnp.broadcast_to(a[-1:], (pad,) + a.shape[1:]) if value is None else jnp.full(
-            (pad,) + a.shape[1:], value, a.dtype)
-        return jnp.concatenate([a, tail])
+        def take(a, dtype, value=None, idx=idx, pad=pad):
+            # gathered on the host: no device copy of the caller's whole arrays
+            a = np.asarray(a)[idx].astype(dtype, copy=False)
+            if pad:
+                tail = (np.broadcast_to(a[-1:], (pad,) + a.shape[1:]) if value is None
+                        else np.full((pad,) + a.shape[1:], value, dtype))
+                a = np.concatenate([a, tail])
+            return jnp.asarray(a)
 
-    arrays = {"L": padded(L), "C": padded(C), "S2": padded(S2), "G": padded(G, -1),
-              "DM": padded(DM), "W": padded(W, 0.0), "V": padded(V0)}
-    parts = [{k: a[i * m:(i + 1) * m] for k, a in arrays.items()} for i in range(threads)]
+        f = np.float64
+        parts.append({"L": take(L, f), "C": take(C, f), "G": take(G, np.int32, -1),
+                      "DM": take(DM, f), "W": take(W, f, 0.0),
+                      "V": jnp.zeros((m, 3), f) if V0 is None else take(V0, f),
+                      "S2": take(S2, f) if S2.ndim == 2 else S2})
     res = _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_group,
                        n_ridge_groups, tol, max_iter, chunk, n_cells, estimate_variances,
                        robust_k)
-    if not pad:
-        return res
+    # back to the caller's order in one gather (the padding rows are never picked)
+    inv = np.empty_like(order)
+    inv[order] = np.arange(n)
+    back = jnp.asarray(inv)
     return eqx.tree_at(lambda r: (r.v, r.normalized, r.dev, r.omega_point, r.weights), res,
-                       (res.v[:n], res.normalized[:n], res.dev[:n], res.omega_point[:n],
-                        res.weights[:n]))
+                       (res.v[back], res.normalized[back], res.dev[back],
+                        res.omega_point[back], res.weights[back]))
 
 
 def gauss_helmert_mixed(
@@ -621,42 +637,40 @@ def gauss_helmert_mixed(
         threads: parts each pass over the points is split into, one thread each (None:
             :func:`mixed_threads`); the estimates do not depend on it beyond round-off.
     """
-    l = jnp.asarray(l, jnp.float64)
-    n = l.shape[0]
-    f = l.dtype
-    s2 = jnp.broadcast_to(jnp.asarray(sigma_l, f) ** 2, l.shape)
+    n = np.shape(l)[0]
+    f = jnp.float64
     k = design.shape[1]
     ridge_idx, ridge_group, n_groups = ridge_indices(ridge)
     var0 = (jnp.asarray(noise_var0, f), jnp.asarray(cell_var0, f).reshape(k),
             jnp.broadcast_to(jnp.asarray(ridge_var0, f), (n_groups,)))
     U0 = jnp.zeros((n_cells, k), f) if u0 is None else jnp.asarray(u0, f)
-    V0 = jnp.zeros_like(l) if v0 is None else jnp.asarray(v0, f)
     chunk = int(min(chunk_size, max(256, 1 << int(np.ceil(np.log2(max(n, 1)))))))
     # sort the points by cell once (cell-less points last): the per-cell sums of every pass are
     # then sorted segment sums; results are returned in the caller's order
     g_np = np.asarray(groups)
     order = np.argsort(np.where(g_np >= 0, g_np, n_cells), kind="stable")
+    threads = mixed_threads(n) if threads is None else max(1, int(threads))
+    if threads > 1:
+        sig2 = jnp.asarray(sigma_l, f) ** 2
+        res = _solve_split(condition, int(dev_column), threads, order, l, jnp.asarray(x0, f),
+                           sig2 if sig2.ndim == 2 else jnp.broadcast_to(sig2, (3,)),
+                           consts, weights, g_np, design, U0, v0, var0,
+                           ridge_idx, ridge_group, n_groups, float(tol), int(max_iter), chunk,
+                           int(n_cells), bool(estimate_variances),
+                           jnp.asarray(np.inf if robust_k is None else robust_k, f))
+        return res
     inv = np.empty_like(order)
     inv[order] = np.arange(n)
     o = jnp.asarray(order)
-    s2o = s2[o]
-    threads = mixed_threads(n) if threads is None else max(1, int(threads))
-    if threads > 1:
-        res = _solve_split(condition, int(dev_column), threads, l[o], jnp.asarray(x0, f), s2o,
-                           jnp.asarray(consts, f)[o], jnp.asarray(weights, f)[o],
-                           jnp.asarray(g_np[order], jnp.int32), jnp.asarray(design, f)[o], U0,
-                           V0[o], var0, ridge_idx, ridge_group, n_groups, float(tol),
-                           int(max_iter), chunk, int(n_cells), bool(estimate_variances),
-                           jnp.asarray(np.inf if robust_k is None else robust_k, f))
-    else:
-        res = _solve(condition, int(dev_column), l[o], jnp.asarray(x0, f), s2o,
-                     jnp.asarray(consts, f)[o], jnp.asarray(weights, f)[o],
-                     jnp.asarray(g_np[order], jnp.int32), jnp.asarray(design, f)[o], U0, V0[o],
-                     var0,
-                     ridge_idx, ridge_group, n_groups, float(tol), int(max_iter), chunk,
-                     int(n_cells), bool(estimate_variances),
-                     jnp.asarray(np.inf if robust_k is None else robust_k, f),
-                     jnp.ones((), bool))
+    l = jnp.asarray(l, f)
+    V0 = jnp.zeros_like(l) if v0 is None else jnp.asarray(v0, f)
+    s2o = jnp.broadcast_to(jnp.asarray(sigma_l, f) ** 2, l.shape)[o]
+    res = _solve(condition, int(dev_column), l[o], jnp.asarray(x0, f), s2o,
+                 jnp.asarray(consts, f)[o], jnp.asarray(weights, f)[o],
+                 jnp.asarray(g_np[order], jnp.int32), jnp.asarray(design, f)[o], U0, V0[o], var0,
+                 ridge_idx, ridge_group, n_groups, float(tol), int(max_iter), chunk,
+                 int(n_cells), bool(estimate_variances),
+                 jnp.asarray(np.inf if robust_k is None else robust_k, f), jnp.ones((), bool))
     back = jnp.asarray(inv)
     return eqx.tree_at(lambda r: (r.v, r.normalized, r.dev, r.omega_point, r.weights), res,
                        (res.v[back], res.normalized[back], res.dev[back],

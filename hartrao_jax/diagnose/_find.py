@@ -145,9 +145,16 @@ def _periodogram(edges, Nb, nbv, cfg: DiagnoseConfig):
     return 1.0 / freqs, T
 
 
-def _periodogram_points(sc: _Scan, freqs: np.ndarray, F: np.ndarray | None = None) -> np.ndarray:
+def _periodogram_points(sc: _Scan, freqs: np.ndarray, F: np.ndarray | None = None,
+                        chunk: int = 1 << 15) -> np.ndarray:
     """The periodogram statistic at a few frequencies from the points' own times (exact);
-    ``F``: misclosures to use instead of the scan's."""
+    ``F``: misclosures to use instead of the scan's.
+
+    Per frequency the score test of ``(sin, cos) x (rotation x, y)`` against the rotation
+    columns ``a``: every sum it needs is ``sum w exp(i k phi)``, ``k`` 0, 1, 2, over five
+    weights ``w`` (``q a_x^2, q a_x a_y, q a_y^2, q a_x F, q a_y F``; ``sin^2 = (1 - cos 2
+    phi) / 2``, ``sin cos = sin 2 phi / 2``), so all frequencies cost one complex
+    exponential per point and frequency and one product of (5, n) by (n, frequencies)."""
     u = sc.used & (sc.m > 0)
     t = sc.data.time_s[u]
     a = sc.probe[u][:, 3:]
@@ -156,15 +163,33 @@ def _periodogram_points(sc: _Scan, freqs: np.ndarray, F: np.ndarray | None = Non
     qa = a * q[:, None]
     N0 = qa.T @ a
     N0i = np.linalg.pinv(N0)
+    W = np.stack([qa[:, 0] * a[:, 0], qa[:, 0] * a[:, 1], qa[:, 1] * a[:, 1],
+                  qa[:, 0] * F, qa[:, 1] * F])  # (5, n)
+    freqs = np.asarray(freqs, float)
+    Z1 = np.zeros((5, len(freqs)), complex)
+    Z2 = np.zeros((5, len(freqs)), complex)
+    for lo in range(0, len(t), chunk):
+        E = np.exp(2j * np.pi * t[lo: lo + chunk, None] * freqs[None, :])
+        Z1 += W[:, lo: lo + chunk] @ E
+        Z2 += W[:, lo: lo + chunk] @ (E * E)
+    A0 = W.sum(1)
+    pair = ((0, 1), (1, 2))  # index of w for (a_k a_l): xx 0, xy 1, yy 2
     out = np.zeros(len(freqs))
-    for k, f in enumerate(freqs):
-        ph = 2 * np.pi * f * t
-        h = np.stack([np.sin(ph), np.cos(ph)], 1)
-        C = (h[:, :, None] * a[:, None, :]).reshape(len(t), 4)  # (sin, cos) x (x, y)
-        qC = C * q[:, None]
-        M = qC.T @ C
-        K = qC.T @ a
-        uu = qC.T @ F
+    for k in range(len(freqs)):
+        M = np.zeros((4, 4))
+        K = np.zeros((4, 2))
+        uu = np.zeros(4)
+        for i in range(2):
+            uu[i] = Z1[3 + i, k].imag  # sin a_i F
+            uu[2 + i] = Z1[3 + i, k].real  # cos a_i F
+            for j in range(2):
+                w = pair[i][j]
+                c2, s2 = Z2[w, k].real, Z2[w, k].imag
+                M[i, j] = 0.5 * (A0[w] - c2)  # sin sin
+                M[2 + i, 2 + j] = 0.5 * (A0[w] + c2)  # cos cos
+                M[i, 2 + j] = M[2 + j, i] = 0.5 * s2  # sin cos
+                K[i, j] = Z1[w, k].imag
+                K[2 + i, j] = Z1[w, k].real
         S = M - K @ N0i @ K.T
         out[k] = float(uu @ np.linalg.solve(S + 1e-12 * np.trace(S) * np.eye(4), uu))
     return out

@@ -229,11 +229,11 @@ def _group_sums(ij: np.ndarray, r: np.ndarray, panels, shape, sw: float, sigma: 
         Ki = np.linalg.inv(K)
         lo = np.maximum(ij[idx].min(0) - reach, 0)
         hi = np.minimum(ij[idx].max(0) + reach + 1, shape)
-        cell = (ij[idx, 0] - lo[0], ij[idx, 1] - lo[1])
-        G = np.empty(tuple(hi - lo) + (k,))
+        shp = tuple(int(v) for v in hi - lo)
+        cell = (ij[idx, 0] - lo[0]) * shp[1] + (ij[idx, 1] - lo[1])
+        G = np.empty(shp + (k,))
         for a in range(k):
-            Ca = np.zeros(tuple(hi - lo))
-            np.add.at(Ca, cell, P[:, a])
+            Ca = np.bincount(cell, P[:, a], minlength=shp[0] * shp[1]).reshape(shp)
             G[..., a] = _gauss(Ca, sw)
         GK = G @ Ki
         Q1[lo[0]:hi[0], lo[1]:hi[1]] += GK @ (P.T @ r[idx])

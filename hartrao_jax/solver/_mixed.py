@@ -419,7 +419,8 @@ def mixed_threads(n: int) -> int:
     runtime executes concurrent calls concurrently), so the points are split into parts, each
     part's pass runs in its own thread, and the sums are added."""
     env = os.environ.get(THREADS_ENV)
-    t = int(env) if env else len(os.sched_getaffinity(0))
+    affinity = getattr(os, "sched_getaffinity", None)  # Linux; elsewhere the core count
+    t = int(env) if env else (len(affinity(0)) if affinity else os.cpu_count() or 1)
     return int(max(1, min(t, 8, n // PARALLEL_MIN_POINTS)))
 
 

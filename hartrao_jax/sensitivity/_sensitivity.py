@@ -352,6 +352,24 @@ def _exact_sums(model, l, c, w, s2, cell, design, x, U, n_cells: int, chunk: int
     return N, S, sg
 
 
+def _held(pf, params: tuple[str, ...]):
+    """Split a two-face position's unknowns for :func:`position_sensitivity` and its refits:
+    ``(model, free, fixed, xs, names)`` -- the fit's model and unknowns, its fixed values,
+    the estimates by name, and the unknowns left once ``params`` are held."""
+    mdl = pf.mixed.model
+    free = tuple(mdl.free)
+    fixed = dict(zip(mdl.fixed_names, np.asarray(mdl.fixed_values).tolist()))
+    xs = dict(zip(free, np.asarray(pf.mixed.x).tolist()))
+    return mdl, free, fixed, xs, tuple(n for n in free if n not in params)
+
+
+def _model_like(mdl, free, fixed):
+    """A model with ``free`` unknowns and ``fixed`` values, otherwise as ``mdl``."""
+    return make_model(free, fixed, check_separable=False, shift_window_s=mdl.shift_window_s,
+                      osc_period_s=mdl.osc_period_s, kappa_rad=mdl.kappa_rad,
+                      aperture_radius_m=mdl.aperture_radius_m)
+
+
 def position_sensitivity(campaign, pf, params: Sequence[str] = DEFAULT_PARAMS
                          ) -> PositionSensitivity:
     """Implicit derivatives of a two-face position fit (:class:`..fit.PositionFit` with its
@@ -362,16 +380,10 @@ def position_sensitivity(campaign, pf, params: Sequence[str] = DEFAULT_PARAMS
     if st is None:
         raise ValueError(f"position {pf.position}: no surface random effect to differentiate")
     params = tuple(params)
-    mdl = st.model
-    free = tuple(mdl.free)
-    fixed = dict(zip(mdl.fixed_names, np.asarray(mdl.fixed_values).tolist()))
-    xs = dict(zip(free, np.asarray(st.x).tolist()))
-    names = tuple(n for n in free if n not in params)
+    mdl, free, fixed, xs, names = _held(pf, params)
     p = np.array([xs[k] if k in xs else fixed.get(k, 0.0) for k in params], float)
-    model_xp = make_model(names + params, {k: v for k, v in fixed.items() if k not in params},
-                          check_separable=False, shift_window_s=mdl.shift_window_s,
-                          osc_period_s=mdl.osc_period_s, kappa_rad=mdl.kappa_rad,
-                          aperture_radius_m=mdl.aperture_radius_m)
+    model_xp = _model_like(mdl, names + params,
+                           {k: v for k, v in fixed.items() if k not in params})
     order = tuple(model_xp.free)
     ix = np.array([order.index(k) for k in names])
     ip = np.array([order.index(k) for k in params], int)
@@ -406,16 +418,9 @@ def refit_position_with(campaign, pf, params: Sequence[str], p: Sequence[float],
     check of :func:`position_sensitivity`). Returns ``(names, x)``."""
     st = pf.mixed
     params = tuple(params)
-    mdl = st.model
-    free = tuple(mdl.free)
-    fixed = dict(zip(mdl.fixed_names, np.asarray(mdl.fixed_values).tolist()))
-    xs = dict(zip(free, np.asarray(st.x).tolist()))
-    names = tuple(n for n in free if n not in params)
-    model = make_model(names, {**{k: v for k, v in fixed.items() if k not in params},
-                               **dict(zip(params, map(float, p)))},
-                       check_separable=False, shift_window_s=mdl.shift_window_s,
-                       osc_period_s=mdl.osc_period_s, kappa_rad=mdl.kappa_rad,
-                       aperture_radius_m=mdl.aperture_radius_m)
+    mdl, free, fixed, xs, names = _held(pf, params)
+    model = _model_like(mdl, names, {**{k: v for k, v in fixed.items() if k not in params},
+                                     **dict(zip(params, map(float, p)))})
     l, c, w, cell, design, sig, _ = _position_arrays(campaign, pf, mdl)
     ridge = {g: [model.free.index(free[i]) for i in idx]
              for g, idx in (st.ridge or {}).items()} or None

@@ -16,14 +16,18 @@ One step of the loop (``physics.md``, "Statistics"):
    (per face) and within-panel structure on the dish (after panel planes) are measured.
 2. *Explain.* One augmented model per scan holds every catalog parameter not yet in the model,
    free at value 0 (instrument parameters, the shift with the window found, the oscillation with
-   the period found, drift, Zernike modes); :func:`~hartrao_jax.solver.normal_equations` gives its
-   normal equations at the current solution, with one offset per panel (common to all scans)
-   as nuisance. The scans' equations are summed into one joint system (separate object
-   parameters per scan, instrument parameters shared by all scans, motion per scan, Zernike
-   coefficients linear in gravity across positions) and the panel offsets are eliminated
-   (Schur complement). For every candidate the score statistic, its one-step estimate, the
-   predicted improvement in metres and its multiple correlation with the model follow from the
-   partitioned system; candidates inseparable from the model are reported as ``confounded``.
+   the period found, drift, Zernike modes); :func:`~hartrao_jax.solver.mixed_chunk` gives its
+   normal equations at the current solution with the columns of the surface cells (per panel,
+   common to all scans: an offset and two tilts). The scans' equations are summed into one
+   joint system (separate object parameters per scan, instrument parameters shared by all
+   scans, motion per scan, Zernike coefficients linear in gravity across positions). The score
+   tests' null carries the surface as a random effect (``physics.md``, Statistics): the cells'
+   variances and the noise's are estimated at this linearisation as the two-face adjustment
+   estimates them, and the cells are eliminated with their priors (Schur complement); the
+   panel-offset test and the model step keep the offsets alone as fixed nuisance. For every
+   candidate the score statistic, its one-step estimate, the predicted improvement in metres
+   and its multiple correlation with the model follow from the partitioned system; candidates
+   inseparable from the model are reported as ``confounded``.
 3. *Decide.* Among the candidates that are significant (Bonferroni over the candidates and
    the windows/periods searched), large enough (``min_effect_m``, the predicted rms change of
    the fit, debiased by the degrees of freedom) and show their family's signature (instrument:
@@ -92,6 +96,12 @@ from ._summary import _cells_not_panels, _compare, _extent, _snapshot
 from ._thermal import _thermal
 
 log = logging.getLogger("hartrao_jax")
+
+_NULL_DESCRIPTION = (
+    "catalog score tests judged against the surface as a random effect: per panel (or grid "
+    "cell) an offset and two tilts common to all scans, their variances and the noise's "
+    "estimated at the last step (Foerstner), the cells eliminated with their priors; sigma0 "
+    "is the noise's")
 
 
 # ============================================================================================
@@ -391,6 +401,8 @@ def diagnose(
         not_identifiable=not_identifiable, local_search=local_search, layout=ctx.layout_note,
         extents={sc.id: _extent(sc) for sc in S},
         covariates=cov_cmp,
+        score_null=({"surface_random_effect": joint.surface.to_json(),
+                     "description": _NULL_DESCRIPTION} if joint is not None else {}),
     )
     if not ctx.has_layout:
         for f in findings:

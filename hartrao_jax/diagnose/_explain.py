@@ -10,9 +10,11 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
+import jax.numpy as jnp
 import numpy as np
 from scipy import special, stats
 
+from ..geometry._geometry import panel_cells
 from ..model._model import (
     DRIFT,
     OSCILLATION,
@@ -20,7 +22,7 @@ from ..model._model import (
     ZERNIKE_PREFIX,
 )
 from ..physics._catalog import INSTRUMENT, inseparable_pairs
-from ..solver._ghm import normal_equations
+from ..solver._mixed import MixedSums, mixed_chunk, mixed_step
 from ._state import (
     ZERNIKE_TESTED,
     _Context,
@@ -91,6 +93,91 @@ def _p_of(T: float, dof: int) -> float:
     return float(stats.chi2.sf(max(T, 0.0), max(dof, 1)))
 
 
+K_CELL = 3  # per surface cell: offset (m) and two tilts (rad) about its centre
+_CELL_VAR0 = (1e-8, 1e-8, 1e-8)  # start of the cells' variances: 0.1 mm, 1e-4 rad
+
+
+def _cell_sums(ctx: _Context, sc: _Scan, model, x: np.ndarray, w: np.ndarray,
+               U: np.ndarray) -> MixedSums:
+    """Normal-equation sums of one scan at its current solution, with the columns of its
+    surface cells (:func:`..geometry.panel_cells`: the panels, or the stated grid; per cell its
+    offset and radial and tangential tilt, entering as normal deviation), as the two-face
+    adjustment forms them (:func:`..solver.mixed_chunk`). ``w``: weights of the points; ``U``
+    (cells, 3): the cells' current values (the modelled panel offsets), taken out of the
+    points' known deviation so that the random effect carries the whole surface."""
+    n = len(w)
+    _, local, _, _ = panel_cells(sc.X_tel, ctx.edges, ctx.counts)
+    cell = np.where(sc.panel >= 0, sc.panel, -1)
+    design = np.column_stack([np.ones(n), local]) * (cell >= 0)[:, None]
+    consts = sc.consts().copy()
+    consts[:, 1] -= np.where(cell >= 0, np.sum(design * U[np.maximum(cell, 0)], axis=1), 0.0)
+    npad = _npad(n)
+    sums, _ = mixed_chunk(
+        model, jnp.asarray(_pad(sc.l, npad)), jnp.asarray(_pad(consts, npad)),
+        jnp.asarray(_pad(w, npad, 0.0)), jnp.asarray(np.broadcast_to(ctx.sigma**2, (npad, 3))),
+        jnp.asarray(_pad(cell, npad, -1)), jnp.asarray(_pad(design, npad, 0.0)),
+        jnp.asarray(x, float), jnp.asarray(U), jnp.asarray(1.0),
+        jnp.asarray(np.inf), dev_column=1)
+    return sums
+
+
+def _scaled_pinv(K: np.ndarray) -> np.ndarray:
+    """Pseudo-inverse of a symmetric normal matrix after Jacobi scaling."""
+    d = 1.0 / np.sqrt(np.where(np.diag(K) > 0, np.diag(K), 1.0))
+    return np.linalg.pinv(K * d[:, None] * d[None, :], rcond=1e-13) * d[:, None] * d[None, :]
+
+
+@dataclass
+class _SurfaceNull:
+    """The joint system with the surface as a random effect, the null of the score tests
+    (``physics.md``, Statistics: ``M`` and ``N`` include the surface random effect).
+
+    Each surface cell (a panel, common to every scan) carries an offset (m) and two tilts
+    (rad) with variances ``cell_var`` estimated with the noise variance ``noise_var`` (the
+    factor on the a priori sigmas) at this linearisation, by the two-face adjustment's
+    variance-component estimation (:func:`..solver.mixed_step`, Foerstner); the cells are then
+    eliminated with their priors (Schur complement). ``N``, ``n``: the reduced system over all
+    joint unknowns; ``K_inv``: inverse of its null block; ``sigma0 = sqrt(noise_var)``."""
+
+    N: np.ndarray
+    n: np.ndarray
+    K_inv: np.ndarray
+    sigma0: float
+    noise_var: float
+    cell_var: np.ndarray
+    note: str = ""
+
+    @classmethod
+    def of(cls, joint: _Joint, S3: np.ndarray, sg3: np.ndarray, tg3: np.ndarray,
+           U: np.ndarray) -> _SurfaceNull:
+        I0 = joint.I0
+        sums = MixedSums(
+            jnp.asarray(joint.N_raw[np.ix_(I0, I0)]), jnp.asarray(joint.n_raw[I0]),
+            jnp.asarray(S3), jnp.asarray(sg3[:, :, I0]), jnp.asarray(tg3),
+            jnp.asarray(joint.wMw_raw), jnp.asarray(float(joint.n_used)), jnp.asarray(0.0))
+        var0 = (jnp.asarray(1.0), jnp.asarray(_CELL_VAR0), jnp.zeros((0,)))
+        none = jnp.zeros((0,), jnp.int32)
+        st = mixed_step(sums, var0, var0, jnp.zeros(len(I0)), jnp.asarray(U), none, none, 0)
+        se2, cv = float(st.var[0]), np.asarray(st.var[1], float)
+        if not (np.isfinite(se2) and se2 > 0 and np.all(np.isfinite(cv))):
+            # the null block is singular for the random-effect solve: the white system
+            return cls(joint.N, joint.n, joint.K_inv, joint.sigma0, joint.sigma0**2,
+                       np.zeros(K_CELL), "surface variances not estimable: panel offsets "
+                       "eliminated as fixed, white noise")
+        lam = se2 / cv
+        Dinv = np.linalg.inv(S3 + np.diag(lam)[None])
+        N = joint.N_raw - np.einsum("gki,gkl,glj->ij", sg3, Dinv, sg3)
+        n = joint.n_raw - np.einsum("gki,gkl,gl->i", sg3, Dinv, tg3 + lam[None, :] * U)
+        return cls(N, n, _scaled_pinv(N[np.ix_(I0, I0)]), math.sqrt(se2), se2, cv)
+
+    def to_json(self) -> dict:
+        return {"noise_variance": self.noise_var, "sigma0": self.sigma0,
+                "cell_sd": {"offset_m": float(np.sqrt(self.cell_var[0])),
+                            "tilt_radial_rad": float(np.sqrt(self.cell_var[1])),
+                            "tilt_tangential_rad": float(np.sqrt(self.cell_var[2]))},
+                **({"note": self.note} if self.note else {})}
+
+
 class _Joint:
     """The scans' normal equations summed into one system, panel offsets eliminated."""
 
@@ -129,9 +216,12 @@ class _Joint:
         N = np.zeros((D, D))
         n = np.zeros(D)
         wMw = 0.0
-        S = np.zeros(G)
-        sg = np.zeros((G, D))
-        tg = np.zeros(G)
+        U = np.zeros((G, K_CELL))  # the cells' current values: the modelled panel offsets
+        if spec.panels is not None:
+            U[:, 0] = spec.panels["offset"]
+        S3 = np.zeros((G, K_CELL, K_CELL))
+        sg3 = np.zeros((G, K_CELL, D))
+        tg3 = np.zeros((G, K_CELL))
         self.n_used = 0
         self.sum_q = 0.0
         t0 = time.time()
@@ -161,22 +251,19 @@ class _Joint:
                 else:
                     P[i, self.cidx[(sc.id, name)]] = 1.0
             w = (sc.used & (sc.m > 0)).astype(float)
-            npad = _npad(len(w))
-            ne = normal_equations(model, _pad(sc.l, npad), x, ctx.sigma,
-                                  _pad(sc.consts(), npad), _pad(w, npad, 0.0), _pad(sc.v, npad),
-                                  groups=_pad(np.where(sc.panel >= 0, sc.panel, -1), npad, -1),
-                                  n_groups=G, offset_column=2)
-            Ns, ns = np.asarray(ne.N), np.asarray(ne.n)
-            N += P.T @ Ns @ P
-            n += P.T @ ns
+            ne = _cell_sums(ctx, sc, model, x, w, U)
+            N += P.T @ np.asarray(ne.N) @ P
+            n += P.T @ np.asarray(ne.nv)
             wMw += float(ne.wMw)
-            S += np.asarray(ne.S)
-            sg += np.asarray(ne.s) @ P
-            tg += np.asarray(ne.t)
+            S3 += np.asarray(ne.S)
+            sg3 += np.asarray(ne.sg) @ P
+            tg3 += np.asarray(ne.tg)
             self.n_used += int(w.sum())
             self.sum_q += float(np.sum(w / np.where(sc.m > 0, sc.m, 1.0)))
         log.debug("joint normal equations: %d unknowns, %.1f s", D, time.time() - t0)
         self.N_raw, self.n_raw, self.wMw_raw = N, n, wMw
+        # the panel offsets alone, as fixed nuisance (the panel test and the model step)
+        S, sg, tg = S3[:, 0, 0], sg3[:, 0, :], tg3[:, 0]
         live = S > 0
         Si = np.where(live, 1.0 / np.where(live, S, 1.0), 0.0)
         self.G_live = int(live.sum())
@@ -205,6 +292,9 @@ class _Joint:
         n0r = self.n_raw[self.I0]
         self.omega0_raw = self.wMw_raw - float(n0r @ Kr_inv @ n0r)
         self.cfg = cfg
+        # ---- the score tests' null: the surface as a random effect (physics.md, Statistics)
+        self.surface = _SurfaceNull.of(self, S3, sg3, tg3, U)
+        log.debug("score-test null: %s", self.surface.to_json())
 
     # ----------------------------------------------------------------------------------
     def null_step(self) -> np.ndarray:
@@ -222,13 +312,14 @@ class _Joint:
     def test(self, cand: _Candidate, sigma0: float | None = None) -> _Test:
         """Score statistic, one-step estimate, effect size and correlation of a candidate."""
         cfg = self.cfg
-        s0 = sigma0 or self.sigma0
+        sf = self.surface
+        s0 = sigma0 or sf.sigma0
         H = cand.H
         J = cand.idx
-        B = self.N[np.ix_(self.I0, J)] @ H
-        Z = self.K_inv @ B
-        S = H.T @ self.N[np.ix_(J, J)] @ H - B.T @ Z
-        m = H.T @ self.n[J] - Z.T @ self.n[self.I0]
+        B = sf.N[np.ix_(self.I0, J)] @ H
+        Z = sf.K_inv @ B
+        S = H.T @ sf.N[np.ix_(J, J)] @ H - B.T @ Z
+        m = H.T @ sf.n[J] - Z.T @ sf.n[self.I0]
         Draw = H.T @ self.N_raw[np.ix_(J, J)] @ H
         S = 0.5 * (S + S.T)
         # canonical directions: S v = lam Draw v; lam = 1 - rho^2
@@ -258,7 +349,7 @@ class _Joint:
         with_, cw = [], []
         if len(m) == 1:
             # corr(e, x_i) = -Z_i / sqrt(S (K^-1)_ii + Z_i^2)  (inverse of the bordered matrix)
-            kd = np.maximum(np.diag(self.K_inv), 0.0)
+            kd = np.maximum(np.diag(sf.K_inv), 0.0)
             Sv = max(float(S[0, 0]), 0.0)
             corr = -Z[:, 0] / np.sqrt(Sv * kd + Z[:, 0] ** 2 + 1e-300)
             order = np.argsort(-np.abs(corr))
@@ -279,8 +370,7 @@ class _Joint:
         if cand.per_scan is None or cand.per_scan.shape[1] <= cand.H.shape[1]:
             return 0.0, 0
         alt = _Candidate(cand.effect, cand.family, cand.idx, cand.per_scan, cand.names, cand.scans)
-        t = self.test(alt, test_sigma0 := self.sigma0)
-        del test_sigma0
+        t = self.test(alt)
         return max(0.0, t.T - test.T), t.dof - test.dof
 
 

@@ -42,6 +42,7 @@ class Diagnosis:
     layout: str = ""  # panels of the telescope's layout, or the stated grid
     covariates: dict = field(default_factory=dict)  # cross-validated covariate comparison
     extents: dict = field(default_factory=dict)  # scan id -> map extent (m), for figures
+    score_null: dict = field(default_factory=dict)  # the score tests' surface random effect
 
     def to_json(self) -> dict:
         return {
@@ -67,6 +68,7 @@ class Diagnosis:
                 {k: v for k, v in d.items() if not k.startswith("_")} for d in self.local_search],
             "layout": self.layout,
             "covariate_comparison": self.covariates,
+            "score_test_null": self.score_null,
         }
 
     def effects(self) -> list[str]:

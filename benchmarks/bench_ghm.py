@@ -134,7 +134,7 @@ def work_jax(method: str, l: np.ndarray, repeat: int):
         t_first = time.perf_counter() - t
 
         def run():
-            x, N, Ninv, V, Kk, M, F0, omega, it, done = jax.block_until_ready(comp(*fargs))
+            x, N, Ninv, V, Kk, M, F0, omega, it, done, _ = jax.block_until_ready(comp(*fargs))
             s0 = jnp.sqrt(omega / (n - x.shape[0]))
             return x, it, s0, jnp.sqrt(jnp.diagonal(Ninv)) * s0
         passes = "1 per iteration + 1 store sweep"

@@ -21,23 +21,18 @@ One read of the file per iteration, and everything else from the same pass:
 * the residuals ``v`` and standardized residuals of the previous solution (from the stored
   ``a, b, w, m`` and the previous step, as the kernel's final sweep computes them).
 
-So the first pass of robust round ``r + 1`` (the rejection beyond ``k`` a-posteriori sigmas of
-round ``r``, applied per chunk, then the normals at round ``r``'s solution with the residuals
-``v`` of round ``r`` -- exactly what :func:`._ghm.robust_gauss_helmert` starts the next
-adjustment from) also writes round ``r``'s ``v`` and standardized residuals; if it rejects
-nothing, those are the final result. Passes over the file = iterations + 1. The arithmetic is
-that of :func:`._ghm.gauss_helmert` / :func:`._ghm.robust_gauss_helmert` (same kernel, same
-linearisation points, same convergence test, rounds until nothing new is rejected), so the
-result equals the in-memory adjustment to round-off.
-
-One departure (``stall=True``, the default): a robust round whose iteration stalls -- the step
-below one sigma but no longer shrinking -- is checked for rejections at once instead of being
-iterated to ``max_iter``; if nothing is rejected it goes on as before. At full resolution the
-first round stalls (gross outliers a few 1e-4 rad from the scanner's pole, where the x6/x7
-corrections are singular, see the main loop); the in-memory fit spends ``max_iter`` = 30
-iterations there. Rounds that converge normally are unaffected, so then the result is the
-in-memory one; after a stall the rejections are decided at a solution within a fraction of a
-sigma of the round's limit (the same points on the data measured).
+The robust rejection is that of :func:`._ghm.robust_gauss_helmert`, inside the iteration: once
+a step was below one sigma of the unknowns, each pass first judges the previous solution's
+residuals (from the store and the previous step) against ``robust_k`` a-posteriori sigmas of
+that solution (``sigma0`` from the previous pass's sums), gives the points beyond weight 0 for
+good, then accumulates the normals; the iteration ends when a step is below ``tol`` and its
+pass rejected nothing. The residuals of the solution come from the store at the end (no read
+of the file). Passes over the file = iterations. The arithmetic is that of the in-memory
+kernel (same linearisation points, same rejections, same convergence test), so the result
+equals the in-memory adjustment to round-off. (Until 2026-11 each robust round was iterated
+to convergence, one more pass confirmed it, and a round stalled at full resolution by gross
+outliers near the scanner's pole, where x6/x7 are singular, was checked early: 18 passes in
+5 rounds; rejected at the first sub-sigma step they no longer stall the iteration.)
 
 Outputs under ``store`` (indexed by the file row, rows dropped as non-finite are zero):
 ``v.npy`` (rows, 3) residuals, ``w.npy`` weights (0: outside the window or rejected),
@@ -70,7 +65,7 @@ from ..campaign._campaign import Campaign, ScanMeta, iter_scan_chunks
 from ..geometry._geometry import pointing_gravity
 from ..model._model import N_CONSTS, make_model, parameter_unit
 from ..preprocess._initial import InitialValues, geometry_window, initial_values
-from ..solver._kernel import linearize_rev, make_pass, solve_scaled
+from ..solver._kernel import REJECT_BELOW, linearize_rev, make_pass, solve_scaled
 from ._distributed import worker_campaign
 from ._fit import Estimates, _progress, _x0, sigma_vector
 
@@ -185,12 +180,12 @@ class StreamFit(Estimates):
     ``v.npy`` (rows, 3) residuals, ``w.npy`` weights, ``e.npy`` standardized residuals
     (|k| sqrt(m) / sigma0), indexed by the file row.
 
-    ``iterations``: kernel passes (one linearisation per point) over all robust rounds;
-    ``passes``: reads of the scan file by the adjustment (iterations + 1: the last pass
-    confirms that nothing more is rejected and writes the residuals; without rejection
-    iterations, the residuals coming from the store); ``round_iterations`` per round;
-    ``ratios``: the convergence measure ``max |dx_j| / sigma_j`` of each iteration (converged
-    below ``tol``); ``stalled_rounds``: rounds checked for rejections at a stall."""
+    ``iterations``: kernel passes (one linearisation per point); ``passes``: reads of the scan
+    file by the adjustment (= iterations; the residuals of the solution come from the store);
+    ``rounds``: 1 + the passes that rejected points, ``round_iterations`` the iterations
+    between them; ``ratios``: the convergence measure ``max |dx_j| / sigma_j`` of each
+    iteration (converged below ``tol``); ``stalled_rounds``: always empty (kept for the
+    record's shape: the rejection inside the iteration does not stall)."""
 
     id: str
     names: tuple[str, ...]
@@ -284,9 +279,8 @@ def stream_fit_scan(
     from a random sample of the scan, as :func:`._fit.prepare_scan` does from the whole scan).
     ``prefetch``: read the next chunk (file and store) in a thread while this one is computed
     (no gain measured on 2 busy cores, and glibc's per-thread arena keeps about 1 GiB more).
-    ``stall``: check rejections as soon as a round's iteration stalls below one sigma (see
-    the main loop) instead of iterating it to ``max_iter``; ``False``: exactly the iteration
-    of :func:`._ghm.robust_gauss_helmert`.
+    ``stall``: ignored (the rounds it shortened are gone: the rejection is inside the
+    iteration, as in :func:`._ghm.robust_gauss_helmert`).
     Other arguments as :func:`._fit.fit_scan` / :func:`._ghm.robust_gauss_helmert`.
     """
     t_start = time.perf_counter()
@@ -451,67 +445,44 @@ def stream_fit_scan(
 
     t0 = time.perf_counter()
     try:
-        rounds, it_round, total_it = 1, 0, 0
+        # the iteration of :func:`._kernel.gh_one_pass` with its rejection inside the
+        # iteration (:func:`._ghm.robust_gauss_helmert`): each pass judges the previous
+        # solution's residuals (from the store) against robust_k a-posteriori sigmas of that
+        # solution (sigma0 from the previous pass's sums: omega = w^T M^-1 w + dx.n), once a
+        # step was below one sigma; rejected points stay out
+        rounds, it_round, total_it, rejecting = 1, 0, 0, 0
         round_its: list[int] = []
         ratios: list[float] = []
-        stalls: list[int] = []  # rounds ended early by a stall (see below)
-        sigma0 = 1.0
-        pending = False  # the next pass checks rejections (with sigma0 of the last solution)
-        settled = False  # the last solution ends its round (converged or max_iter)
-        may_stall = True  # stall test on in this round (off once a stalled round resumed)
+        sigma0, ratio = 1.0, math.inf
         converged = False
-        N_final = Ninv_final = None
-        n_used_final = 0
-        prev_ratio = math.inf
+        N = Ninv = None
+        n_used = 0
         while True:
-            N, nv, wmw, n_bad, n_used = stream_pass(x, dx_prev, reject=pending, sigma0=sigma0,
-                                                    write=pending)
-            if pending:
-                pending = False
-                if n_bad:  # a new round from the last solution and its residuals
-                    log.info("stream %s: round %d rejects %d points", meta.id, rounds, n_bad)
-                    round_its.append(it_round)
-                    rounds += 1
-                    it_round, prev_ratio, may_stall = 0, math.inf, True
-                elif settled:  # nothing more rejected: the last solution is final (its
-                    break  # residuals were written by this pass)
-                else:  # a stalled round, nothing to reject: it goes on (this pass is its
-                    may_stall = False  # next iteration) to convergence or max_iter
+            judge = (robust_k is not None and total_it >= 1 and ratio < REJECT_BELOW
+                     and rejecting < max_rounds)
+            judged = judge or robust_k is None or rejecting >= max_rounds
+            N, nv, wmw, n_bad, n_used = stream_pass(x, dx_prev, reject=judge, sigma0=sigma0,
+                                                    write=False)
+            if n_bad:
+                log.info("stream %s: iteration %d rejects %d points", meta.id, total_it + 1,
+                         n_bad)
+                round_its.append(it_round)
+                rounds += 1
+                rejecting += 1
+                it_round = 0
             dx, Ninv, ratio, omega = (np.asarray(o) for o in _solve_step(N, nv, wmw))
             ratio, omega = float(ratio), float(omega)
             it_round += 1
             total_it += 1
             ratios.append(ratio)
-            log.debug("stream %s: round %d iteration %d ratio %.3g", meta.id, rounds, it_round,
-                      ratio)
+            log.debug("stream %s: iteration %d ratio %.3g", meta.id, total_it, ratio)
             x = x + dx
             dx_prev = dx
-            settled = ratio < tol or it_round >= max_iter
-            # A stall: the step is below one sigma but no longer shrinks (it shrinks 1e3-fold
-            # per iteration otherwise). Seen in round 1 at full resolution: gross outliers a
-            # few 1e-4 rad from the scanner's pole, where x6/x7 (1/sin theta) are singular, get
-            # residuals v_theta of that size; their re-linearisation at l + v jumps between
-            # iterations and the step oscillates at ~0.1 sigma until max_iter. Rejection does
-            # not need the round's 1e-6 sigma limit (a sub-sigma change of x moves standardized
-            # residuals by ~sqrt(u/n) of it): check it now; if nothing is rejected, the round
-            # goes on as without this test.
-            stalled = (stall and may_stall and not settled and robust_k is not None
-                       and rounds <= max_rounds and it_round >= 2 and ratio < 1.0
-                       and ratio > 0.5 * prev_ratio)
-            prev_ratio = ratio
-            if settled or stalled:
-                sigma0 = math.sqrt(max(omega, 0.0) / max(n_used - u, 1))
-                if stalled:
-                    stalls.append(rounds)
-                    log.info("stream %s: round %d stalled at iteration %d (ratio %.3g): checking "
-                             "rejections now", meta.id, rounds, it_round, ratio)
-                if settled:
-                    converged = ratio < tol
-                    N_final, Ninv_final, n_used_final = N, Ninv, n_used
-                    if robust_k is None or rounds > max_rounds:  # as robust_gauss_helmert
-                        final_sweep(dx_prev, sigma0)
-                        break
-                pending = True
+            sigma0 = math.sqrt(max(omega, 0.0) / max(n_used - u, 1))
+            converged = ratio < tol and judged and not n_bad
+            if converged or total_it >= max_iter:
+                final_sweep(dx_prev, sigma0)
+                break
         round_its.append(it_round)
     finally:
         for f_ in files.values():
@@ -520,12 +491,12 @@ def stream_fit_scan(
             f_.close()
     timings["adjustment_s"] = time.perf_counter() - t0
     timings["s_per_pass"] = timings["adjustment_s"] / max(state["passes"], 1)
-    cov = sigma0**2 * Ninv_final
+    cov = sigma0**2 * Ninv
     n_window = state["n_window"]
-    return StreamFit(meta.id, names, np.asarray(x), cov, N_final, sigma0, n_rows, n_window,
-                     n_used_final, state["n_seen"] - n_window - n_used_final, total_it, rounds,
+    return StreamFit(meta.id, names, np.asarray(x), cov, N, sigma0, n_rows, n_window,
+                     n_used, state["n_seen"] - n_window - n_used, total_it, rounds,
                      state["passes"], converged, time.perf_counter() - t_start, store, init,
-                     timings, round_its, ratios, stalls)
+                     timings, round_its, ratios, [])
 
 
 def peak_rss_gib() -> float:

@@ -201,6 +201,12 @@ def make_pass(condition, l, consts, weights, sigma_l, on, *, lin, chunk, trig=Tr
     """The per-iteration pass of :func:`gh_one_pass`: ``one_pass(x, dx_prev, store)``.
 
     Returns ``(one_pass, residuals, store0(v0), nc)``; ``one_pass`` gives ``(N, n, store)``.
+    The store is ``(a, b, wm, m)``, one row of ``chunk`` points per chunk; a fifth member
+    ``W`` (nc, chunk) carries the weights in the same layout (:func:`chunk_weights`) instead of
+    ``weights`` (their rejections are then kept there). ``one_pass(x, dx_prev, store, limit)``
+    with such a store also rejects: a point whose residual of the previous solution (from the
+    store and ``dx_prev``) has ``k^2 m > limit`` gets weight 0 before it enters the sums; it
+    then returns ``(N, n, store, rejected)`` (points newly at weight 0 in this pass).
     """
     n = l.shape[0]
     nc = -(-n // chunk)
@@ -223,25 +229,36 @@ def make_pass(condition, l, consts, weights, sigma_l, on, *, lin, chunk, trig=Tr
         return (jnp.zeros((nc, chunk, u), store_dtype), b_start,
                 -jnp.ones((nc, chunk), f), jnp.ones((nc, chunk), f))
 
-    def residuals(st, i, dx, start):
+    def read(st, i):
         # materialise the chunk's slice of the store before it is overwritten in place: else
         # XLA fuses the slice into several consumers and, unable to order them before the
         # in-place update, copies the WHOLE store every chunk (O(n^2 / chunk) traffic). The
         # runtime cond is a fusion boundary (an optimization_barrier is not: XLA drops it).
-        a, b, wm, m = lax.cond(on, lambda st: tuple(s[i] for s in st),
-                               lambda st: tuple(jnp.zeros(s.shape[1:], s.dtype) for s in st), st)
+        return lax.cond(on, lambda st: tuple(s[i] for s in st),
+                        lambda st: tuple(jnp.zeros(s.shape[1:], s.dtype) for s in st), st)
+
+    def chunk_residuals(a, b, wm, m, dx, start):
         k = -((a.astype(f) @ dx) + wm) / m
         return k, chunk_s2(start) * b.astype(f) * k[:, None], m
 
-    def one_pass(x, dx_prev, store):
+    def residuals(st, i, dx, start):
+        return chunk_residuals(*read(st, i)[:4], dx, start)
+
+    def one_pass(x, dx_prev, store, limit=None):
         u = x.shape[0]
+        own_w = len(store) == 5  # the weights in the store's layout
 
         def body(i, carry):
-            N, nv, store = carry
+            N, nv, store, n_bad = carry
             start, fresh = _window(i, chunk, n)
             s2c = chunk_s2(start)
-            w8 = jnp.where(fresh, sl(weights, start), 0.0)
-            _, v, _ = residuals(store, i, dx_prev, start)
+            a_, b_, wm_, m_, *w_ = read(store, i)
+            k, v, m_prev = chunk_residuals(a_, b_, wm_, m_, dx_prev, start)
+            w8 = w_[0] if own_w else jnp.where(fresh, sl(weights, start), 0.0)
+            if limit is not None:  # the previous solution's residual beyond it: out for good
+                bad = (w8 > 0) & (k * k * m_prev > limit)
+                w8 = jnp.where(bad, 0.0, w8)
+                n_bad = n_bad + jnp.sum(bad, dtype=jnp.int32)
             F, a, b = lin(condition, sl(l, start) + v, x, sl(consts, start), on if trig else None)
             # materialise the linearisation once: a, b have several consumers (store, masked
             # normals) and XLA would otherwise re-run the whole derivative per consumer (2x)
@@ -253,18 +270,50 @@ def make_pass(condition, l, consts, weights, sigma_l, on, *, lin, chunk, trig=Tr
             N = N + aq.T @ a0
             nv = nv + aq.T @ jnp.where(ok, wm, 0.0)
             new = (a.astype(store_dtype), b.astype(store_dtype), wm, jnp.where(m > 0, m, 1.0))
-            store = tuple(s.at[i].set(v_) for s, v_ in zip(store, new))
-            return N, nv, store
+            store = tuple(s.at[i].set(v_) for s, v_ in zip(store, new + (w8,) * own_w))
+            return N, nv, store, n_bad
 
-        init = (jnp.zeros((u, u), f), jnp.zeros((u,), f), store)
-        return lax.fori_loop(0, nc, body, init)
+        init = (jnp.zeros((u, u), f), jnp.zeros((u,), f), store, jnp.zeros((), jnp.int32))
+        N, nv, store, n_bad = lax.fori_loop(0, nc, body, init)
+        return (N, nv, store) if limit is None else (N, nv, store, n_bad)
 
     return one_pass, residuals, store0, nc
 
 
+def chunk_weights(weights, chunk):
+    """Per-point weights (n,) in the store's layout (nc, chunk): the last chunk ends at ``n``
+    (overlapping the one before), its rows already in that chunk at weight 0."""
+    n = weights.shape[0]
+
+    def one(i):
+        start, fresh = _window(i, chunk, n)
+        return jnp.where(fresh, lax.dynamic_slice_in_dim(weights, start, chunk), 0.0)
+
+    return jax.vmap(one)(jnp.arange(-(-n // chunk)))
+
+
+def store_omega(residuals, store, dx):
+    """``omega = sum w k^2 m`` of the residuals ``k`` that the stored linearisation and the
+    step ``dx`` give (a store with its weights, :func:`make_pass`; no linearisation, one read
+    of the store): the weighted square sum of the solution ``x + dx``, whence ``sigma0``."""
+    W = store[4]
+
+    def body(i, om):
+        k, _, m = residuals(store, i, dx, 0)  # (start only places per-point sigmas: unused)
+        return om + jnp.sum(jnp.where(W[i] > 0, W[i] * k * k * m, 0.0))
+
+    return lax.fori_loop(0, W.shape[0], body, jnp.zeros((), W.dtype))
+
+
+#: Robust rejection is judged once the previous step was below this many sigmas of the
+#: unknowns (``max_j |dx_j| / sqrt((N^-1)_jj)``): near the solution, not at the first guess.
+REJECT_BELOW = 1.0
+
+
 @eqx.filter_jit
 def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *, lin,
-                chunk=4096, max_iter=30, store_dtype=jnp.float32, trig=True):
+                chunk=4096, max_iter=30, store_dtype=jnp.float32, trig=True, robust_k=None,
+                max_rounds=6, reject_below=REJECT_BELOW):
     """Rigorous Gauss-Helmert adjustment with ONE linearisation per point and iteration.
 
     Pass k (a ``fori_loop`` over chunks), per chunk:
@@ -283,30 +332,58 @@ def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *,
     1e-7 relative, ~1e-10 m); ``w``, ``m`` stay float64. The observations are never copied
     or padded: the last chunk overlaps the previous one, its repeated points masked.
 
+    Robust rejection inside the iteration (``robust_k``, a runtime scalar; None: none): before
+    pass k (k >= 1, once the previous step was below ``reject_below`` of its sigma
+    ``sqrt((N^-1)_jj)``), ``sigma0^2 = omega / (n_used - u)`` of the current solution (one
+    read of the store, :func:`store_omega`), and in the pass a point with
+    ``|k| sqrt(m) / sigma0 > robust_k`` gets weight 0 for good before it enters the sums: the
+    rule of the repeated solves (standardized residual beyond ``robust_k`` a-posteriori
+    sigmas), judged at each iterate instead of at each converged solve. At most
+    ``max_rounds`` passes reject; the iteration has converged when a step is below ``tol`` and
+    its pass rejected nothing.
+
     Returns ``(x, N, N^-1, v (n, 3), k (n,), m (n,), F(l, x) (n,), omega, iterations,
-    converged)``; ``normalized = |k| sqrt(m) / sigma0``.
+    converged, weights)``; ``normalized = |k| sqrt(m) / sigma0``.
     """
     n, u = l.shape[0], x0.shape[0]
     f = l.dtype
     one_pass, residuals, store0_fn, nc = make_pass(
         condition, l, consts, weights, sigma_l, on, lin=lin, chunk=chunk, trig=trig,
         store_dtype=store_dtype)
-    store0 = store0_fn(u, v0)
+    robust = robust_k is not None
+    # with rejection the weights live in the store (its layout), where the pass updates them
+    store0 = store0_fn(u, v0) + ((chunk_weights(weights, chunk),) if robust else ())
+
+    def rejecting_pass(x, dx_prev, store, it, ratio_prev, rounds):
+        judge = (it >= 1) & (ratio_prev < reject_below) & (rounds < max_rounds)
+        red = jnp.maximum(jnp.sum(store[4] > 0) - u, 1).astype(f)
+        limit = lax.cond(  # the read of the store only where the points are judged
+            judge, lambda: robust_k * robust_k * store_omega(residuals, store, dx_prev) / red,
+            lambda: jnp.asarray(jnp.inf, f))
+        N, nv, store, n_bad = one_pass(x, dx_prev, store, limit)
+        judged = judge | (rounds >= max_rounds)
+        return N, nv, store, rounds + (n_bad > 0), judged & (n_bad == 0)
 
     def step(state):
-        x, dx_prev, store, it, _, _, _ = state
-        N, nv, store = one_pass(x, dx_prev, store)
+        x, dx_prev, store, it, _, _, _, ratio_prev, rounds = state
+        if robust:
+            N, nv, store, rounds, clean = rejecting_pass(x, dx_prev, store, it, ratio_prev,
+                                                         rounds)
+        else:
+            N, nv, store = one_pass(x, dx_prev, store)
+            clean = True
         dx, Ninv = solve_scaled(N, -nv)
         dN = jnp.diagonal(Ninv)
         ratio = jnp.max(jnp.abs(dx) / jnp.sqrt(jnp.where(dN > 0, dN, 1.0)))
-        return x + dx, dx, store, it + 1, N, Ninv, ratio < tol
+        return x + dx, dx, store, it + 1, N, Ninv, (ratio < tol) & clean, ratio, rounds
 
     def cond(state):
         return (state[3] < max_iter) & ~state[6]
 
     zu = jnp.zeros((u, u), f)
-    state = (x0, jnp.zeros_like(x0), store0, jnp.array(0), zu, zu, jnp.array(False))
-    x, dx, store, it, N, Ninv, done = lax.while_loop(cond, step, state)
+    state = (x0, jnp.zeros_like(x0), store0, jnp.array(0), zu, zu, jnp.array(False),
+             jnp.asarray(jnp.inf, f), jnp.array(0))
+    x, dx, store, it, N, Ninv, done, _, _ = lax.while_loop(cond, step, state)
 
     # at the solution: residuals from the store (no linearisation) and the misclosure F(l, x)
     # at the observations (a primal-only evaluation), in one sweep
@@ -314,10 +391,10 @@ def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *,
     misclosure = jax.vmap(cond_mt, in_axes=(0, None, 0))
 
     def fin(i, carry):
-        omega, V, K, M, F0 = carry
+        omega, V, K, M, F0, Wn = carry
         start, fresh = _window(i, chunk, n)
         sl = partial(lax.dynamic_slice_in_dim, start_index=start, slice_size=chunk)
-        w8 = jnp.where(fresh, sl(weights), 0.0)
+        w8 = store[4][i] if robust else jnp.where(fresh, sl(weights), 0.0)
         k, v, m = residuals(store, i, dx, start)
         omega = omega + jnp.sum(jnp.where(w8 > 0, w8 * k * k * m, 0.0))
         f0 = misclosure(sl(l), x, sl(consts))
@@ -326,11 +403,13 @@ def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *,
         K = lax.dynamic_update_slice_in_dim(K, jnp.where(fresh, k, sl(K)), start, 0)
         M = lax.dynamic_update_slice_in_dim(M, jnp.where(fresh, m, sl(M)), start, 0)
         F0 = lax.dynamic_update_slice_in_dim(F0, jnp.where(fresh, f0, sl(F0)), start, 0)
-        return omega, V, K, M, F0
+        if robust:
+            Wn = lax.dynamic_update_slice_in_dim(Wn, jnp.where(fresh, w8, sl(Wn)), start, 0)
+        return omega, V, K, M, F0, Wn
 
     z = jnp.zeros((n,), f)
-    omega, V, K, M, F0 = lax.fori_loop(
-        0, nc, fin, (jnp.zeros((), f), jnp.zeros((n, 3), f), z, jnp.ones((n,), f), z))
-    return x, N, Ninv, V, K, M, F0, omega, it, done
+    omega, V, K, M, F0, weights = lax.fori_loop(
+        0, nc, fin, (jnp.zeros((), f), jnp.zeros((n, 3), f), z, jnp.ones((n,), f), z, weights))
+    return x, N, Ninv, V, K, M, F0, omega, it, done, weights
 
 

@@ -34,7 +34,17 @@ import lineax as lx
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._kernel import gh_one_pass, linearize_rev, point_weights
+from ._kernel import (
+    REJECT_BELOW,
+    gh_one_pass,
+    linearize_rev,
+    newton_step,
+    part_final,
+    part_omega,
+    part_pass,
+    part_start,
+    point_weights,
+)
 
 Condition = Callable[[Float[Array, "3"], Float[Array, " u"], Float[Array, " k"]], Float[Array, ""]]
 
@@ -192,6 +202,104 @@ def _gauss_helmert(condition, l, x0, sigma_l, consts, weights, v0, tol, *, max_i
     )
 
 
+def _gauss_helmert_split(condition, l, x0, sigma_l, consts, weights, v0, tol, *, max_iter,
+                         chunk_size, threads, robust_k=None, max_rounds=6):
+    """:func:`_gauss_helmert` with each pass split into ``threads`` parts of whole chunks, each
+    part's pass (:func:`._kernel.part_pass`, its store updated in place) a jitted call in its
+    own thread, the normal equations added: XLA runs one call on one core, concurrent calls
+    from threads run at the same time. The iteration is that of :func:`._kernel.gh_one_pass`
+    (same steps, rejection, convergence test), driven from Python; equal to it up to the order
+    of the sums' additions."""
+    from ._mixed import _pool  # the random effect's thread pool (that module imports this one)
+
+    n, u = l.shape[0], x0.shape[0]
+    f = l.dtype
+    on = jnp.ones((), bool)
+    chunk = chunk_size
+    m = -(-n // (threads * chunk)) * chunk
+    cuts = [(s0, min(s0 + m, n)) for s0 in range(0, n, m)]
+    per_s2 = sigma_l.ndim == 2
+    parts = [dict(l=jnp.asarray(l[a:b]), c=jnp.asarray(consts[a:b]),
+                  s=sigma_l[a:b] if per_s2 else sigma_l, chunk=min(chunk, b - a))
+             for a, b in cuts]
+    pool = _pool(len(parts))
+
+    def each(fn):
+        return list(pool.map(lambda ip: jax.block_until_ready(fn(*ip)), enumerate(parts)))
+
+    stores = each(lambda i, p: part_start(
+        condition, p["l"], p["c"], jnp.asarray(weights[cuts[i][0]:cuts[i][1]]), p["s"],
+        None if v0 is None else jnp.asarray(v0[cuts[i][0]:cuts[i][1]]), on, u=u,
+        chunk=p["chunk"]))
+    robust = robust_k is not None
+    x, dx, it, ratio, rounds, done = x0, jnp.zeros_like(x0), 0, np.inf, 0, False
+    while it < max_iter and not done:
+        judge = robust and it >= 1 and ratio < REJECT_BELOW and rounds < max_rounds
+        limit = jnp.asarray(np.inf, f)
+        if judge:  # sigma0 of the current solution, the candidates included
+            om = each(lambda i, p: part_omega(condition, p["l"], p["c"], p["s"], stores[i], dx,
+                                              on, chunk=p["chunk"]))
+            red = max(int(sum(int(o[1]) for o in om)) - u, 1)
+            limit = robust_k * robust_k * sum(o[0] for o in om) / red
+        outs = each(lambda i, p: part_pass(
+            (condition, p["l"], p["c"], p["s"], x, dx, limit, on, p["chunk"]), stores[i]))
+        stores = [o[2] for o in outs]
+        N = sum(o[0] for o in outs[1:]) + outs[0][0]
+        nv = sum(o[1] for o in outs[1:]) + outs[0][1]
+        n_bad = int(sum(int(o[3]) for o in outs))
+        judged = judge or not robust or rounds >= max_rounds
+        rounds += n_bad > 0
+        outs = None
+        dx, Ninv, r = newton_step(N, nv)
+        ratio = float(r)
+        x = x + dx
+        it += 1
+        done = ratio < tol and judged and n_bad == 0
+    fins = each(lambda i, p: part_final(condition, p["l"], p["c"], p["s"], stores[i], x, dx, on,
+                                        chunk=p["chunk"]))
+    stores = None
+    omega = sum(fp[0] for fp in fins[1:]) + fins[0][0]
+    V, K, M, F0, W = (jnp.concatenate([fp[j] for fp in fins]) for j in range(1, 6))
+    if not robust:
+        W = jnp.asarray(weights)
+    red = jnp.sum(W > 0) - u
+    sigma0 = jnp.sqrt(omega / jnp.maximum(red, 1).astype(f))
+    return GHResult(
+        x=x, cov=sigma0**2 * Ninv, N=N, sigma0=sigma0, v=V, misclosure=F0,
+        normalized=jnp.abs(K) * jnp.sqrt(M) / sigma0, weights=W, redundancy=red,
+        iterations=jnp.asarray(it), converged=jnp.asarray(done))
+
+
+def _host_inputs(l, consts, weights, v0):
+    """The per-point inputs as float64 host arrays (defaults: no constants, weights 1; ``v0``
+    stays None): copied to the device once, whole or per part, by :func:`_adjust`."""
+    l = np.asarray(l, np.float64)
+    n = l.shape[0]
+    consts = np.zeros((n, 0)) if consts is None else np.asarray(consts, np.float64)
+    weights = np.ones(n) if weights is None else np.asarray(weights, np.float64)
+    return l, consts, weights, None if v0 is None else np.asarray(v0, np.float64)
+
+
+def _adjust(condition, l, x0, sigma_l, consts, weights, v0, tol, *, max_iter, chunk_size,
+            threads=None, robust_k=None, max_rounds=6):
+    """One adjustment of host arrays (:func:`_host_inputs`), its passes split over the cores
+    when the points are many (:func:`~._mixed.mixed_threads` parts, ``threads`` to override),
+    else the single jitted loop."""
+    from ._mixed import mixed_threads
+
+    n = l.shape[0]
+    t = mixed_threads(n) if threads is None else max(1, int(threads))
+    t = min(t, max(1, n // chunk_size))
+    kw = dict(max_iter=max_iter, chunk_size=chunk_size, robust_k=robust_k,
+              max_rounds=max_rounds)
+    if t > 1:
+        return _gauss_helmert_split(condition, l, x0, sigma_l, consts, weights, v0, tol,
+                                    threads=t, **kw)
+    return _gauss_helmert(condition, jnp.asarray(l), x0, sigma_l, jnp.asarray(consts),
+                          jnp.asarray(weights), None if v0 is None else jnp.asarray(v0), tol,
+                          **kw)
+
+
 def gauss_helmert(
     condition: Condition,
     l: Float[Array, "n 3"],
@@ -204,6 +312,7 @@ def gauss_helmert(
     max_iter: int = 30,
     tol: float = 1e-6,
     chunk_size: int = 4096,
+    threads: int | None = None,
 ) -> GHResult:
     """Rigorous Gauss-Helmert adjustment of ``condition(l_i + v_i, x, c_i) = 0`` for all points.
 
@@ -221,16 +330,15 @@ def gauss_helmert(
         tol: convergence when every ``|dx_j|`` is below ``tol`` times its a priori standard
             deviation ``sqrt((N^-1)_jj)``.
         chunk_size: points per chunk of the normal-equation accumulation (bounds memory).
+        threads: parts each pass is split into, one thread each (None: as the random effect,
+            :func:`~._mixed.mixed_threads`: the usable cores, one part per 2^17 points at
+            most); the estimates do not depend on it beyond round-off.
     """
-    l = jnp.asarray(l, dtype=jnp.float64)
-    n = l.shape[0]
-    consts = jnp.zeros((n, 0), l.dtype) if consts is None else jnp.asarray(consts, l.dtype)
-    weights = jnp.ones((n,), l.dtype) if weights is None else jnp.asarray(weights, l.dtype)
-    v0 = None if v0 is None else jnp.asarray(v0, l.dtype)
-    chunk = int(min(chunk_size, n))
-    return _gauss_helmert(
+    l, consts, weights, v0 = _host_inputs(l, consts, weights, v0)
+    chunk = int(min(chunk_size, l.shape[0]))
+    return _adjust(
         condition, l, jnp.asarray(x0, l.dtype), jnp.asarray(sigma_l, l.dtype), consts, weights,
-        v0, float(tol), max_iter=max_iter, chunk_size=chunk,
+        v0, float(tol), max_iter=max_iter, chunk_size=chunk, threads=threads,
     )
 
 
@@ -267,7 +375,7 @@ def robust_gauss_helmert(
     condition: Condition,
     l, x0, sigma_l, consts=None, weights=None, *,
     k: float = 4.0, max_rounds: int = 6, v0=None, max_iter: int = 30, tol: float = 1e-6,
-    chunk_size: int = 4096,
+    chunk_size: int = 4096, threads: int | None = None,
 ) -> GHResult:
     """Gauss-Helmert with rejection of points beyond ``k`` a-posteriori sigmas, inside the
     iteration (one adjustment, not one per round).
@@ -281,19 +389,15 @@ def robust_gauss_helmert(
     ``max_rounds`` passes reject. Until 2026-11 each round was a full adjustment to
     convergence, then rejection, then the next adjustment from that solution (2-3 rounds of
     3-5 iterations); judging at the iterates gives the same rejections on the profile
-    campaign (``benchmarks/profile.py``) in about half the passes.
+    campaign (``benchmarks/profile.py``) in about half the passes. ``threads``: as
+    :func:`gauss_helmert`.
     """
-    l = jnp.asarray(l, jnp.float64)
-    n = l.shape[0]
-    consts = jnp.zeros((n, 0), l.dtype) if consts is None else jnp.asarray(consts, l.dtype)
-    w = jnp.ones((n,), l.dtype) if weights is None else jnp.asarray(weights, l.dtype)
-    # start residuals zero rather than None: one compiled program whether or not v0 is given
-    v0 = jnp.zeros_like(l) if v0 is None else jnp.asarray(v0, l.dtype)
-    chunk = int(min(chunk_size, n))
-    return _gauss_helmert(
+    l, consts, w, v0 = _host_inputs(l, consts, weights, v0)  # v0 None: zero, no (n, 3) array
+    chunk = int(min(chunk_size, l.shape[0]))
+    return _adjust(
         condition, l, jnp.asarray(x0, l.dtype), jnp.asarray(sigma_l, l.dtype), consts, w, v0,
-        float(tol), max_iter=max_iter, chunk_size=chunk, robust_k=jnp.asarray(k, l.dtype),
-        max_rounds=int(max_rounds))
+        float(tol), max_iter=max_iter, chunk_size=chunk, threads=threads,
+        robust_k=jnp.asarray(k, l.dtype), max_rounds=int(max_rounds))
 
 
 class NormalEquations(eqx.Module):

@@ -345,7 +345,7 @@ def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *,
     Returns ``(x, N, N^-1, v (n, 3), k (n,), m (n,), F(l, x) (n,), omega, iterations,
     converged, weights)``; ``normalized = |k| sqrt(m) / sigma0``.
     """
-    n, u = l.shape[0], x0.shape[0]
+    u = x0.shape[0]
     f = l.dtype
     one_pass, residuals, store0_fn, nc = make_pass(
         condition, l, consts, weights, sigma_l, on, lin=lin, chunk=chunk, trig=trig,
@@ -385,8 +385,21 @@ def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *,
              jnp.asarray(jnp.inf, f), jnp.array(0))
     x, dx, store, it, N, Ninv, done, _, _ = lax.while_loop(cond, step, state)
 
-    # at the solution: residuals from the store (no linearisation) and the misclosure F(l, x)
-    # at the observations (a primal-only evaluation), in one sweep
+    omega, V, K, M, F0, weights = final_sweep(condition, l, consts, weights, store, residuals,
+                                              x, dx, on, chunk=chunk, trig=trig)
+    return x, N, Ninv, V, K, M, F0, omega, it, done, weights
+
+
+
+
+def final_sweep(condition, l, consts, weights, store, residuals, x, dx, on, *, chunk, trig=True):
+    """At the solution ``x`` (= the last linearisation's ``x`` + ``dx``): residuals from the
+    store (no linearisation) and the misclosure ``F(l, x)`` at the observations (a primal-only
+    evaluation), in one sweep. Returns ``(omega, v (n, 3), k (n,), m (n,), F (n,), weights
+    (n,))``; the weights are the store's (its fifth member) when it has them."""
+    n = l.shape[0]
+    f = l.dtype
+    own_w = len(store) == 5
     cond_mt = materialize_trig(condition, on) if trig else condition
     misclosure = jax.vmap(cond_mt, in_axes=(0, None, 0))
 
@@ -394,7 +407,7 @@ def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *,
         omega, V, K, M, F0, Wn = carry
         start, fresh = _window(i, chunk, n)
         sl = partial(lax.dynamic_slice_in_dim, start_index=start, slice_size=chunk)
-        w8 = store[4][i] if robust else jnp.where(fresh, sl(weights), 0.0)
+        w8 = store[4][i] if own_w else jnp.where(fresh, sl(weights), 0.0)
         k, v, m = residuals(store, i, dx, start)
         omega = omega + jnp.sum(jnp.where(w8 > 0, w8 * k * k * m, 0.0))
         f0 = misclosure(sl(l), x, sl(consts))
@@ -403,13 +416,62 @@ def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *,
         K = lax.dynamic_update_slice_in_dim(K, jnp.where(fresh, k, sl(K)), start, 0)
         M = lax.dynamic_update_slice_in_dim(M, jnp.where(fresh, m, sl(M)), start, 0)
         F0 = lax.dynamic_update_slice_in_dim(F0, jnp.where(fresh, f0, sl(F0)), start, 0)
-        if robust:
+        if own_w:
             Wn = lax.dynamic_update_slice_in_dim(Wn, jnp.where(fresh, w8, sl(Wn)), start, 0)
         return omega, V, K, M, F0, Wn
 
     z = jnp.zeros((n,), f)
-    omega, V, K, M, F0, weights = lax.fori_loop(
-        0, nc, fin, (jnp.zeros((), f), jnp.zeros((n, 3), f), z, jnp.ones((n,), f), z, weights))
-    return x, N, Ninv, V, K, M, F0, omega, it, done, weights
+    W0 = jnp.zeros((n,), f) if weights is None else weights
+    return lax.fori_loop(0, -(-n // chunk), fin,
+                         (jnp.zeros((), f), jnp.zeros((n, 3), f), z, jnp.ones((n,), f), z, W0))
 
 
+# --------------------------------------------------------------------------------------------
+# The same iteration with each pass split over the cores (a part of the points per thread)
+# --------------------------------------------------------------------------------------------
+
+
+@eqx.filter_jit
+def part_start(condition, l, consts, weights, sigma_l, v0, on, *, u, chunk):
+    """A part's start store with its weights (the layout of :func:`make_pass`)."""
+    _, _, store0, _ = make_pass(condition, l, consts, weights, sigma_l, on, lin=linearize_rev,
+                                chunk=chunk)
+    return store0(u, v0) + (chunk_weights(weights, chunk),)
+
+
+def _part_pass(args, store):
+    condition, l, consts, sigma_l, x, dx_prev, limit, on, chunk = args
+    one_pass, _, _, _ = make_pass(condition, l, consts, None, sigma_l, on, lin=linearize_rev,
+                                  chunk=chunk)
+    return one_pass(x, dx_prev, store, limit)
+
+
+#: A part's pass (:func:`make_pass` with the rejection at ``limit``):
+#: ``part_pass((condition, l, consts, sigma_l, x, dx_prev, limit, on, chunk), store)`` ->
+#: ``(N, n, store, rejected)``; the store is donated (updated in place, no copy).
+part_pass = eqx.filter_jit(_part_pass, donate="all-except-first")
+
+
+@eqx.filter_jit
+def part_omega(condition, l, consts, sigma_l, store, dx, on, *, chunk):
+    """A part's ``(sum w k^2 m, points used)`` at the solution ``x + dx`` (:func:`store_omega`)."""
+    _, residuals, _, _ = make_pass(condition, l, consts, None, sigma_l, on, lin=linearize_rev,
+                                   chunk=chunk)
+    return store_omega(residuals, store, dx), jnp.sum(store[4] > 0)
+
+
+@eqx.filter_jit
+def part_final(condition, l, consts, sigma_l, store, x, dx, on, *, chunk):
+    """A part's :func:`final_sweep`."""
+    _, residuals, _, _ = make_pass(condition, l, consts, None, sigma_l, on, lin=linearize_rev,
+                                   chunk=chunk)
+    return final_sweep(condition, l, consts, None, store, residuals, x, dx, on, chunk=chunk)
+
+
+@jax.jit
+def newton_step(N, nv):
+    """``dx = -N^-1 n``, ``N^-1`` and the convergence measure ``max |dx_j| / sqrt((N^-1)_jj)``
+    (as one step of :func:`gh_one_pass`)."""
+    dx, Ninv = solve_scaled(N, -nv)
+    dN = jnp.diagonal(Ninv)
+    return dx, Ninv, jnp.max(jnp.abs(dx) / jnp.sqrt(jnp.where(dN > 0, dN, 1.0)))

@@ -65,3 +65,34 @@ def test_max_rounds_bounds_the_rejecting_passes():
     assert np.all(np.asarray(none.weights) == 1.0)
     one = robust_gauss_helmert(m, l, _start(xt), SIGMA, c, k=4.0, max_rounds=1)
     assert np.sum(np.asarray(one.weights) == 0) >= 100
+
+
+@pytest.mark.parametrize("threads", [2, 3])
+@pytest.mark.parametrize("robust", [True, False])
+def test_passes_split_over_threads_equal_one_loop(threads, robust):
+    """Each pass split into parts (one thread each, the normal equations added) gives the
+    single jitted loop's adjustment: same iterations and rejections, x and sigmas to 1e-9."""
+    m = make_model("extended")
+    l = synthetic_scan(30001, seed=5)  # parts of whole chunks, a short last one
+    l[::97, 0] -= 0.02
+    xt = truth_vector(m.free)
+    c = np.zeros((len(l), 2))
+    w = np.ones(len(l))
+    w[-50:] = 0.0  # padding-like rows
+    sig = np.broadcast_to(SIGMA, l.shape) * np.where(np.arange(len(l)) % 2, 1.0, 1.2)[:, None]
+    kw = dict(k=4.0) if robust else {}
+    fit = robust_gauss_helmert if robust else gauss_helmert
+    one = fit(m, l, _start(xt), sig, c, w, threads=1, **kw)
+    split = fit(m, l, _start(xt), sig, c, w, threads=threads, **kw)
+    assert int(split.iterations) == int(one.iterations) and bool(split.converged)
+    np.testing.assert_array_equal(np.asarray(split.weights), np.asarray(one.weights))
+    s = np.asarray(one.sigma)
+    np.testing.assert_allclose((np.asarray(split.x) - np.asarray(one.x)) / s, 0.0, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(split.sigma), s, rtol=1e-9)
+    assert float(split.sigma0) == pytest.approx(float(one.sigma0), rel=1e-10)
+    used = np.asarray(one.weights) > 0
+    np.testing.assert_allclose(np.asarray(split.v)[used], np.asarray(one.v)[used], atol=1e-12)
+    np.testing.assert_allclose(np.asarray(split.normalized), np.asarray(one.normalized),
+                               rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(split.misclosure), np.asarray(one.misclosure),
+                               atol=1e-12)

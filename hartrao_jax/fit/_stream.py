@@ -66,6 +66,7 @@ from ..geometry._geometry import pointing_gravity
 from ..model._model import N_CONSTS, make_model, parameter_unit
 from ..preprocess._initial import InitialValues, geometry_window, initial_values
 from ..solver._kernel import REJECT_BELOW, linearize_rev, make_pass, solve_scaled
+from ..solver._mixed import _pool, mixed_threads
 from ._distributed import worker_campaign
 from ._fit import Estimates, _progress, _x0, sigma_vector
 
@@ -271,6 +272,7 @@ def stream_fit_scan(
     seed: int = 0,
     prefetch: bool = False,
     stall: bool = True,
+    threads: int | None = None,
 ) -> StreamFit:
     """Adjust one scan streaming it from disk in chunks of ``rows_per_chunk`` file rows.
 
@@ -281,6 +283,9 @@ def stream_fit_scan(
     (no gain measured on 2 busy cores, and glibc's per-thread arena keeps about 1 GiB more).
     ``stall``: ignored (the rounds it shortened are gone: the rejection is inside the
     iteration, as in :func:`._ghm.robust_gauss_helmert`).
+    ``threads``: compute blocks of a chunk run at a time, one thread each (None:
+    :func:`~.solver._mixed.mixed_threads` of the chunk's rows); the sums are added in block
+    order, so the result does not depend on it.
     Other arguments as :func:`._fit.fit_scan` / :func:`._ghm.robust_gauss_helmert`.
     """
     t_start = time.perf_counter()
@@ -397,12 +402,19 @@ def stream_fit_scan(
                     contiguous = m and int(rows[-1]) - int(rows[0]) + 1 == m
                     chunk_rows.append((int(rows[0]), m) if contiguous else np.asarray(rows))
                     state["n_seen"] += m
-                for s0, n, obs, c, w, st in blocks:
-                    tc = time.perf_counter()
+                def compute(block):
+                    _, _, obs, c, w, st = block
                     outs = _chunk_pass(mdl, obs, c, w, sig, *st, x, dx_prev, np.asarray(reject),
                                        np.asarray(sigma0), np.asarray(k_rob), np.ones((), bool))
+                    return tuple(np.asarray(o) for o in outs)
+
+                # the chunk's blocks computed in `threads` threads at a time (one jitted call
+                # runs on one core; concurrent calls run concurrently), used in block order
+                futs = [cpool.submit(compute, b) for b in blocks] if cpool else None
+                for i_b, (s0, n, obs, c, w, st) in enumerate(blocks):
+                    tc = time.perf_counter()
                     Nc, nc_, wc, bad, used, a2, b2, wm2, m2, v, e, w2 = (
-                        np.asarray(o) for o in outs)
+                        futs[i_b].result() if futs else compute(blocks[i_b]))
                     timings["compute_s"] += time.perf_counter() - tc
                     tw = time.perf_counter()
                     N += Nc
@@ -443,6 +455,8 @@ def stream_fit_scan(
                 out_e.write_rows(r, e[:n])
                 out_w.write_rows(r, w_all[s0:s0 + n])
 
+    threads = mixed_threads(min(rows_per_chunk, n_rows)) if threads is None else int(threads)
+    cpool = _pool(threads) if threads > 1 else None
     t0 = time.perf_counter()
     try:
         # the iteration of :func:`._kernel.gh_one_pass` with its rejection inside the

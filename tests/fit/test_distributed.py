@@ -112,6 +112,24 @@ def test_stream_to_max_iter_equals_in_memory(scatter_campaign, tmp_path):
     assert st.sigma0 == pytest.approx(float(res.sigma0), rel=1e-9)
 
 
+def test_stream_blocks_in_threads_equal_one_thread(scatter_campaign, tmp_path, monkeypatch):
+    """A chunk's compute blocks run in two threads: the same sums added in the same order."""
+    from hartrao_jax.fit import _stream
+
+    monkeypatch.setattr(_stream, "BLOCK", _stream.INNER_CHUNK)  # several blocks per chunk
+    camp = scatter_campaign
+    meta = camp.scan("r23c1")
+    _, _, init, _ = prepare_scan(camp, meta)
+    kw = dict(rows_per_chunk=4 * _stream.INNER_CHUNK, init=init)
+    one = stream_fit_scan(camp, meta, "extended", threads=1, store=tmp_path / "a", **kw)
+    two = stream_fit_scan(camp, meta, "extended", threads=2, store=tmp_path / "b", **kw)
+    np.testing.assert_array_equal(two.x, one.x)
+    assert (two.sigma0, two.iterations, two.n_points) == (one.sigma0, one.iterations,
+                                                          one.n_points)
+    np.testing.assert_array_equal(np.load(tmp_path / "b" / "v.npy"),
+                                  np.load(tmp_path / "a" / "v.npy"))
+
+
 def test_stream_with_its_own_initial_values(scatter_campaign, tmp_path):
     camp = scatter_campaign
     ref = fit_scan(camp, camp.scan("r23c2"), "extended")

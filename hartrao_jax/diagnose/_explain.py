@@ -135,9 +135,13 @@ class _SurfaceNull:
     Each surface cell (a panel, common to every scan) carries an offset (m) and two tilts
     (rad) with variances ``cell_var`` estimated with the noise variance ``noise_var`` (the
     factor on the a priori sigmas) at this linearisation, by the two-face adjustment's
-    variance-component estimation (:func:`..solver.mixed_step`, Foerstner); the cells are then
-    eliminated with their priors (Schur complement). ``N``, ``n``: the reduced system over all
-    joint unknowns; ``K_inv``: inverse of its null block; ``sigma0 = sqrt(noise_var)``."""
+    variance-component estimation (:func:`..solver.mixed_step`, Foerstner). The cells are then
+    eliminated (Schur complement): the tilts with their prior, the offsets free, as fixed
+    nuisance, so that the null carries the reflector's shape at every scale above a cell
+    (smooth deformation of millimetres on a real reflector, which the offsets' variance does
+    not describe) as well as the structure within the cells. ``N``, ``n``: the reduced system
+    over all joint unknowns; ``K_inv``: inverse of its null block;
+    ``sigma0 = sqrt(noise_var)``."""
 
     N: np.ndarray
     n: np.ndarray
@@ -164,10 +168,14 @@ class _SurfaceNull:
             return cls(joint.N, joint.n, joint.K_inv, joint.sigma0, joint.sigma0**2,
                        np.zeros(K_CELL), "surface variances not estimable: panel offsets "
                        "eliminated as fixed, white noise")
-        lam = se2 / cv
-        Dinv = np.linalg.inv(S3 + np.diag(lam)[None])
+        # the offsets free (no prior): they take up the reflector's shape at every scale
+        # above a cell, which the tilts' random effect alone does not describe (on a real
+        # reflector, smooth deformation of millimetres); the tilts with their prior
+        lam = np.where((S3[:, 0, 0] > 0)[:, None], 0.0, 1.0) * np.eye(K_CELL)[0][None, :] \
+            + (se2 / cv * (np.arange(K_CELL) > 0))[None, :]
+        Dinv = np.linalg.inv(S3 + lam[:, :, None] * np.eye(K_CELL)[None])
         N = joint.N_raw - np.einsum("gki,gkl,glj->ij", sg3, Dinv, sg3)
-        n = joint.n_raw - np.einsum("gki,gkl,gl->i", sg3, Dinv, tg3 + lam[None, :] * U)
+        n = joint.n_raw - np.einsum("gki,gkl,gl->i", sg3, Dinv, tg3 + lam * U)
         return cls(N, n, _scaled_pinv(N[np.ix_(I0, I0)]), math.sqrt(se2), se2, cv)
 
     def to_json(self) -> dict:

@@ -361,7 +361,7 @@ def test_score_statistics_on_clean_data_follow_their_chi_square(clean_seeds):
     P(T > 6.63) = 1 %. Judged against white noise after one offset per panel (the panels' tilts
     left in the noise) it was not: over 16 clean campaigns at 0.02 rad its mean was 1.78, 3.4 %
     of the values exceeded 10.83 (0.1 % expected) and the encoder term x12b averaged 7.8. With
-    the surface as a random effect (20 campaigns): mean 0.85, none above 6.63 in 220."""
+    the panels' tilts as a random effect (20 campaigns): mean 0.82, none above 6.63 in 220."""
     T, _ = clean_seeds
     assert len(T) >= 50
     assert 0.6 < T.mean() < 1.4, T

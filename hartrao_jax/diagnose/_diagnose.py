@@ -21,9 +21,10 @@ One step of the loop (``physics.md``, "Statistics"):
    common to all scans: an offset and two tilts). The scans' equations are summed into one
    joint system (separate object parameters per scan, instrument parameters shared by all
    scans, motion per scan, Zernike coefficients linear in gravity across positions). The score
-   tests' null carries the surface as a random effect (``physics.md``, Statistics): the cells'
-   variances and the noise's are estimated at this linearisation as the two-face adjustment
-   estimates them, and the cells are eliminated with their priors (Schur complement); the
+   tests' null carries the surface (``physics.md``, Statistics): the cells' variances and the
+   noise's are estimated at this linearisation as the two-face adjustment estimates them; the
+   cells are eliminated (Schur complement), their tilts as a random effect with that prior,
+   their offsets free (they take up the reflector's shape at every scale above a cell); the
    panel-offset test and the model step keep the offsets alone as fixed nuisance. For every
    candidate the score statistic, its one-step estimate, the predicted improvement in metres
    and its multiple correlation with the model follow from the partitioned system; candidates
@@ -98,10 +99,9 @@ from ._thermal import _thermal
 log = logging.getLogger("hartrao_jax")
 
 _NULL_DESCRIPTION = (
-    "catalog score tests judged against the surface as a random effect: per panel (or grid "
-    "cell) an offset and two tilts common to all scans, their variances and the noise's "
-    "estimated at the last step (Foerstner), the cells eliminated with their priors; sigma0 "
-    "is the noise's")
+    "catalog score tests judged against the reflector's surface: per panel (or grid cell, "
+    "common to all scans) a free offset and two tilts as a random effect, the variances and "
+    "the noise's estimated at the last step (Foerstner); sigma0 is the noise's")
 
 
 # ============================================================================================

@@ -292,9 +292,15 @@ def _readmit_near(ctx, S, spec, back, covering, c) -> None:
 
 
 def _combine(S, ids, names):
-    """Inverse-variance mean of the bump parameters over the scans where they are free:
-    ``{name: (value, sigma)}``, or None when an adjustment failed."""
-    vals = {n: [] for n in names}
+    """Mean of the bump parameters over the scans where they are free: ``{name: (value,
+    sigma)}``, or None when an adjustment failed.
+
+    The cycles of one position see the same surface, and a bump's error comes mostly from
+    that surface (the panel offsets and tilts around it), not from the noise: their estimates
+    are combined as fully correlated (weighted mean, sigma the weighted mean of their sigmas).
+    Combined as independent, the amplitude's z over 19 seeded campaigns had sd 1.37 (about
+    sqrt 2), the width's 1.21. Positions are independent (inverse-variance mean)."""
+    vals: dict[str, dict[str, list]] = {n: {} for n in names}
     for sc in S:
         if sc.id not in ids or not all(n in sc.names for n in names):
             continue
@@ -303,14 +309,18 @@ def _combine(S, ids, names):
             i = sc.names.index(n)
             if not (np.isfinite(sc.x[i]) and np.isfinite(sd[i]) and sd[i] > 0):
                 return None
-            vals[n].append((float(sc.x[i]), float(sd[i])))
+            vals[n].setdefault(sc.meta.position, []).append((float(sc.x[i]), float(sd[i])))
     out = {}
-    for n, v in vals.items():
-        if not v:
+    for n, per_pos in vals.items():
+        if not per_pos:
             return None
-        w = np.array([1 / s**2 for _, s in v])
-        out[n] = (float(np.sum(w * np.array([x for x, _ in v])) / w.sum()),
-                  float(1 / math.sqrt(w.sum())))
+        xs, ss = [], []
+        for v in per_pos.values():
+            w = np.array([1 / s**2 for _, s in v])
+            xs.append(float(np.sum(w * np.array([x for x, _ in v])) / w.sum()))
+            ss.append(float(np.sum(w * np.array([s for _, s in v])) / w.sum()))
+        w = 1 / np.array(ss) ** 2
+        out[n] = (float(np.sum(w * np.array(xs)) / w.sum()), float(1 / math.sqrt(w.sum())))
     wname = next((n for n in names if n.endswith("width_m")), None)
     if wname is not None and out[wname][0] < 0:  # the sign of the width is not observable
         out[wname] = (-out[wname][0], out[wname][1])

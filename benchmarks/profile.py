@@ -44,6 +44,10 @@ POSITIONS = [("p1", -35.0, -64.0), ("p2", -60.0, -30.0), ("p3", 40.0, -70.0),
              ("p4", 0.0, 10.0), ("p5", 70.0, -20.0), ("p6", 10.0, -40.0)]
 
 
+def _peak_gib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+
+
 def _cpu() -> float:
     r = resource.getrusage(resource.RUSAGE_SELF)
     return r.ru_utime + r.ru_stime
@@ -56,18 +60,22 @@ class Stages:
         self.wall = defaultdict(float)
         self.cpu = defaultdict(float)
         self.calls = defaultdict(int)
+        self.iterations = defaultdict(list)  # per adjustment: its passes over the points
+        self.peak = defaultdict(float)  # the process's peak resident GiB after the stage's calls
+        self.grew = defaultdict(float)  # GiB the peak grew by during the stage's calls
         self._stack: list[list] = []
 
     def wrap(self, module, name: str, stage: str):
         fn = getattr(module, name)
 
         def timed(*a, **k):
-            t0, c0 = time.perf_counter(), _cpu()
+            t0, c0, p0 = time.perf_counter(), _cpu(), _peak_gib()
             self._stack.append([0.0, 0.0])
             try:
                 out = fn(*a, **k)
                 if hasattr(out, "x"):  # an adjustment result: wait for the device
                     jax.block_until_ready(out.x)
+                    self.iterations[stage].append(int(out.iterations))
                 return out
             finally:
                 inner_w, inner_c = self._stack.pop()
@@ -75,6 +83,8 @@ class Stages:
                 self.wall[stage] += w - inner_w
                 self.cpu[stage] += c - inner_c
                 self.calls[stage] += 1
+                self.peak[stage] = max(self.peak[stage], _peak_gib())
+                self.grew[stage] += _peak_gib() - p0
                 if self._stack:
                     self._stack[-1][0] += w
                     self._stack[-1][1] += c
@@ -185,6 +195,12 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-peer", dest="peer", action="store_false",
                     help="skip the plain NumPy Gauss-Helmert peer on the same scans")
+    ap.add_argument("--camp", type=Path, default=None,
+                    help="an existing campaign (with truth.json) instead of simulating one")
+    ap.add_argument("--runs", type=int, default=2,
+                    help="fits in the process (the first compiles, the later ones are warm)")
+    ap.add_argument("--out", type=Path, default=OUT / "profile",
+                    help="results path without suffix (.json and .md are written)")
     args = ap.parse_args(argv)
 
     import hartrao_jax  # noqa: F401  (float64)
@@ -198,11 +214,13 @@ def main(argv=None) -> int:
     enable_compilation_cache()
     tmp = Path(tempfile.mkdtemp(prefix="profile-"))
     t0 = time.perf_counter()
-    simulate_campaign(tmp / "camp", preset="demo", seed=args.seed,
-                      positions=POSITIONS[: args.positions], step_rad=args.step,
-                      effects={"gravity_deformation": 1.0})
+    camp_dir = args.camp or tmp / "camp"
+    if args.camp is None:
+        simulate_campaign(camp_dir, preset="demo", seed=args.seed,
+                          positions=POSITIONS[: args.positions], step_rad=args.step,
+                          effects={"gravity_deformation": 1.0})
     t_sim = time.perf_counter() - t0
-    camp = load_campaign(tmp / "camp")
+    camp = load_campaign(camp_dir)
     n_rows = sum(_campaign.read_scan(camp, m).range_m.size for m in camp.scans)
 
     st = Stages()
@@ -214,7 +232,7 @@ def main(argv=None) -> int:
     keep = preprocess_keep(True, camp)
 
     def keep_fn(meta, data):
-        t, c = time.perf_counter(), _cpu()
+        t, c, p0 = time.perf_counter(), _cpu(), _peak_gib()
         st._stack.append([0.0, 0.0])
         try:
             return keep(meta, data)
@@ -224,43 +242,55 @@ def main(argv=None) -> int:
             st.wall["preprocess"] += w - iw
             st.cpu["preprocess"] += cc - ic
             st.calls["preprocess"] += 1
+            st.grew["preprocess"] += _peak_gib() - p0
             if st._stack:
                 st._stack[-1][0] += w
                 st._stack[-1][1] += cc
 
     runs = []
-    for label in ("first (cold compile)", "second (warm)"):
-        for d in (st.wall, st.cpu, st.calls):
+    labels = ["first (cold compile)", "second (warm)"] + [f"run {i + 3} (warm)" for i in
+                                                       range(max(args.runs - 2, 0))]
+    for label in labels[: args.runs]:
+        for d in (st.wall, st.cpu, st.calls, st.iterations, st.peak, st.grew):
             d.clear()
         load0 = os.getloadavg()[0]
-        t0, c0 = time.perf_counter(), _cpu()
+        t0, c0, p_start = time.perf_counter(), _cpu(), _peak_gib()
         cf = _fit.fit_campaign(camp, "extended", keep=keep_fn, progress=False)
-        t1, c1 = time.perf_counter(), _cpu()
+        t1, c1, p1 = time.perf_counter(), _cpu(), _peak_gib()
         _records.write_fit(tmp / "out", cf)
         st.wall["write"] += time.perf_counter() - t1
         st.cpu["write"] += _cpu() - c1
+        st.grew["write"] += _peak_gib() - p1
+        del cf
         total_w, total_c = time.perf_counter() - t0, _cpu() - c0
-        stages = {k: {"wall_s": st.wall[k], "cpu_s": st.cpu[k], "calls": st.calls[k]}
+        stages = {k: {"wall_s": st.wall[k], "cpu_s": st.cpu[k], "calls": st.calls[k],
+                      "iterations": list(st.iterations.get(k, [])),
+                      "peak_rss_gib_after": st.peak.get(k), "peak_rss_growth_gib": st.grew.get(k)}
                   for k in ("read", "preprocess", "initial values", "gauss-helmert (white)",
                             "random effect", "alignment and products", "write")}
         other = total_w - sum(v["wall_s"] for v in stages.values())
+        other_growth = _peak_gib() - p_start - sum(st.grew.values())
         runs.append({"run": label, "total_wall_s": total_w, "total_cpu_s": total_c,
-                     "other_wall_s": other, "stages": stages,
-                     "load_average_1min": [load0, os.getloadavg()[0]]})
+                     "other_wall_s": other, "other_peak_rss_growth_gib": other_growth,
+                     "stages": stages,
+                     "load_average_1min": [load0, os.getloadavg()[0]],
+                     "peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20})
         print(label, f"{total_w:.1f} s wall, {total_c:.1f} s CPU", flush=True)
     peer = None
     if args.peer:
         load0 = os.getloadavg()[0]
-        peer = numpy_peer(tmp / "camp")
+        peer = numpy_peer(camp_dir)
         peer["load_average_1min"] = [load0, os.getloadavg()[0]]
         print(f"peer {peer['wall_s']:.1f} s wall, {peer['cpu_s']:.1f} s CPU", flush=True)
     doc = {"positions": args.positions, "scans": len(camp.scans), "rows": int(n_rows),
            "step_rad": args.step, "simulate_s": t_sim, "cores": os.cpu_count(),
            "load_average": os.getloadavg(), "runs": runs, "peer": peer}
-    OUT.mkdir(exist_ok=True)
-    (OUT / "profile.json").write_text(json.dumps(doc, indent=2))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.with_suffix(".json").write_text(json.dumps(doc, indent=2))
     lines = ["# Where the time of `fit` goes", "",
-             f"{args.positions} positions x 2 cycles, {int(n_rows):,} rows at {args.step} rad, "
+             (f"{args.positions} positions x 2 cycles, {int(n_rows):,} rows at {args.step} rad, "
+              if args.camp is None else
+              f"campaign {args.camp} ({len(camp.scans)} scans, {int(n_rows):,} rows), ") +
              f"default `fit` (two-face, surface random effect, preprocessing on); "
              f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f} at the end "
              "(`benchmarks/profile.py`).", "",
@@ -273,6 +303,15 @@ def main(argv=None) -> int:
                  + " |")
     lines.append("| **total** | " + " | ".join(
         f"**{r['total_wall_s']:.1f}** ({r['total_cpu_s']:.1f})" for r in runs) + " |")
+    for k in ("gauss-helmert (white)", "random effect"):
+        lines.append(f"| iterations per adjustment, {k} | " + " | ".join(
+            ", ".join(map(str, r["stages"][k]["iterations"])) for r in runs) + " |")
+    lines.append("| stages where the peak resident grew (GiB) | " + " | ".join(
+        ", ".join(f"{k} +{v['peak_rss_growth_gib']:.1f}" for k, v in r["stages"].items()
+                  if (v.get("peak_rss_growth_gib") or 0) > 0.05)
+        + f", other +{r['other_peak_rss_growth_gib']:.1f}" for r in runs) + " |")
+    lines.append("| peak resident (process, GiB) | " + " | ".join(
+        f"{r['peak_rss_gib']:.1f}" for r in runs) + " |")
     lines.append("| load average (1 min) at start, end | " + " | ".join(
         "{:.1f}, {:.1f}".format(*r["load_average_1min"]) for r in runs) + " |")
     if peer is not None:
@@ -284,7 +323,7 @@ def main(argv=None) -> int:
                   f"{peer['load_average_1min'][1]:.1f}; warm `fit` / peer: "
                   f"{peer['wall_s'] / warm['total_wall_s']:.2f}x wall, "
                   f"{peer['cpu_s'] / warm['total_cpu_s']:.2f}x CPU (target 5x)."]
-    (OUT / "profile.md").write_text("\n".join(lines) + "\n")
+    args.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 

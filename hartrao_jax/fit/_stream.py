@@ -68,8 +68,14 @@ from ..campaign._campaign import Campaign, ScanMeta, iter_scan_chunks
 from ..geometry._geometry import pointing_gravity
 from ..model._model import N_CONSTS, make_model, parameter_unit
 from ..preprocess._initial import InitialValues, geometry_window, initial_values
-from ..solver._kernel import REJECT_BELOW, linearize_rev, make_pass, solve_scaled
-from ..solver._mixed import _pool, mixed_threads
+from ..solver._kernel import (
+    REJECT_BELOW,
+    linearize_rev,
+    make_pass,
+    pass_threads,
+    solve_scaled,
+    thread_pool,
+)
 from ._distributed import worker_campaign
 from ._fit import Estimates, _progress, _x0, sigma_vector
 
@@ -299,7 +305,7 @@ def stream_fit_scan(
     ``stall``: ignored (the rounds it shortened are gone: the rejection is inside the
     iteration, as in :func:`._ghm.robust_gauss_helmert`).
     ``threads``: compute blocks of a chunk run at a time, one thread each (None:
-    :func:`~.solver._mixed.mixed_threads` of the chunk's rows); the sums are added in block
+    :func:`~.solver._kernel.pass_threads` of the chunk's rows); the sums are added in block
     order, so the result does not depend on it.
     Other arguments as :func:`._fit.fit_scan` / :func:`._ghm.robust_gauss_helmert`.
     """
@@ -478,8 +484,8 @@ def stream_fit_scan(
                 out_e.write_rows(r, e[:n])
                 out_w.write_rows(r, w_all[s0:s0 + n])
 
-    threads = mixed_threads(min(rows_per_chunk, n_rows)) if threads is None else int(threads)
-    cpool = _pool(threads) if threads > 1 else None
+    threads = pass_threads(min(rows_per_chunk, n_rows)) if threads is None else int(threads)
+    cpool = thread_pool(threads) if threads > 1 else None
     t0 = time.perf_counter()
     try:
         # the iteration of :func:`._kernel.gh_one_pass` with its rejection inside the

@@ -43,7 +43,9 @@ from ._kernel import (
     part_omega,
     part_pass,
     part_start,
+    pass_threads,
     point_weights,
+    thread_pool,
 )
 
 Condition = Callable[[Float[Array, "3"], Float[Array, " u"], Float[Array, " k"]], Float[Array, ""]]
@@ -210,8 +212,6 @@ def _gauss_helmert_split(condition, l, x0, sigma_l, consts, weights, v0, tol, *,
     from threads run at the same time. The iteration is that of :func:`._kernel.gh_one_pass`
     (same steps, rejection, convergence test), driven from Python; equal to it up to the order
     of the sums' additions."""
-    from ._mixed import _pool  # the random effect's thread pool (that module imports this one)
-
     n, u = l.shape[0], x0.shape[0]
     f = l.dtype
     on = jnp.ones((), bool)
@@ -222,7 +222,7 @@ def _gauss_helmert_split(condition, l, x0, sigma_l, consts, weights, v0, tol, *,
     parts = [dict(l=jnp.asarray(l[a:b]), c=jnp.asarray(consts[a:b]),
                   s=sigma_l[a:b] if per_s2 else sigma_l, chunk=min(chunk, b - a))
              for a, b in cuts]
-    pool = _pool(len(parts))
+    pool = thread_pool(len(parts))
 
     def each(fn):
         return list(pool.map(lambda ip: jax.block_until_ready(fn(*ip)), enumerate(parts)))
@@ -283,12 +283,10 @@ def _host_inputs(l, consts, weights, v0):
 def _adjust(condition, l, x0, sigma_l, consts, weights, v0, tol, *, max_iter, chunk_size,
             threads=None, robust_k=None, max_rounds=6):
     """One adjustment of host arrays (:func:`_host_inputs`), its passes split over the cores
-    when the points are many (:func:`~._mixed.mixed_threads` parts, ``threads`` to override),
+    when the points are many (:func:`~._kernel.pass_threads` parts, ``threads`` to override),
     else the single jitted loop."""
-    from ._mixed import mixed_threads
-
     n = l.shape[0]
-    t = mixed_threads(n) if threads is None else max(1, int(threads))
+    t = pass_threads(n) if threads is None else max(1, int(threads))
     t = min(t, max(1, n // chunk_size))
     kw = dict(max_iter=max_iter, chunk_size=chunk_size, robust_k=robust_k,
               max_rounds=max_rounds)
@@ -331,7 +329,7 @@ def gauss_helmert(
             deviation ``sqrt((N^-1)_jj)``.
         chunk_size: points per chunk of the normal-equation accumulation (bounds memory).
         threads: parts each pass is split into, one thread each (None: as the random effect,
-            :func:`~._mixed.mixed_threads`: the usable cores, one part per 2^17 points at
+            :func:`~._kernel.pass_threads`: the usable cores, one part per 2^17 points at
             most); the estimates do not depend on it beyond round-off.
     """
     l, consts, weights, v0 = _host_inputs(l, consts, weights, v0)

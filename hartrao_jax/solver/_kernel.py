@@ -17,6 +17,8 @@ an argument and not batched by ``vmap``.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 
 import equinox as eqx
@@ -429,6 +431,32 @@ def final_sweep(condition, l, consts, weights, store, residuals, x, dx, on, *, c
 # --------------------------------------------------------------------------------------------
 # The same iteration with each pass split over the cores (a part of the points per thread)
 # --------------------------------------------------------------------------------------------
+
+#: Points per part below which a pass is not split (one part, the single jitted loop).
+PARALLEL_MIN_POINTS = 1 << 17
+THREADS_ENV = "HARTRAO_JAX_THREADS"
+_POOL: dict[int, ThreadPoolExecutor] = {}
+
+
+def pass_threads(n: int) -> int:
+    """Parts (threads) a pass over ``n`` points is split into: ``$HARTRAO_JAX_THREADS``, else
+    the cores this process may use; at most one part per :data:`PARALLEL_MIN_POINTS` points.
+
+    XLA runs one fusion on one core, and the pass is one loop of fusions: one jitted call uses
+    one core whatever the machine. Two calls from two threads run at the same time (the
+    runtime executes concurrent calls concurrently), so the points are split into parts, each
+    part's pass runs in its own thread, and the sums are added."""
+    env = os.environ.get(THREADS_ENV)
+    affinity = getattr(os, "sched_getaffinity", None)  # Linux; elsewhere the core count
+    t = int(env) if env else (len(affinity(0)) if affinity else os.cpu_count() or 1)
+    return int(max(1, min(t, 8, n // PARALLEL_MIN_POINTS)))
+
+
+def thread_pool(threads: int) -> ThreadPoolExecutor:
+    """A pool of ``threads`` threads for the parts of a pass (one per process and size)."""
+    if threads not in _POOL:
+        _POOL[threads] = ThreadPoolExecutor(threads, thread_name_prefix="hartrao-mixed")
+    return _POOL[threads]
 
 
 @eqx.filter_jit

@@ -42,8 +42,6 @@ covariance ``s_e^2 [(S_g + Lambda)^-1 + (S_g + Lambda)^-1 s_g Q_xx s_g^T (S_g + 
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 
 import equinox as eqx
@@ -55,7 +53,16 @@ from jaxtyping import Array, Bool, Float, Int
 from scipy.stats import chi2 as chi2_dist
 
 from ._ghm import AbstractAdjustment
-from ._kernel import _materialize, materialize_trig, point_weights, solve_scaled
+from ._kernel import (
+    PARALLEL_MIN_POINTS,  # noqa: F401  (re-exported: this module's name since 520202b)
+    THREADS_ENV,  # noqa: F401
+    _materialize,
+    materialize_trig,
+    pass_threads,
+    point_weights,
+    solve_scaled,
+    thread_pool,
+)
 
 #: Smallest variance a component may take (relative to its start value): a component the data do
 #: not support tends to zero, which the iteration reaches only asymptotically.
@@ -404,30 +411,10 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
 # The same iteration with each pass split over the cores
 # --------------------------------------------------------------------------------------------
 
-#: Points per part below which a pass is not split (one part, the single jitted loop above).
-PARALLEL_MIN_POINTS = 1 << 17
-THREADS_ENV = "HARTRAO_JAX_THREADS"
-_POOL: dict[int, ThreadPoolExecutor] = {}
-
-
-def mixed_threads(n: int) -> int:
-    """Parts (threads) a pass over ``n`` points is split into: ``$HARTRAO_JAX_THREADS``, else
-    the cores this process may use; at most one part per :data:`PARALLEL_MIN_POINTS` points.
-
-    XLA runs one fusion on one core, and the pass is one loop of fusions: one jitted call uses
-    one core whatever the machine. Two calls from two threads run at the same time (the
-    runtime executes concurrent calls concurrently), so the points are split into parts, each
-    part's pass runs in its own thread, and the sums are added."""
-    env = os.environ.get(THREADS_ENV)
-    affinity = getattr(os, "sched_getaffinity", None)  # Linux; elsewhere the core count
-    t = int(env) if env else (len(affinity(0)) if affinity else os.cpu_count() or 1)
-    return int(max(1, min(t, 8, n // PARALLEL_MIN_POINTS)))
-
-
-def _pool(threads: int) -> ThreadPoolExecutor:
-    if threads not in _POOL:
-        _POOL[threads] = ThreadPoolExecutor(threads, thread_name_prefix="hartrao-mixed")
-    return _POOL[threads]
+# the parts and their threads: :func:`._kernel.pass_threads`, :func:`._kernel.thread_pool`
+# (shared with the white adjustment; the names below are this module's since 520202b)
+mixed_threads = pass_threads
+_pool = thread_pool
 
 
 @eqx.filter_jit

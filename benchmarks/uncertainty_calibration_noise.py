@@ -169,7 +169,8 @@ def summarize(parts: list[dict], infl: list[dict]) -> dict:
                 blocks[f"{b0}-{b0 + 19}"] = {n: _std(v) for n, v in bz.items()}
         e["blocks_of_20"] = blocks
         # the same seeds' stored two-face z (panels and random effect) against the noise-only z
-        diffs, two = {n: [] for n in CAL}, {n: [] for n in CAL}
+        # (f for contrast: the surface does move it)
+        diffs, two = {n: [] for n in CAL + ("f",)}, {n: [] for n in CAL + ("f",)}
         for p in cp:
             f = uc.PARTS / f"{case}-{p['seed']}.json"
             if not f.exists():
@@ -177,13 +178,14 @@ def summarize(parts: list[dict], infl: list[dict]) -> dict:
             st = {(r["unit"], r["param"]): r["z"] for r in json.loads(f.read_text())["rows"]
                   if r["mode"] == "two-face"}
             for r in p["rows"]:
-                if r["param"] in CAL and (r["unit"], r["param"]) in st:
+                if r["param"] in diffs and (r["unit"], r["param"]) in st:
                     diffs[r["param"]].append(st[(r["unit"], r["param"])] - r["z"])
                     two[r["param"]].append(st[(r["unit"], r["param"])])
         if diffs["x4"]:
             e["two_face_vs_noise_only"] = {
                 n: {"n": len(diffs[n]), "max_abs_diff": float(np.max(np.abs(diffs[n]))),
-                    "std_two_face": _std(two[n])} for n in CAL if diffs[n]}
+                    "rms_diff": float(np.sqrt(np.mean(np.square(diffs[n])))),
+                    "std_two_face": _std(two[n])} for n in diffs if diffs[n]}
         out["cases"][case] = e
     out["p_std_outside_0.8_1.25"] = {n: _p_outside(n) for n in (20, 40, 60, 100)}
     return out
@@ -202,7 +204,8 @@ def markdown(s: dict) -> str:
             lines.append(f"| {n} | {v['std']:.2f} | {v['mean']:+.2f} | {v['max_abs']:.1f} |")
         if "two_face_vs_noise_only" in e:
             lines += ["", "Same seeds, two-face z minus noise-only z: " + "; ".join(
-                f"{n} max |diff| {v['max_abs_diff']:.2f} over {v['n']} (two-face std z "
+                f"{n} rms {v['rms_diff']:.2f}, max |diff| {v['max_abs_diff']:.2f} over {v['n']} "
+                f"(two-face std z "
                 f"{v['std_two_face']:.2f})" for n, v in e["two_face_vs_noise_only"].items())]
         if e["blocks_of_20"]:
             lines += ["", "Noise-only std z of x4/x6/x7 per block of 20 seeds: " + "; ".join(

@@ -396,10 +396,9 @@ def stream_fit_scan(
             blocks.append((s0, n, obs, c, w, st))
         return j, ch.row, m, blocks
 
-    def stream_pass(x, dx_prev, *, reject: bool, sigma0: float, write: bool):
+    def stream_pass(x, dx_prev, *, reject: bool, sigma0: float):
         """One read of the observations: (rejection and) residuals of the previous solution,
-        normals at ``x``. ``write``: write the residuals of the previous solution to the
-        outputs."""
+        normals at ``x`` (the residuals of the solution are written by ``final_sweep``)."""
         N = np.zeros((u, u))
         nv = np.zeros(u)
         wmw = 0.0
@@ -458,11 +457,6 @@ def stream_fit_scan(
                         files["w"].write(slot, w2[:n])
                     for key, arr in zip(("a", "b", "wm", "m"), (a2, b2, wm2, m2)):
                         files[key].write(slot, arr.reshape((-1, *files[key].tail)))
-                    if write:
-                        r = rows[s0:s0 + n]
-                        out_v.write_rows(r, v[:n])
-                        out_e.write_rows(r, e[:n])
-                        out_w.write_rows(r, w2[:n])
                     timings["write_s"] += time.perf_counter() - tw
         finally:
             if pool:
@@ -504,8 +498,7 @@ def stream_fit_scan(
             judge = (robust_k is not None and total_it >= 1 and ratio < REJECT_BELOW
                      and rejecting < max_rounds)
             judged = judge or robust_k is None or rejecting >= max_rounds
-            N, nv, wmw, n_bad, n_used = stream_pass(x, dx_prev, reject=judge, sigma0=sigma0,
-                                                    write=False)
+            N, nv, wmw, n_bad, n_used = stream_pass(x, dx_prev, reject=judge, sigma0=sigma0)
             if n_bad:
                 log.info("stream %s: iteration %d rejects %d points", meta.id, total_it + 1,
                          n_bad)

@@ -186,6 +186,19 @@ class _SurfaceNull:
                 **({"note": self.note} if self.note else {})}
 
 
+SURFACE_CELLS = "the surface cells (offsets and tilts)"
+
+
+def _named_correlation(joint: _Joint, cand: _Candidate) -> float:
+    """Multiple correlation of a one-parameter candidate with the model's named unknowns
+    alone (the surface cells left out)."""
+    J, H = cand.idx, cand.H
+    B = joint.N_raw[np.ix_(joint.I0, J)] @ H
+    D = float((H.T @ joint.N_raw[np.ix_(J, J)] @ H)[0, 0])
+    S = D - float((B.T @ joint.Kr_inv @ B)[0, 0])
+    return math.sqrt(min(max(1.0 - S / D, 0.0), 1.0)) if D > 0 else 0.0
+
+
 class _Joint:
     """The scans' normal equations summed into one system, panel offsets eliminated."""
 
@@ -299,6 +312,7 @@ class _Joint:
         Kr_inv = np.linalg.pinv(Kr_s, rcond=1e-13) * self.K_scale[:, None] * self.K_scale[None, :]
         n0r = self.n_raw[self.I0]
         self.omega0_raw = self.wMw_raw - float(n0r @ Kr_inv @ n0r)
+        self.Kr_inv = Kr_inv  # the null block without the surface cells
         self.cfg = cfg
         # ---- the score tests' null: the surface as a random effect (physics.md, Statistics)
         self.surface = _SurfaceNull.of(self, S3, sg3, tg3, U)
@@ -368,6 +382,10 @@ class _Joint:
                 if (abs(corr[i]) >= 0.5 and len(with_) < 3) or not with_:
                     with_.append(name)
                     cw.append(float(corr[i]))
+            if rho > cfg.confounded_correlation and _named_correlation(self, cand) < \
+                    cfg.confounded_correlation:  # the cells, not the named unknowns, take it
+                with_.append(SURFACE_CELLS)
+                cw.append(rho)
         p = _p_of(T, dof)
         return _Test(cand, T, dof, p, _z_of(T, dof), effect, delta, sig, rho, with_, cw,
                      confounded=dof < len(m) if len(m) == 1 else dof == 0, S=S, Draw=Draw,

@@ -171,8 +171,9 @@ class _SurfaceNull:
         # the offsets free (no prior): they take up the reflector's shape at every scale
         # above a cell, which the tilts' random effect alone does not describe (on a real
         # reflector, smooth deformation of millimetres); the tilts with their prior
-        lam = np.where((S3[:, 0, 0] > 0)[:, None], 0.0, 1.0) * np.eye(K_CELL)[0][None, :] \
-            + (se2 / cv * (np.arange(K_CELL) > 0))[None, :]
+        lam = np.zeros((len(S3), K_CELL))
+        lam[:, 1:] = se2 / cv[1:]  # the tilts' prior
+        lam[S3[:, 0, 0] <= 0, 0] = 1.0  # a cell without points: its offset is arbitrary
         Dinv = np.linalg.inv(S3 + lam[:, :, None] * np.eye(K_CELL)[None])
         N = joint.N_raw - np.einsum("gki,gkl,glj->ij", sg3, Dinv, sg3)
         n = joint.n_raw - np.einsum("gki,gkl,gl->i", sg3, Dinv, tg3 + lam * U)
@@ -200,7 +201,9 @@ def _named_correlation(joint: _Joint, cand: _Candidate) -> float:
 
 
 class _Joint:
-    """The scans' normal equations summed into one system, panel offsets eliminated."""
+    """The scans' normal equations summed into one system: panel offsets eliminated as fixed
+    nuisance (the panel test and the model step), and the score tests' null with the surface
+    (:class:`_SurfaceNull`, ``surface``)."""
 
     def __init__(self, ctx: _Context, scans: Sequence[_Scan], spec: _Spec, candidates_local):
         self.ctx = ctx

@@ -14,7 +14,6 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import special, stats
 
-from ..geometry._geometry import panel_cells
 from ..model._model import (
     DRIFT,
     OSCILLATION,
@@ -100,15 +99,15 @@ _CELL_VAR0 = (1e-8, 1e-8, 1e-8)  # start of the cells' variances: 0.1 mm, 1e-4 r
 def _cell_sums(ctx: _Context, sc: _Scan, model, x: np.ndarray, w: np.ndarray,
                U: np.ndarray) -> MixedSums:
     """Normal-equation sums of one scan at its current solution, with the columns of its
-    surface cells (:func:`..geometry.panel_cells`: the panels, or the stated grid; per cell its
+    surface cells (its panels, or the stated grid, with the local coordinates of
+    :func:`..geometry.panel_cells` frozen at the start; per cell its
     offset and radial and tangential tilt, entering as normal deviation), as the two-face
     adjustment forms them (:func:`..solver.mixed_chunk`). ``w``: weights of the points; ``U``
     (cells, 3): the cells' current values (the modelled panel offsets), taken out of the
     points' known deviation so that the random effect carries the whole surface."""
     n = len(w)
-    _, local, _, _ = panel_cells(sc.X_tel, ctx.edges, ctx.counts)
     cell = np.where(sc.panel >= 0, sc.panel, -1)
-    design = np.column_stack([np.ones(n), local]) * (cell >= 0)[:, None]
+    design = np.column_stack([np.ones(n), sc.local]) * (cell >= 0)[:, None]
     consts = sc.consts().copy()
     consts[:, 1] -= np.where(cell >= 0, np.sum(design * U[np.maximum(cell, 0)], axis=1), 0.0)
     npad = _npad(n)
@@ -121,9 +120,15 @@ def _cell_sums(ctx: _Context, sc: _Scan, model, x: np.ndarray, w: np.ndarray,
     return sums
 
 
-def _scaled_pinv(K: np.ndarray) -> np.ndarray:
-    """Pseudo-inverse of a symmetric normal matrix after Jacobi scaling."""
-    d = 1.0 / np.sqrt(np.where(np.diag(K) > 0, np.diag(K), 1.0))
+def _jacobi_scale(K: np.ndarray) -> np.ndarray:
+    """``1 / sqrt(diag K)`` (1 where the diagonal is not positive)."""
+    return 1.0 / np.sqrt(np.where(np.diag(K) > 0, np.diag(K), 1.0))
+
+
+def _scaled_pinv(K: np.ndarray, d: np.ndarray | None = None) -> np.ndarray:
+    """Pseudo-inverse of a symmetric normal matrix after Jacobi scaling (by ``d``, default
+    :func:`_jacobi_scale` of ``K``)."""
+    d = _jacobi_scale(K) if d is None else d
     return np.linalg.pinv(K * d[:, None] * d[None, :], rcond=1e-13) * d[:, None] * d[None, :]
 
 
@@ -302,20 +307,16 @@ class _Joint:
         # ---- null system: x blocks and accepted shared
         self.I0 = np.concatenate([*self.xidx.values(), self.sidx]).astype(int)
         K = self.N[np.ix_(self.I0, self.I0)]
-        self.K_scale = 1.0 / np.sqrt(np.where(np.diag(K) > 0, np.diag(K), 1.0))
-        Ks = K * self.K_scale[:, None] * self.K_scale[None, :]
-        self.K_inv = np.linalg.pinv(Ks, rcond=1e-13) * self.K_scale[:, None] * self.K_scale[None, :]
+        scale = _jacobi_scale(K)
+        self.K_inv = _scaled_pinv(K, scale)
         n0 = self.n[self.I0]
         self.omega0 = self.wMw - float(n0 @ self.K_inv @ n0)
         self.dof0 = self.n_used - len(self.I0) - self.G_live
         self.sigma0 = math.sqrt(max(self.omega0, 1e-300) / max(self.dof0, 1))
         # null without panel elimination (for the panel test)
-        Kr = self.N_raw[np.ix_(self.I0, self.I0)]
-        Kr_s = Kr * self.K_scale[:, None] * self.K_scale[None, :]
-        Kr_inv = np.linalg.pinv(Kr_s, rcond=1e-13) * self.K_scale[:, None] * self.K_scale[None, :]
+        self.Kr_inv = _scaled_pinv(self.N_raw[np.ix_(self.I0, self.I0)], scale)  # no cells
         n0r = self.n_raw[self.I0]
-        self.omega0_raw = self.wMw_raw - float(n0r @ Kr_inv @ n0r)
-        self.Kr_inv = Kr_inv  # the null block without the surface cells
+        self.omega0_raw = self.wMw_raw - float(n0r @ self.Kr_inv @ n0r)
         self.cfg = cfg
         # ---- the score tests' null: the surface as a random effect (physics.md, Statistics)
         self.surface = _SurfaceNull.of(self, S3, sg3, tg3, U)

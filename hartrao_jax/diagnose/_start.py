@@ -14,7 +14,7 @@ from ..fit._align import mean_heading, scan_heading
 from ..fit._fit import finish_scan_fit, prepare_scan, scan_arrays
 from ..geometry._geometry import (
     face_of,
-    panel_ids,
+    panel_cells,
     paraboloid_normal_scale,
     pointing_gravity,
     rot_z,
@@ -56,7 +56,7 @@ def _start_scans(ctx: _Context, start: tuple[str, ...], keep,
         X = f.X_tel
         rho = np.hypot(X[:, 0], X[:, 1])
         psi = np.mod(np.arctan2(X[:, 1], X[:, 0]), 2 * np.pi)
-        pid = panel_ids(rho, psi, ctx.edges, ctx.counts)
+        pid, local, _, _ = panel_cells(X, ctx.edges, ctx.counts)
         fval = f.value("f")
         s_rho = np.asarray(paraboloid_normal_scale(rho, fval))
         # incidence angle: beam (from the scanner origin, fitted frame) against the normal
@@ -74,7 +74,7 @@ def _start_scans(ctx: _Context, start: tuple[str, ...], keep,
             window=window, l=np.column_stack([f.data.range_m, f.data.phi_rad,
                                                       f.data.theta_rad]),
             kappa=float(f.alignment.kappa_rad), elevation_deg=float(f.elevation_deg), X_tel=X,
-            rho=rho, psi=psi, panel=pid, s_rho=s_rho, face=face_of(f.data.theta_rad),
+            rho=rho, psi=psi, panel=pid, local=local, s_rho=s_rho, face=face_of(f.data.theta_rad),
             incidence=np.arccos(np.clip(cosi, 0, 1)), known=np.zeros(n), extra_known=np.zeros(n),
             cut=np.zeros(n, bool),
         )

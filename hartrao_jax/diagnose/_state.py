@@ -85,6 +85,7 @@ class _Scan:
     rho: np.ndarray
     psi: np.ndarray
     panel: np.ndarray  # panel id (-1: none), from the start fit
+    local: np.ndarray  # (n, 2) m: the point in its panel (radial, tangential; panel_cells)
     s_rho: np.ndarray  # sqrt(1 + rho^2/4f^2): d condition / d normal offset
     face: np.ndarray
     incidence: np.ndarray

@@ -412,9 +412,8 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
 # --------------------------------------------------------------------------------------------
 
 # the parts and their threads: :func:`._kernel.pass_threads`, :func:`._kernel.thread_pool`
-# (shared with the white adjustment; the names below are this module's since 520202b)
+# (shared with the white adjustment; ``mixed_threads`` is this module's name for the first)
 mixed_threads = pass_threads
-_pool = thread_pool
 
 
 @eqx.filter_jit
@@ -484,7 +483,7 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
     sums of the parts are added, the step and the variance components computed from them as
     before. Same iteration, same arithmetic up to the order of the sums' additions."""
     on = jnp.ones((), bool)
-    pool = _pool(len(parts))
+    pool = thread_pool(len(parts))
 
     def linearize(x, U):
         def one(p):

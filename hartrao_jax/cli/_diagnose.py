@@ -10,7 +10,7 @@ import time
 import click
 
 from ..diagnose import DiagnoseConfig, write_json
-from ..physics._catalog import EFFECTS
+from ..physics._catalog import EFFECTS, INSTRUMENT
 from ..preprocess import preprocess_keep
 from ..prove._prove import CASES, run_prove
 from ..prove._prove import detectability as mda
@@ -31,6 +31,8 @@ def print_diagnosis(diag) -> None:
                   f"{1e3 * f.effect_size_m:.4f}", f"{f.sigma0_before:.3f} -> {f.sigma0_after:.3f}",
                   f.explanation)
     _console().print(t)
+    if diag.positions:
+        _console().print(_positions_table(diag.positions))
     if diag.confounded:
         c = Table(title="confounded with the model (never reported as findings)")
         for col in ("effect", "with", "correlation"):
@@ -38,6 +40,27 @@ def print_diagnosis(diag) -> None:
         for row in diag.confounded:
             c.add_row(row["effect"], ", ".join(row["with"]), f"{row['correlation']:.6f}")
         _console().print(c)
+
+
+def _positions_table(positions: list[dict]):
+    """The final model's estimates per position (both faces, the surface a random effect)."""
+    from rich.table import Table
+
+    from ..diagnose._apply_catalog import _fmt
+
+    t = Table(title="final estimates per position (faces together, surface as a random effect)")
+    for c in ("position", "faces", "f (m)", "calibration", "not identifiable"):
+        t.add_column(c, overflow="fold")
+    for p in positions:
+        est = p["estimates"]
+        f = est.get("f", {})
+        cal = [f"{n} = {_fmt(n, e['value'], e['sigma'])}" for n, e in est.items()
+               if n in INSTRUMENT and e.get("value") is not None]
+        held = [n for n, e in est.items() if e.get("identifiable") is False]
+        t.add_row(p["position"], str(p["faces"]),
+                  f"{f['value']:.5f} ± {1e3 * f['sigma']:.3f} mm" if f.get("value") else "-",
+                  "; ".join(cal), ", ".join(held) or "-")
+    return t
 
 
 @main.command("diagnose")

@@ -54,7 +54,6 @@ import math
 import time
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -65,6 +64,7 @@ from ._apply_catalog import _apply_catalog
 from ._apply_covariate import _apply_covariate, _apply_dish
 from ._checks import _alternatives, _signature_check
 from ._detectability import _detectability
+from ._estimates import surface_estimates
 from ._explain import _candidates, _Joint, _local_candidates, _log_sf, _want
 from ._find import _covariate_cv, _locate_time
 from ._local import final_estimates, local_step
@@ -259,22 +259,6 @@ def _model_step(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, b
 # ============================================================================================
 
 
-def _scans_final(S: Sequence[_Scan]) -> dict[str, dict[str, Any]]:
-    """Per scan: the final model, its estimates with sigmas (parameter units), sigma0."""
-    out = {}
-    for sc in S:
-        cv = np.sqrt(np.maximum(np.diag(sc.cov), 0.0)) if sc.cov.size else np.zeros(0)
-        out[sc.id] = {
-            "model": list(sc.names),
-            "estimates": {n: {"value": float(sc.x[i]), "sigma": float(cv[i])}
-                          for i, n in enumerate(sc.names)},
-            "sigma0": _num(sc.sigma0), "n_points": int(sc.used.sum()),
-            "converged": sc.converged,
-            "cut_points": int(sc.cut.sum()),
-        }
-    return out
-
-
 # ============================================================================================
 # the loop
 # ============================================================================================
@@ -391,13 +375,19 @@ def diagnose(
     if spec.shared:
         notes.append("instrument parameters found are shared by all scans (joint estimate): "
                      + ", ".join(f"{k}={v:.4g}" for k, v in spec.shared.items()))
+    t_e = time.time()
+    final = surface_estimates(ctx, S, spec)
+    timing["estimates"] = time.time() - t_e
+    if final["note"]:
+        notes.append(final["note"])
     timing["total"] = time.time() - t_all
     diag = Diagnosis(
         campaign=str(camp.root), start_model=list(start_names), final_model=spec.names(),
         sigma0_start=sigma0_start, sigma0_final=_global_sigma0(S), rms_start_m=rms_start,
         rms_final_m=_rms(S), findings=findings, confounded=list(confounded.values()),
         comparison=comparison, candidates=last_rows, timing_s=timing, notes=notes,
-        scans_final=_scans_final(S), history=history, detectability=detect, skipped=skipped,
+        scans_final=final["scans"], positions=final["positions"],
+        shared_estimates=final["shared"], history=history, detectability=detect, skipped=skipped,
         not_identifiable=not_identifiable, local_search=local_search, layout=ctx.layout_note,
         extents={sc.id: _extent(sc) for sc in S},
         covariates=cov_cmp,

@@ -157,9 +157,9 @@ class _SurfaceNull:
     note: str = ""
 
     @classmethod
-    def of(cls, joint: _Joint, S3: np.ndarray, sg3: np.ndarray, tg3: np.ndarray,
-           U: np.ndarray) -> _SurfaceNull:
+    def of(cls, joint: _Joint) -> _SurfaceNull:
         I0 = joint.I0
+        S3, sg3, tg3, U = joint.cells
         sums = MixedSums(
             jnp.asarray(joint.N_raw[np.ix_(I0, I0)]), jnp.asarray(joint.n_raw[I0]),
             jnp.asarray(S3), jnp.asarray(sg3[:, :, I0]), jnp.asarray(tg3),
@@ -176,12 +176,7 @@ class _SurfaceNull:
         # the offsets free (no prior): they take up the reflector's shape at every scale
         # above a cell, which the tilts' random effect alone does not describe (on a real
         # reflector, smooth deformation of millimetres); the tilts with their prior
-        lam = np.zeros((len(S3), K_CELL))
-        lam[:, 1:] = se2 / cv[1:]  # the tilts' prior
-        lam[S3[:, 0, 0] <= 0, 0] = 1.0  # a cell without points: its offset is arbitrary
-        Dinv = np.linalg.inv(S3 + lam[:, :, None] * np.eye(K_CELL)[None])
-        N = joint.N_raw - np.einsum("gki,gkl,glj->ij", sg3, Dinv, sg3)
-        n = joint.n_raw - np.einsum("gki,gkl,gl->i", sg3, Dinv, tg3 + lam * U)
+        N, n = eliminate_cells(joint, se2, cv, offsets_random=False)
         return cls(N, n, _scaled_pinv(N[np.ix_(I0, I0)]), math.sqrt(se2), se2, cv)
 
     def to_json(self) -> dict:
@@ -190,6 +185,25 @@ class _SurfaceNull:
                             "tilt_radial_rad": float(np.sqrt(self.cell_var[1])),
                             "tilt_tangential_rad": float(np.sqrt(self.cell_var[2]))},
                 **({"note": self.note} if self.note else {})}
+
+
+def eliminate_cells(joint: _Joint, noise_var: float, cell_var: np.ndarray, *,
+                    offsets_random: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The joint normal system ``(N, n)`` over all joint unknowns with the surface cells
+    eliminated (Schur complement, one 3 x 3 block per cell): the tilts (rad) with their prior
+    ``noise_var / cell_var[1:]``, the offsets (m) with theirs when ``offsets_random`` and free
+    otherwise. The cells' prior mean is zero for their whole value: the current ones ``U`` (the
+    modelled panel offsets) enter as a start."""
+    S3, sg3, tg3, U = joint.cells
+    lam = np.zeros((len(S3), K_CELL))
+    lam[:, 1:] = noise_var / cell_var[1:]  # the tilts' prior
+    if offsets_random:
+        lam[:, 0] = noise_var / cell_var[0]
+    lam[S3[:, 0, 0] <= 0, 0] = 1.0  # a cell without points: its offset is arbitrary
+    Dinv = np.linalg.inv(S3 + lam[:, :, None] * np.eye(K_CELL)[None])
+    N = joint.N_raw - np.einsum("gki,gkl,glj->ij", sg3, Dinv, sg3)
+    n = joint.n_raw - np.einsum("gki,gkl,gl->i", sg3, Dinv, tg3 + lam * U)
+    return N, n
 
 
 SURFACE_CELLS = "the surface cells (offsets and tilts)"
@@ -319,7 +333,8 @@ class _Joint:
         self.omega0_raw = self.wMw_raw - float(n0r @ self.Kr_inv @ n0r)
         self.cfg = cfg
         # ---- the score tests' null: the surface as a random effect (physics.md, Statistics)
-        self.surface = _SurfaceNull.of(self, S3, sg3, tg3, U)
+        self.cells = (S3, sg3, tg3, U)  # per cell: normal block, coupling, right side, value
+        self.surface = _SurfaceNull.of(self)
         log.debug("score-test null: %s", self.surface.to_json())
 
     # ----------------------------------------------------------------------------------

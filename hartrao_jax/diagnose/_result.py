@@ -33,7 +33,9 @@ class Diagnosis:
     candidates: list[dict]
     timing_s: dict[str, float]
     notes: list[str] = field(default_factory=list)
-    scans_final: dict[str, dict] = field(default_factory=dict)
+    scans_final: dict[str, dict] = field(default_factory=dict)  # per scan, surface random effect
+    positions: list[dict] = field(default_factory=list)  # both faces adjusted together
+    shared_estimates: dict[str, dict] = field(default_factory=dict)  # common to all scans
     history: list[dict] = field(default_factory=list)
     detectability: list[dict] = field(default_factory=list)
     skipped: list[dict] = field(default_factory=list)  # searches the recording cannot support
@@ -59,6 +61,8 @@ class Diagnosis:
             "comparison": self.comparison,
             "last_candidates": self.candidates,
             "scans": self.scans_final,
+            "positions": self.positions,
+            "shared_estimates": self.shared_estimates,
             "detectability": self.detectability,
             "timing_s": self.timing_s,
             "notes": self.notes,

@@ -10,6 +10,7 @@ import time
 import click
 
 from ..diagnose import DiagnoseConfig, write_json
+from ..model import format_estimate
 from ..physics._catalog import EFFECTS, INSTRUMENT
 from ..preprocess import preprocess_keep
 from ..prove._prove import CASES, run_prove
@@ -46,15 +47,13 @@ def _positions_table(positions: list[dict]):
     """The final model's estimates per position (both faces, the surface a random effect)."""
     from rich.table import Table
 
-    from ..diagnose._apply_catalog import _fmt
-
     t = Table(title="final estimates per position (faces together, surface as a random effect)")
     for c in ("position", "faces", "f (m)", "calibration", "not identifiable"):
         t.add_column(c, overflow="fold")
     for p in positions:
         est = p["estimates"]
         f = est.get("f", {})
-        cal = [f"{n} = {_fmt(n, e['value'], e['sigma'])}" for n, e in est.items()
+        cal = [f"{n} = {format_estimate(n, e['value'], e['sigma'])}" for n, e in est.items()
                if n in INSTRUMENT and e.get("value") is not None]
         held = [n for n, e in est.items() if e.get("identifiable") is False]
         t.add_row(p["position"], str(p["faces"]),

@@ -13,23 +13,13 @@ from typing import Any
 
 import numpy as np
 
-from ..model._model import parameter_unit
+from ..model._model import format_estimate
 from ._apply_motion import _apply_motion, _with_twins
 from ._explain import _Joint, _Test
 from ._options import _Option
 from ._panels import _joint_step, _update_panels, _update_shared
 from ._signature import _signature, _where_of_signature
 from ._state import ZERNIKE_TESTED, _Context, _num, _refit_all, _Scan, _Spec
-
-
-def _fmt(name: str, v: float, s: float) -> str:
-    """``v ± s`` of parameter ``name`` in readable units (arcsec for rad, mm for m)."""
-    unit = parameter_unit(name)
-    if unit == "rad":
-        return f"{v * 206264.806:.2f} ± {s * 206264.806:.2f} arcsec"
-    if unit == "m":
-        return f"{v * 1e3:.4f} ± {s * 1e3:.4f} mm"
-    return f"{v:.4g} ± {s:.2g} {unit}".strip()
 
 
 def _apply_instrument(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, t: _Test,
@@ -46,8 +36,8 @@ def _apply_instrument(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Jo
     extra = {"scan_difference": {"statistic": _num(t.T_diff), "dof": t.dof_diff}}
     _refit_all(ctx, S, spec)
     return {"where": where, "estimate": estimate, "extra": extra,
-            "explanation": f"{expl}; {k} = {_fmt(k, t.estimate[0], t.sigma[0])}, one value for "
-                           f"all scans"}
+            "explanation": f"{expl}; {k} = {format_estimate(k, t.estimate[0], t.sigma[0])}, "
+                           f"one value for all scans"}
 
 
 def _apply_gravity(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, t: _Test,

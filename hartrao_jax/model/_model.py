@@ -246,3 +246,13 @@ def parameter_unit(name: str) -> str:
     if name in EXTRA_UNITS:
         return EXTRA_UNITS[name]
     return "m" if name.startswith(ZERNIKE_PREFIX) or _bump_key(name) is not None else ""
+
+
+def format_estimate(name: str, value: float, sigma: float) -> str:
+    """``value ± sigma`` of parameter ``name`` in readable units (arcsec for rad, mm for m)."""
+    unit = parameter_unit(name)
+    if unit == "rad":
+        return f"{value * 206264.806:.2f} ± {sigma * 206264.806:.2f} arcsec"
+    if unit == "m":
+        return f"{value * 1e3:.4f} ± {sigma * 1e3:.4f} mm"
+    return f"{value:.4g} ± {sigma:.2g} {unit}".strip()

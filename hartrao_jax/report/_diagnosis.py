@@ -11,6 +11,7 @@ import numpy as np
 
 from ..diagnose._diagnose import diagnose
 from ..diagnose._result import Diagnosis, _json_default
+from ..model import format_estimate
 
 
 def write_report(diag: Diagnosis, out_dir: str | Path) -> Path:
@@ -100,6 +101,13 @@ def write_report(diag: Diagnosis, out_dir: str | Path) -> Path:
     conf = "".join(f"<tr><td>{c['effect']}</td><td>{', '.join(c['with'])}</td>"
                    f"<td>{c['correlation']:.6f}</td></tr>" for c in diag.confounded)
 
+    est = "".join(
+        f"<tr><td>{_html(str(p['position']))}</td><td>{p['faces']}</td>"
+        + "".join(f"<td>{_estimate_cell(n, e)}</td>" for n, e in p["estimates"].items())
+        + "</tr>" for p in diag.positions)
+    est_head = ("".join(f"<th>{_html(n)}</th>" for n in diag.positions[0]["estimates"])
+                if diag.positions else "")
+
     images += diagnosis_local_figures(diag, out)
     imgs = "".join(f"<h3>{_html(t)}</h3><img src='{n}' style='max-width:100%'>" for t, n in images)
     skip = "".join(f"<li>{_html(k['search'])}: {_html(k['why'])}</li>" for k in diag.skipped)
@@ -116,6 +124,11 @@ final model {', '.join(diag.final_model)}.</p>
 <table><tr><th>#</th><th>effect</th><th>family</th><th>scans</th><th>T (dof)</th>
 <th>effect [mm]</th><th>sigma0</th><th>rms [mm]</th><th>where</th><th>explanation</th></tr>
 {rows}</table>
+<h2>Final estimates per position</h2>
+<p>Both faces adjusted together with the panels' offsets and tilts as a random effect (variances
+estimated): these sigmas include the surface. The loop's per-scan white-noise sigmas are in the
+JSON as <code>sigma_white</code>.</p>
+<table><tr><th>position</th><th>faces</th>{est_head}</tr>{est}</table>
 <h2>Confounded with the model (not tested)</h2>
 <table><tr><th>effect</th><th>with</th><th>correlation</th></tr>{conf}</table>
 <h2>Local deformation search</h2><ul>{loc}</ul>
@@ -125,6 +138,15 @@ final model {', '.join(diag.final_model)}.</p>
     p = out / "index.html"
     p.write_text(html, encoding="utf-8")
     return p
+
+
+def _estimate_cell(name: str, e: dict) -> str:
+    """``value ± sigma`` in readable units, or why the data cannot determine it."""
+    if e.get("identifiable") is False:
+        return f"<i>not identifiable</i>: {_html(e.get('note', ''))}"
+    if e.get("value") is None or e.get("sigma") is None:
+        return "-"
+    return _html(format_estimate(name, e["value"], e["sigma"]))
 
 
 def _html(s: str) -> str:

@@ -24,6 +24,7 @@ determine (near-confounding or a sigma above the parameter's typical size) is re
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Sequence
 from typing import Any
@@ -35,6 +36,8 @@ from ..physics._catalog import INSTRUMENT
 from ..solver._mixed import unidentifiable
 from ._explain import _Joint, _scaled_pinv, eliminate_cells
 from ._state import ZERNIKE_TESTED, _Context, _num, _Scan, _Spec
+
+log = logging.getLogger("hartrao_jax")
 
 #: Angles of the pose: two cycles' values are brought to the same turn before they are merged.
 _ANGLES = ("rx", "ry", "rz")
@@ -113,6 +116,48 @@ def _identifiability(cov: np.ndarray, names: list[str], elevation_deg: float) ->
     return out
 
 
+#: Gauss-Newton steps of the random-effect system at most, and the step (in sigmas of each
+#: unknown) below which it has converged. One step suffices where the white fit is close (the
+#: usual case); a narrow strip, where f is barely determined, needs a few.
+MAX_STEPS, STEP_TOL = 6, 0.1
+
+
+def _iterate(ctx: _Context, S: Sequence[_Scan], spec: _Spec):
+    """Gauss-Newton on the joint system with the cells as a random effect, from the scans'
+    final solutions: each step re-linearises every scan at the step's result for its own
+    unknowns (their ``x`` is moved; the caller restores it). Returns ``(surface null, K, k, x,
+    labels, P, keys)`` at the last linearisation (``x - K^+ k`` the solution), or None when
+    the variances are not estimable."""
+    for step in range(MAX_STEPS):
+        joint = _Joint(ctx, S, spec, {sc.id: [] for sc in S})
+        sn = joint.surface
+        if sn.note:
+            return None
+        N, n = eliminate_cells(joint, sn.noise_var, sn.cell_var, offsets_random=True)
+        I0 = joint.I0
+        K, k = N[np.ix_(I0, I0)], n[I0]
+        labels = [joint.labels[i] for i in I0]
+        P, keys = _merge(joint, S, spec)
+        x = _same_turn(_current(joint, S, spec), P, labels)
+        Ki = _scaled_pinv(K)
+        dx = -Ki @ k
+        own = np.array(["@" in lab for lab in labels])
+        sd = np.sqrt(sn.noise_var * np.maximum(np.diag(Ki), 1e-300))
+        worst = float(np.max(np.abs(dx[own]) / sd[own])) if own.any() else 0.0
+        log.debug("final estimates, step %d: largest step %.3g sigma", step, worst)
+        if worst < STEP_TOL or step == MAX_STEPS - 1:
+            break
+        for sc in S:
+            xs = np.array(sc.x, float)
+            for i, lab in enumerate(labels):
+                name, _, sid = lab.partition("@")
+                if sid == sc.id:
+                    xs[sc.names.index(name)] = x[i] + dx[i]
+            sc.x = xs
+    log.debug("final estimates: %d Gauss-Newton steps", step + 1)
+    return sn, K, k, x, labels, P, keys
+
+
 def _entry(value: float, sigma: float, **more) -> dict[str, Any]:
     return {"value": _num(value), "sigma": _num(sigma), **more}
 
@@ -125,24 +170,21 @@ def surface_estimates(ctx: _Context, S: Sequence[_Scan], spec: _Spec) -> dict[st
     the loop's white-noise sigma), sigma0, counts and convergence; ``positions`` lists per
     position its ``faces``, scans and merged ``estimates`` (calibration parameters the data
     cannot determine as ``{"value": null, "sigma": null, "identifiable": false, "note": ...}``)
-    with the variance components; ``shared`` the accepted parameters common to all scans; ``note``
-    is empty unless the random effect could not be estimated (the
-    white-noise sigmas are then reported and say so)."""
-    joint = _Joint(ctx, S, spec, {sc.id: [] for sc in S})
-    sn = joint.surface
+    with the variance components; ``shared`` the accepted parameters common to all scans;
+    ``note`` is empty unless the random effect could not be estimated (the white-noise sigmas
+    are then reported and say so)."""
     white = {sc.id: dict(zip(sc.names, np.sqrt(np.maximum(np.diag(sc.cov), 0.0))))
              if sc.cov.size else {} for sc in S}
-    if sn.note:
+    saved = [np.array(sc.x, float) for sc in S]
+    try:
+        solved = _iterate(ctx, S, spec)
+    finally:
+        for sc, x0 in zip(S, saved):
+            sc.x = x0
+    if solved is None:
         return {"scans": _white_only(S, white), "positions": [], "shared": {},
-                "note": f"surface random effect not estimable ({sn.note}): the sigmas are the "
-                        f"noise's alone"}
-    N, n = eliminate_cells(joint, sn.noise_var, sn.cell_var, offsets_random=True)
-    I0 = joint.I0
-    K, k = N[np.ix_(I0, I0)], n[I0]
-    labels = [joint.labels[i] for i in I0]
-    P, keys = _merge(joint, S, spec)
-    x = _same_turn(_current(joint, S, spec), P, labels)
-    # per scan: one Gauss-Newton step of the joint system from the final per-scan solutions
+                "note": "surface random effect not estimable: the sigmas are the noise's alone"}
+    sn, K, k, x, labels, P, keys = solved
     Ki = _scaled_pinv(K)
     x_scan, sd_scan = x - Ki @ k, np.sqrt(sn.noise_var * np.maximum(np.diag(Ki), 0.0))
     # per position: the faces' shared unknowns merged (minimum of the same quadratic form)

@@ -138,7 +138,9 @@ class SurfaceEffect:
     (``noise``: factor on the a priori variances; ``offset_m2``, ``tilt_rad2``, ``modes_m2``)
     and their redundancy shares. ``modes``: the smooth modes carried, ``{name: (value m,
     sigma m)}``; ``mode_tests``: per group of modes, the test that decided whether it is carried
-    (``chi2``, ``dof``, ``p``, ``carried``).
+    (``chi2``, ``dof``, ``p``, ``carried``). ``mode_prior`` (:func:`mode_prior`): how far the
+    data determine each mode (``determined``) and how much of each other unknown's variance is
+    the modes' (``share``).
     """
 
     cells: str
@@ -149,6 +151,7 @@ class SurfaceEffect:
     redundancy: dict[str, float]
     modes: dict[str, tuple[float, float]] = field(default_factory=dict)
     mode_tests: dict[str, dict] = field(default_factory=dict)
+    mode_prior: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
 @dataclass
@@ -477,11 +480,24 @@ def _absent_modes(rm, ridge: dict | None, tests: dict) -> list[str]:
     return out
 
 
-def white_sigmas(response: np.ndarray, cell_var, cov: np.ndarray) -> np.ndarray:
-    """The noise's part of each sigma: ``sqrt(diag(cov) - sum_g R_g diag(cell_var) R_g^T)``
-    with ``R_g`` (g, u, k) the estimates' response to each cell (the surface's part)."""
+def white_sigmas(response: np.ndarray, cell_var, cov: np.ndarray,
+                 mode_part: np.ndarray | None = None) -> np.ndarray:
+    """The noise's part of each sigma: ``sqrt(diag(cov) - sum_g R_g diag(cell_var) R_g^T -
+    mode_part)`` with ``R_g`` (g, u, k) the estimates' response to each cell (the surface's
+    part) and ``mode_part`` the smooth modes' part of each variance (:func:`mode_prior`)."""
     surf = np.einsum("gik,k,gik->i", response, np.asarray(cell_var), response)
+    if mode_part is not None:
+        surf = surf + mode_part
     return np.sqrt(np.maximum(np.diag(cov) - surf, 0.0))
+
+
+def mode_variance_parts(surf: SurfaceEffect, names: Sequence[str], keep: Sequence[int],
+                cov_keep: np.ndarray) -> np.ndarray | None:
+    """The smooth modes' part of the variance of each kept unknown (m^2, rad^2, ...)."""
+    share = surf.mode_prior.get("share")
+    if not share:
+        return None
+    return np.array([share.get(names[i], 0.0) for i in keep]) * np.diag(cov_keep)
 
 
 def _mode_variances(ridge: dict | None, ridge_var) -> dict[str, float]:
@@ -495,6 +511,67 @@ def _mode_variances(ridge: dict | None, ridge_var) -> dict[str, float]:
     if len(ridge) > 1:
         out["mode_groups_m2"] = {k: float(v) for k, v in zip(ridge, rv)}
     return out
+
+
+#: Readable names of the smooth modes (Noll index -> aberration).
+MODE_NAMES = {5: "astigmatism", 6: "astigmatism", 7: "coma", 8: "coma", 9: "trefoil",
+              10: "trefoil", 11: "spherical"}
+#: A mode is "not determined by the data" when they reduce its prior variance by less than this.
+MODE_DETERMINED_MIN = 0.25
+#: An unknown "leans on the modes' prior" when more than this share of its variance is theirs.
+MODE_SHARE_NOTE = 0.5
+
+
+def mode_prior(cov: np.ndarray, names: Sequence[str], ridge: dict | None,
+               ridge_var) -> dict[str, dict[str, float]]:
+    """What the data say about the smooth modes, and how much the other unknowns lean on them.
+
+    ``cov`` is the adjustment's covariance of all unknowns ``names`` (modes included, m^2 for
+    the modes), ``ridge`` maps each mode group to the modes' indices and ``ridge_var`` gives
+    each group's prior variance (m^2). Returns ``{"determined": {mode: 1 - posterior var /
+    prior var}, "share": {name: part of its variance the modes cause}}``. ``determined`` 0
+    means the data add nothing to the prior (a mode that trades with the pose), 1 fully
+    determined. ``share``: with the random effects eliminated as in Henderson's equations the
+    estimate's response to a mode's true value is ``-C[x, m] / prior[m]``, so the modes'
+    part of ``Var(x)`` is ``sum_m C[x, m]^2 / prior[m]`` (the rest is the noise's and the
+    cells'). Empty without modes.
+    """
+    if not ridge:
+        return {}
+    C = np.asarray(cov, float)
+    m_idx = [i for g in ridge.values() for i in g]
+    prior = np.asarray([float(np.asarray(ridge_var)[k]) for k, g in enumerate(ridge.values())
+                        for _ in g])
+    k_idx = [i for i in range(len(names)) if i not in set(m_idx)]
+    ok = prior > 0
+    Ckm = C[np.ix_(k_idx, m_idx)][:, ok]
+    part = np.sum(Ckm**2 / prior[ok], axis=1)
+    var = np.diag(C)[k_idx]
+    share = np.where(var > 0, part / np.where(var > 0, var, 1.0), 0.0)
+    det = 1.0 - np.diag(C)[m_idx] / np.where(ok, prior, np.inf)
+    return {"determined": {names[i]: float(np.clip(d, 0.0, 1.0)) for i, d in zip(m_idx, det)},
+            "share": {names[i]: float(np.clip(v, 0.0, 1.0)) for i, v in zip(k_idx, share)}}
+
+
+def mode_prior_note(mp: dict, modes: dict[str, tuple[float, float]], prior_sd_m: float) -> str:
+    """One line naming the modes the data do not determine and the unknowns that lean on their
+    prior (empty when there are none)."""
+    if not mp:
+        return ""
+    weak = [k for k, d in mp["determined"].items() if d < MODE_DETERMINED_MIN]
+    if not weak:
+        return ""
+    leaning = {k: v for k, v in mp["share"].items() if v > MODE_SHARE_NOTE}
+    kinds = sorted({MODE_NAMES.get(int(k[len(ZERNIKE_PREFIX):]), k) for k in weak})
+    sds = ", ".join(f"{1e6 * modes[k][1]:.0f}" for k in weak if k in modes)
+    text = (f"smooth modes {', '.join(weak)} ({', '.join(kinds)}) are not determined by the data "
+            f"at this position (sd {sds} um against their prior {1e6 * prior_sd_m:.0f} um)")
+    if leaning:
+        text += ("; " + ", ".join(leaning) + " take " + ", ".join(
+            f"{100 * v:.0f}" for v in leaning.values()) + " % of their variance from that prior: "
+            "their sigmas are as wide as the modes' variance (estimated from the modes the data "
+            "show) makes them")
+    return text
 
 
 def surface_components(var: tuple, redundancy: tuple, ridge: dict | None) -> tuple[dict, dict]:
@@ -700,7 +777,11 @@ def fit_position(
             cells=desc, u=np.asarray(rm.u), u_cov=np.asarray(rm.u_cov), n=counts,
             variances=variances, redundancy=shares,
             modes={mdl2.free[i]: (float(xs[i]), float(np.sqrt(cov[i, i]))) for i in mode_idx},
-            mode_tests=mode_tests)
+            mode_tests=mode_tests, mode_prior=mode_prior(cov, mdl2.free, ridge, rm.ridge_var))
+        line = mode_prior_note(surf.mode_prior, surf.modes,
+                               math.sqrt(variances.get("modes_m2", 0.0)))
+        if line:
+            notes.append(line)
         mixed = MixedState(mdl2, xs, np.asarray(rm.u), (float(rm.noise_var), np.asarray(
             rm.cell_var), np.asarray(rm.ridge_var)), (1.0, np.asarray(_CELL_VAR0), np.full(
                 len(ridge or ()), _MODE_VAR0)), ridge, kappa, cell_m, keys,
@@ -717,7 +798,8 @@ def fit_position(
             notes.append(f"surface random effect: not converged after {iterations} iterations")
         normalized = np.asarray(rm.normalized)
         response = np.asarray(rm.x_response)[:, keep_idx, :]
-        sigma_white = white_sigmas(response, rm.cell_var, cov_pos)
+        sigma_white = white_sigmas(response, rm.cell_var, cov_pos,
+                                   mode_variance_parts(surf, mdl2.free, keep_idx, cov_pos))
     else:
         free, x_pos, cov_pos = mdl.free, np.asarray(res.x), np.asarray(res.cov)
         weights = np.asarray(res.weights)
@@ -805,10 +887,13 @@ def position_record(p: PositionFit) -> dict:
     row.update(elevation_deg=s0.elevation_deg, faces=p.faces,
                kind="two-face adjustment" if p.faces == 2 else "one face",
                scans=[s.meta.id for s in p.scans])
+    share = p.surface.mode_prior.get("share", {}) if p.surface is not None else {}
     for i, n in enumerate(p.names):
         row[n] = _value_sigma(p.x[i], p.sigma[i], parameter_unit(n))
         if p.sigma_white is not None:
             row[n]["sigma_white"] = _num(p.sigma_white[i])
+        if n in share:
+            row[n]["mode_prior_share"] = _num(share[n])
     for n, h in p.held.items():
         row[n] = {"value": _num(h.value), "sigma": None, "identifiable": False, "note": h.note,
                   "unit": parameter_unit(n)}
@@ -827,8 +912,11 @@ def position_record(p: PositionFit) -> dict:
             "redundancy": {k: _num(x) for k, x in p.surface.redundancy.items()},
             "cells": p.surface.cells}
         if p.surface.modes:
-            row["surface_modes"] = {k: _value_sigma(a, b, "m") for k, (a, b) in
-                                    p.surface.modes.items()}
+            det = p.surface.mode_prior.get("determined", {})
+            row["surface_modes"] = {
+                k: {**_value_sigma(a, b, "m"),
+                    **({"determined_by_data": _num(det[k])} if k in det else {})}
+                for k, (a, b) in p.surface.modes.items()}
         if p.surface.mode_tests:
             row["surface_mode_tests"] = {
                 k: {"chi2": _num(t["chi2"]), "dof": t["dof"], "p": _num(t["p"]),

@@ -49,6 +49,8 @@ from ._fit import (
     SurfaceEffect,
     fit_position,
     hit_points,
+    mode_prior,
+    mode_variance_parts,
     position_record,
     scan_arrays,
     sigma_vector,
@@ -241,14 +243,16 @@ def _record(start: PositionFit, st, x, final, var, sums, per_scan, converged, pa
     surf = SurfaceEffect(
         cells=s.cells, u=np.asarray(final.U), u_cov=float(var[0]) * np.asarray(final.Quu),
         n=s.n, variances=variances, redundancy=shares,
-        modes={names[i]: (float(xs[i]), math.sqrt(cov[i, i])) for i in modes})
+        modes={names[i]: (float(xs[i]), math.sqrt(cov[i, i])) for i in modes},
+        mode_prior=mode_prior(cov, names, st.ridge, var[2]))
     n_used = float(sums.n_used)
     sigma0 = math.sqrt(float(sums.omega) / max(n_used - len(names), 1.0))
     pf = dataclasses.replace(
         start, names=tuple(names[i] for i in keep), x=xs[keep], cov=cov_keep,
         sigma0=sigma0, surface=surf, iterations=passes, converged=converged,
         n_points=int(n_used), mixed=None, response=response,
-        sigma_white=white_sigmas(response, var[1], cov_keep),
+        sigma_white=white_sigmas(response, var[1], cov_keep,
+                                 mode_variance_parts(surf, names, keep, cov_keep)),
         notes=[*start.notes, "streamed: started from a sample of each face, refined from "
                "every row"])
     rec = position_record(pf)

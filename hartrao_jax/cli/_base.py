@@ -191,7 +191,7 @@ def print_fit_table(cf, title="fit") -> None:
         ct.add_column("position", justify="right")
         for n in extra:
             ct.add_column(escape(f"{n} [{_scale_unit(parameter_unit(n))[1]}]"), justify="right")
-        notes = []
+        notes, prior = [], []
         for p in cf.position_fits:
             fv, fs = p.estimate("f") if "f" in p.names else (p.scans[0].value("f"), 0.0)
             srf = (f"{math.sqrt(p.surface.variances['offset_m2']) * 1e3:.3f}"
@@ -208,11 +208,14 @@ def print_fit_table(cf, title="fit") -> None:
                     row.append("held" if n in p.held else "fixed")
             ct.add_row(*row)
             notes += [f"{p.position}: {h.note}" for h in p.held.values()]
+            prior += [f"{p.position}: {t}" for t in p.notes if t.startswith("smooth modes")]
         _console().print(pt)
         if extra:
             _console().print(ct)
         for line in dict.fromkeys(notes):
             _console().print(f"not identifiable: {escape(line)}")
+        for line in prior:
+            _console().print(f"prior-dominated: {escape(line)}")
         return
     if extra:
         ct = Table(title="calibration (″ = arcsec)", padding=(0, 1))

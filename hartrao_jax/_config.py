@@ -57,6 +57,42 @@ def _adopt_unstamped_entries(path: Path) -> None:
                 atime.write_bytes(stamp)
 
 
+#: Share of the kernel's memory-map limit above which :func:`release_compiled_programs` drops
+#: JAX's in-memory compiled programs.
+MAPS_FRACTION = 0.5
+
+
+def memory_maps() -> tuple[int, int] | None:
+    """``(memory maps of this process, the kernel's limit vm.max_map_count)``; None where
+    ``/proc`` does not tell."""
+    try:
+        with open("/proc/self/maps", "rb") as fh:
+            n = sum(1 for _ in fh)
+        with open("/proc/sys/vm/max_map_count") as fh:
+            return n, int(fh.read())
+    except (OSError, ValueError):
+        return None
+
+
+def release_compiled_programs(fraction: float = MAPS_FRACTION) -> bool:
+    """Drop JAX's in-memory compiled programs when this process holds more than ``fraction``
+    of the kernel's memory-map limit; returns True when it dropped them.
+
+    Every compiled XLA program keeps some memory maps of its own (about 2,000 for the programs
+    of one demo ``fit``), and a process that meets many point counts (a campaign, ``prove``,
+    a worker, the test suite) compiles thousands. At ``vm.max_map_count`` (65,530 by default)
+    LLVM can no longer map code: the process dies inside XLA (an abort or a segmentation
+    fault while compiling or loading a program; the test suite reached 44,000 maps at 78 %).
+    Called between positions, cases and tasks; programs used again come back from the
+    persistent compilation cache.
+    """
+    m = memory_maps()
+    if m is None or m[0] <= fraction * m[1]:
+        return False
+    jax.clear_caches()
+    return True
+
+
 REAL_DATA_ENV = "HARTRAO_REAL_DATA"
 REAL_DATA_DEFAULT = "../shared/real"
 REAL_DATA_SOURCE = (

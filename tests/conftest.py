@@ -1,3 +1,14 @@
 import jax
+import pytest
+
+from hartrao_jax._config import release_compiled_programs
 
 jax.config.update("jax_enable_x64", True)
+
+
+@pytest.fixture(autouse=True)
+def _bounded_memory_maps():
+    """The suite compiles thousands of programs in one process: past half the kernel's limit
+    of memory maps the in-memory ones are dropped (else XLA dies near vm.max_map_count)."""
+    yield
+    release_compiled_programs()

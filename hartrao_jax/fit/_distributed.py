@@ -38,10 +38,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import jax
 import numpy as np
 
-from .._config import enable_compilation_cache, enable_x64
+from .._config import enable_compilation_cache, enable_x64, release_compiled_programs
 from ..campaign._campaign import load_campaign, read_scan
 from ..campaign._safeio import OutputDir
 from ..geometry._geometry import pointing_gravity
@@ -197,28 +196,11 @@ def close_client(client, cluster) -> None:
 # --------------------------------------------------------------------------------------------
 
 
-CLEAR_EVERY = 64  # tasks between jax.clear_caches() in a worker (see release_compiled)
-_tasks_since_clear = [0]
-
-
-def release_compiled(every: int = CLEAR_EVERY) -> bool:
-    """Drop JAX's in-memory compilation caches every ``every`` calls.
-
-    Every scan of a campaign has its own number of points, hence its own compiled programs;
-    after some thousand executables a process runs out of memory maps (``vm.max_map_count``,
-    65530 by default: LLVM then fails with "Cannot allocate memory" and the process dies).
-    Clearing the in-memory caches now and then bounds that; programs used again come back from
-    the persistent compilation cache. With the adjustment padded (:func:`._fit.fit_scan`) only
-    the preprocessing still compiles per scan (4 to 7 small programs), hence the longer
-    interval. Returns True when it cleared.
-    """
-    _tasks_since_clear[0] += 1
-    if _tasks_since_clear[0] < every:
-        return False
-
-    jax.clear_caches()
-    _tasks_since_clear[0] = 0
-    return True
+def release_compiled() -> bool:
+    """Drop JAX's in-memory compiled programs in a worker when its memory maps near the
+    kernel's limit (:func:`.._config.release_compiled_programs`): every scan of a campaign has
+    its own number of points, hence programs of its own. Returns True when it cleared."""
+    return release_compiled_programs()
 
 
 @functools.lru_cache(maxsize=8)

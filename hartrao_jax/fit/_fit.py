@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._config import release_compiled_programs
 from ..campaign._campaign import Campaign, ScanData, ScanMeta, read_scan
 from ..campaign._campaign import _concat as concat_scans
 from ..geometry._geometry import (
@@ -982,6 +983,7 @@ def fit_campaign(
                                   surface=surface)
                 headings.append(scan_heading(pf.scans[0]))
                 pfits[pos] = pf
+                release_compiled_programs()
                 prog.advance(task)
         by_id = {s.meta.id: s for pf in pfits.values() for s in pf.scans}
         plist = [pfits[p] for p in groups]

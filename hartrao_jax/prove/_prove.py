@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from .._config import enable_compilation_cache
+from .._config import enable_compilation_cache, release_compiled_programs
 from ..diagnose._diagnose import diagnose
 from ..model._model import parameter_unit
 from ..simulate._simulate import simulate_campaign
@@ -368,6 +368,7 @@ def run_prove(out_dir, *, seeds: int = 3, cases=None, step_rad: float = 0.01,
                 log.exception("case %s seed %d failed", case.name, seed)
                 sc, doc = Score(case.name, seed, False, None, None, None, [f"error: {e}"], 0.0), {}
             scores.append(sc)
+            release_compiled_programs()
             docs.setdefault(case.name, []).append(
                 {"seed": seed,
                  "findings": [(f["effect"], f["scans"]) for f in doc.get("findings", [])],

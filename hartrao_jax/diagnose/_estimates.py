@@ -7,7 +7,8 @@ per-scan tx/ry/x6 had z up to 7). At the end the joint system of all scans is bu
 at the final solution with the surface cells (panels, or the stated grid) as a random effect --
 per cell an offset (m) and two tilts (rad), variances estimated with the noise's by the
 two-face adjustment's variance-component estimation (:class:`._explain._SurfaceNull`) -- and
-solved by one Gauss-Newton step:
+solved by Gauss-Newton, each scan re-linearised until no unknown moves by a tenth of its sigma
+(:func:`_iterate`; one step where the white fit was close, a few on a narrow strip):
 
 * **per scan**: each scan's own unknowns; the other scans inform them only through the cells
   they share;

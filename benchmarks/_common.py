@@ -276,3 +276,22 @@ def md_table(rows: list[dict], cols: list[tuple[str, str, str]]) -> str:
                 cells.append(str(v))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def seeded_parts(directory: Path, cases, seeds, run, describe) -> list[dict]:
+    """Run ``run(case, seed)`` for every (case, seed) whose part ``directory/<case>-<seed>.json``
+    is not stored yet, store each result as soon as it is done (temporary name, then rename),
+    print ``describe(case, seed, result)``; return every stored part of ``directory`` (a run
+    can be split over processes or sessions and merged)."""
+    directory.mkdir(parents=True, exist_ok=True)
+    for case in cases:
+        for seed in seeds:
+            part = directory / f"{case}-{seed}.json"
+            if part.exists():
+                continue
+            res = run(case, seed)
+            tmp = part.with_suffix(".tmp")
+            tmp.write_text(json.dumps(res))
+            tmp.replace(part)
+            print(describe(case, seed, res), file=sys.stderr, flush=True)
+    return [json.loads(q.read_text()) for q in sorted(directory.glob("*.json"))]

@@ -20,7 +20,6 @@ import argparse
 import json
 import logging
 import shutil
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -148,21 +147,15 @@ def main(argv=None) -> None:
     ap.add_argument("--merge", action="store_true", help="Only the tables from stored parts.")
     a = ap.parse_args(argv)
     logging.disable(logging.WARNING)
-    PARTS.mkdir(parents=True, exist_ok=True)
+    from _common import seeded_parts
+
     if not a.merge:
         from hartrao_jax._config import enable_compilation_cache
 
         enable_compilation_cache()
-        for case in a.cases.split(","):
-            for seed in range(a.first, a.first + a.seeds):
-                path = PARTS / f"{case}-{seed}.json"
-                if path.exists():
-                    continue
-                part = run_one(case, seed)
-                path.write_text(json.dumps(part))
-                print(f"{case} seed {seed}: {part['findings']} {part['seconds']:.0f} s",
-                      file=sys.stderr, flush=True)
-    parts = [json.loads(p.read_text()) for p in sorted(PARTS.glob("*.json"))]
+    parts = seeded_parts(
+        PARTS, [] if a.merge else a.cases.split(","), range(a.first, a.first + a.seeds), run_one,
+        lambda case, seed, r: f"{case} seed {seed}: {r['findings']} {r['seconds']:.0f} s")
     text = summarize(parts)
     (OUT / "diagnose_sigmas.md").write_text(text)
     print(text)

@@ -241,27 +241,20 @@ def main(argv=None) -> int:
                     help="also the linearised influence analysis of this seed (first case)")
     ap.add_argument("--merge", action="store_true", help="only merge the stored parts")
     args = ap.parse_args(argv)
+    from _common import seeded_parts
+
     import hartrao_jax  # noqa: F401  (float64)
 
-    NOISE.mkdir(parents=True, exist_ok=True)
-    if not args.merge:
-        cases = args.cases.split(",")
-        for case in cases:
-            if case not in uc.CASES:
-                print(f"error: --cases: unknown case {case!r}", file=sys.stderr)
-                return 2
-            for seed in range(args.first_seed, args.first_seed + args.seeds):
-                part = NOISE / f"{case}-{seed}.json"
-                if part.exists():
-                    continue
-                res = noise_only(case, seed)
-                part.write_text(json.dumps(res))
-                print(f"{case} seed {seed}: {res['seconds']:.0f} s", flush=True)
-        for seed in args.influence:
-            part = NOISE / f"influence-{cases[0]}-{seed}.json"
-            if not part.exists():
-                part.write_text(json.dumps(influence(cases[0], seed)))
-    parts = [json.loads(p.read_text()) for p in sorted(NOISE.glob("*.json"))]
+    cases = [] if args.merge else args.cases.split(",")
+    bad = [c for c in cases if c not in uc.CASES]
+    if bad:
+        print(f"error: --cases: unknown case {bad[0]!r}", file=sys.stderr)
+        return 2
+    seeded_parts(NOISE, cases, range(args.first_seed, args.first_seed + args.seeds), noise_only,
+                 lambda case, seed, r: f"{case} seed {seed}: {r['seconds']:.0f} s")
+    parts = seeded_parts(NOISE, [f"influence-{cases[0]}"] if cases else [], args.influence,
+                         lambda _, seed: influence(cases[0], seed),
+                         lambda case, seed, r: f"{case}-{seed}: linearised influence")
     infl = [p for p in parts if "z_linear" in p]
     s = summarize([p for p in parts if "rows" in p], infl)
     (uc.OUT / "uncertainty_noise.json").write_text(json.dumps(s, indent=1))

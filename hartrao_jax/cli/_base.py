@@ -169,7 +169,6 @@ def print_fit_table(cf, title="fit") -> None:
     from rich.markup import escape
     from rich.table import Table
 
-
     t = Table(title=title, padding=(0, 1))
     for c in ("scan", "f [m]", "σf [mm]", "σ0", "points", "rej", "it", "κ [°]"):
         t.add_column(escape(c), justify="right")

@@ -28,14 +28,15 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
+from ..fit._identify import hold_note, typical_magnitudes
 from ..geometry._geometry import pointing_elevation_deg
 from ..physics._catalog import INSTRUMENT
 from ..solver._mixed import unidentifiable
-from ._explain import _Joint, _scaled_pinv, eliminate_cells
+from ._explain import _Joint, _scaled_pinv, _SurfaceNull, eliminate_cells
 from ._state import ZERNIKE_TESTED, _Context, _num, _Scan, _Spec
 
 log = logging.getLogger("hartrao_jax")
@@ -97,23 +98,16 @@ def _same_turn(x: np.ndarray, P: np.ndarray, labels: list[str]) -> np.ndarray:
 
 
 def _identifiability(cov: np.ndarray, names: list[str], elevation_deg: float) -> dict[str, str]:
-    """Per calibration parameter the data cannot determine: the note saying why."""
+    """Per calibration parameter the data cannot determine: the note saying why (as ``fit``
+    says it, :func:`..fit.hold_note`)."""
     cand = [n for n in names if n in INSTRUMENT]
-    typical = {k: p.typical for k, p in INSTRUMENT.items()}
     sig = dict(zip(names, np.sqrt(np.maximum(np.diag(cov), 0.0))))
-    where = (f"near zenith (elevation {elevation_deg:.1f} deg)" if elevation_deg > 80
-             else f"at elevation {elevation_deg:.1f} deg")
     out = {}
-    for group, partners, corr, reason in unidentifiable(cov, names, cand, typical=typical):
-        who = " and ".join(group)
-        if reason == "correlation":
-            why = (f"not separable from {', '.join(partners) or 'the other unknowns together'} "
-                   f"{where} (|correlation| {corr:.4f})")
-        else:
-            why = (f"not determined {where}: sigma ({', '.join(f'{n} {sig[n]:.2g}' for n in group)}"
-                   f") exceeds the typical magnitude")
-        for n in group:
-            out[n] = f"{who}: {why}; the diagnosis's value is not an estimate"
+    for group, partners, corr, reason in unidentifiable(cov, names, cand,
+                                                        typical=typical_magnitudes()):
+        note = hold_note(group, partners, corr, reason, sig, elevation_deg,
+                         then="the diagnosis's value is not an estimate")
+        out.update(dict.fromkeys(group, note))
     return out
 
 
@@ -123,12 +117,25 @@ def _identifiability(cov: np.ndarray, names: list[str], elevation_deg: float) ->
 MAX_STEPS, STEP_TOL = 6, 0.1
 
 
-def _iterate(ctx: _Context, S: Sequence[_Scan], spec: _Spec):
+class _Solved(NamedTuple):
+    """The random-effect system at its last linearisation: the solution is ``x - Ki k``."""
+
+    surface: _SurfaceNull  # noise and cell variances
+    K: np.ndarray  # reduced normal matrix of the null unknowns (cells eliminated)
+    k: np.ndarray  # its right side
+    Ki: np.ndarray  # its (scaled pseudo-) inverse
+    x: np.ndarray  # the linearisation point, merged angles on one turn
+    labels: list[str]  # "name@scan" or a shared name, per null unknown
+    P: np.ndarray  # null unknowns -> merged unknowns (:func:`_merge`)
+    keys: list[tuple]  # the merged unknowns
+
+
+def _iterate(ctx: _Context, S: Sequence[_Scan], spec: _Spec) -> _Solved | None:
     """Gauss-Newton on the joint system with the cells as a random effect, from the scans'
     final solutions: each step re-linearises every scan at the step's result for its own
-    unknowns (their ``x`` is moved; the caller restores it). Returns ``(surface null, K, k, x,
-    labels, P, keys)`` at the last linearisation (``x - K^+ k`` the solution), or None when
-    the variances are not estimable."""
+    unknowns (their ``x`` is moved; the caller restores it). None when the variances are not
+    estimable."""
+    P = keys = None
     for step in range(MAX_STEPS):
         joint = _Joint(ctx, S, spec, {sc.id: [] for sc in S})
         sn = joint.surface
@@ -138,7 +145,8 @@ def _iterate(ctx: _Context, S: Sequence[_Scan], spec: _Spec):
         I0 = joint.I0
         K, k = N[np.ix_(I0, I0)], n[I0]
         labels = [joint.labels[i] for i in I0]
-        P, keys = _merge(joint, S, spec)
+        if P is None:  # the layout of the unknowns does not change between steps
+            P, keys = _merge(joint, S, spec)
         x = _same_turn(_current(joint, S, spec), P, labels)
         Ki = _scaled_pinv(K)
         dx = -Ki @ k
@@ -156,11 +164,18 @@ def _iterate(ctx: _Context, S: Sequence[_Scan], spec: _Spec):
                     xs[sc.names.index(name)] = x[i] + dx[i]
             sc.x = xs
     log.debug("final estimates: %d Gauss-Newton steps", step + 1)
-    return sn, K, k, x, labels, P, keys
+    return _Solved(sn, K, k, Ki, x, labels, P, keys)
 
 
 def _entry(value: float, sigma: float, **more) -> dict[str, Any]:
     return {"value": _num(value), "sigma": _num(sigma), **more}
+
+
+def _scan_record(sc: _Scan, estimates: dict[str, dict]) -> dict[str, Any]:
+    """A scan's entry of the diagnosis JSON: its final model, ``estimates``, sigma0, counts."""
+    return {"model": list(sc.names), "estimates": estimates, "sigma0": _num(sc.sigma0),
+            "n_points": int(sc.used.sum()), "converged": sc.converged,
+            "cut_points": int(sc.cut.sum())}
 
 
 def surface_estimates(ctx: _Context, S: Sequence[_Scan], spec: _Spec) -> dict[str, Any]:
@@ -178,15 +193,18 @@ def surface_estimates(ctx: _Context, S: Sequence[_Scan], spec: _Spec) -> dict[st
              if sc.cov.size else {} for sc in S}
     saved = [np.array(sc.x, float) for sc in S]
     try:
-        solved = _iterate(ctx, S, spec)
+        r = _iterate(ctx, S, spec)
     finally:
         for sc, x0 in zip(S, saved):
             sc.x = x0
-    if solved is None:
-        return {"scans": _white_only(S, white), "positions": [], "shared": {},
+    if r is None:
+        scans = {sc.id: _scan_record(sc, {
+            n: _entry(v, white[sc.id].get(n, float("nan")),
+                      sigma_white=_num(white[sc.id].get(n, float("nan"))))
+            for n, v in zip(sc.names, map(float, sc.x))}) for sc in S}
+        return {"scans": scans, "positions": [], "shared": {},
                 "note": "surface random effect not estimable: the sigmas are the noise's alone"}
-    sn, K, k, x, labels, P, keys = solved
-    Ki = _scaled_pinv(K)
+    sn, K, k, Ki, x, labels, P, keys = r
     x_scan, sd_scan = x - Ki @ k, np.sqrt(sn.noise_var * np.maximum(np.diag(Ki), 0.0))
     # per position: the faces' shared unknowns merged (minimum of the same quadratic form)
     Kp_inv = _scaled_pinv(P.T @ K @ P)
@@ -201,9 +219,7 @@ def surface_estimates(ctx: _Context, S: Sequence[_Scan], spec: _Spec) -> dict[st
             if sid == sc.id:
                 est[name] = _entry(x_scan[i], sd_scan[i],
                                    sigma_white=_num(white[sc.id].get(name, float("nan"))))
-        scans[sc.id] = {"model": list(sc.names), "estimates": est, "sigma0": _num(sc.sigma0),
-                        "n_points": int(sc.used.sum()), "converged": sc.converged,
-                        "cut_points": int(sc.cut.sum())}
+        scans[sc.id] = _scan_record(sc, est)
     positions = []
     tel, site = ctx.campaign.telescope, ctx.campaign.site
     for p in dict.fromkeys(sc.meta.position for sc in S):
@@ -226,12 +242,3 @@ def surface_estimates(ctx: _Context, S: Sequence[_Scan], spec: _Spec) -> dict[st
         })
     shared = {key[1]: _entry(y[j], sd_y[j]) for j, key in enumerate(keys) if key[0] == "shared"}
     return {"scans": scans, "positions": positions, "shared": shared, "note": ""}
-
-
-def _white_only(S: Sequence[_Scan], white: dict) -> dict[str, dict]:
-    return {sc.id: {"model": list(sc.names),
-                    "estimates": {n: _entry(v, white[sc.id].get(n, float("nan")),
-                                            sigma_white=_num(white[sc.id].get(n, float("nan"))))
-                                  for n, v in zip(sc.names, map(float, sc.x))},
-                    "sigma0": _num(sc.sigma0), "n_points": int(sc.used.sum()),
-                    "converged": sc.converged, "cut_points": int(sc.cut.sum())} for sc in S}

@@ -52,6 +52,7 @@ from ..solver._ghm import (
 )
 from ..solver._mixed import gauss_helmert_mixed, ridge_chi2, unidentifiable
 from ._align import Alignment, mean_heading, north_alignment, scan_heading
+from ._identify import hold_note, mode_prior, mode_prior_note, typical_magnitudes
 
 log = logging.getLogger("hartrao_jax")
 
@@ -514,67 +515,6 @@ def _mode_variances(ridge: dict | None, ridge_var) -> dict[str, float]:
     return out
 
 
-#: Readable names of the smooth modes (Noll index -> aberration).
-MODE_NAMES = {5: "astigmatism", 6: "astigmatism", 7: "coma", 8: "coma", 9: "trefoil",
-              10: "trefoil", 11: "spherical"}
-#: A mode is "not determined by the data" when they reduce its prior variance by less than this.
-MODE_DETERMINED_MIN = 0.25
-#: An unknown "leans on the modes' prior" when more than this share of its variance is theirs.
-MODE_SHARE_NOTE = 0.5
-
-
-def mode_prior(cov: np.ndarray, names: Sequence[str], ridge: dict | None,
-               ridge_var) -> dict[str, dict[str, float]]:
-    """What the data say about the smooth modes, and how much the other unknowns lean on them.
-
-    ``cov`` is the adjustment's covariance of all unknowns ``names`` (modes included, m^2 for
-    the modes), ``ridge`` maps each mode group to the modes' indices and ``ridge_var`` gives
-    each group's prior variance (m^2). Returns ``{"determined": {mode: 1 - posterior var /
-    prior var}, "share": {name: part of its variance the modes cause}}``. ``determined`` 0
-    means the data add nothing to the prior (a mode that trades with the pose), 1 fully
-    determined. ``share``: with the random effects eliminated as in Henderson's equations the
-    estimate's response to a mode's true value is ``-C[x, m] / prior[m]``, so the modes'
-    part of ``Var(x)`` is ``sum_m C[x, m]^2 / prior[m]`` (the rest is the noise's and the
-    cells'). Empty without modes.
-    """
-    if not ridge:
-        return {}
-    C = np.asarray(cov, float)
-    m_idx = [i for g in ridge.values() for i in g]
-    prior = np.asarray([float(np.asarray(ridge_var)[k]) for k, g in enumerate(ridge.values())
-                        for _ in g])
-    k_idx = [i for i in range(len(names)) if i not in set(m_idx)]
-    ok = prior > 0
-    Ckm = C[np.ix_(k_idx, m_idx)][:, ok]
-    part = np.sum(Ckm**2 / prior[ok], axis=1)
-    var = np.diag(C)[k_idx]
-    share = np.where(var > 0, part / np.where(var > 0, var, 1.0), 0.0)
-    det = 1.0 - np.diag(C)[m_idx] / np.where(ok, prior, np.inf)
-    return {"determined": {names[i]: float(np.clip(d, 0.0, 1.0)) for i, d in zip(m_idx, det)},
-            "share": {names[i]: float(np.clip(v, 0.0, 1.0)) for i, v in zip(k_idx, share)}}
-
-
-def mode_prior_note(mp: dict, modes: dict[str, tuple[float, float]], prior_sd_m: float) -> str:
-    """One line naming the modes the data do not determine and the unknowns that lean on their
-    prior (empty when there are none)."""
-    if not mp:
-        return ""
-    weak = [k for k, d in mp["determined"].items() if d < MODE_DETERMINED_MIN]
-    if not weak:
-        return ""
-    leaning = {k: v for k, v in mp["share"].items() if v > MODE_SHARE_NOTE}
-    kinds = sorted({MODE_NAMES.get(int(k[len(ZERNIKE_PREFIX):]), k) for k in weak})
-    sds = ", ".join(f"{1e6 * modes[k][1]:.0f}" for k in weak if k in modes)
-    text = (f"smooth modes {', '.join(weak)} ({', '.join(kinds)}) are not determined by the data "
-            f"at this position (sd {sds} um against their prior {1e6 * prior_sd_m:.0f} um)")
-    if leaning:
-        text += ("; " + ", ".join(leaning) + " take " + ", ".join(
-            f"{100 * v:.0f}" for v in leaning.values()) + " % of their variance from that prior: "
-            "their sigmas are as wide as the modes' variance (estimated from the modes the data "
-            "show) makes them")
-    return text
-
-
 def surface_components(var: tuple, redundancy: tuple, ridge: dict | None) -> tuple[dict, dict]:
     """``SurfaceEffect.variances`` and ``.redundancy`` from a mixed adjustment's variance
     components ``var = (noise factor, cell variances (k,), ridge variances (r,))`` and their
@@ -609,31 +549,10 @@ def padded(data: ScanData, n_pad: int) -> ScanData:
     return data.subset(np.concatenate([np.arange(n), np.zeros(n_pad - n, np.int64)]))
 
 
-def _hold_note(group, partners, corr, reason, sigmas, elevation_deg) -> str:
-    """One line saying what the data cannot determine, and why."""
-    who = " and ".join(group)
-    verb = "is" if len(group) == 1 else "are"
-    where = (f"near zenith (elevation {elevation_deg:.1f} deg)" if elevation_deg is not None
-             and elevation_deg > 80 else f"at elevation {elevation_deg:.1f} deg"
-             if elevation_deg is not None else "")
-    if reason == "correlation":
-        with_ = ", ".join(partners) if partners else "the other unknowns together"
-        text = f"{who} {verb} not separable from {with_} {where} (|correlation| {corr:.4f})"
-    else:
-        sig = ", ".join(f"{n} {sigmas[n]:.2g}" for n in group)
-        text = (f"{who} {verb} not determined {where}: sigma ({sig}) exceeds the typical "
-                f"magnitude" + (f"; correlated with {', '.join(partners)}" if partners else ""))
-    return text.replace("  ", " ") + "; held at the fixed/prior value"
-
-
-def _typical() -> dict[str, float]:
-    return {k: p.typical for k, p in INSTRUMENT.items()}
-
-
 def _hold(held, fixed, bad, cov, names, elevation):
     sig = dict(zip(names, np.sqrt(np.diag(np.asarray(cov)))))
     for group, partners, corr, reason in bad:
-        note = _hold_note(group, partners, corr, reason, sig, elevation)
+        note = hold_note(group, partners, corr, reason, sig, elevation)
         for n_ in group:
             held[n_] = Held(fixed.get(n_, 0.0), note, partners, corr)
 
@@ -713,7 +632,7 @@ def fit_position(
         else:
             res = robust_gauss_helmert(mdl, l, x0, sig, c, w, k=robust_k, max_iter=max_iter)
         cand = [n_ for n_ in mdl.free if n_ in INSTRUMENT]
-        bad = unidentifiable(np.asarray(res.cov), mdl.free, cand, typical=_typical())
+        bad = unidentifiable(np.asarray(res.cov), mdl.free, cand, typical=typical_magnitudes())
         if not bad:
             break
         _hold(held, fixed, bad, res.cov, mdl.free, elevation)
@@ -745,7 +664,7 @@ def fit_position(
                 mdl2, l, x0, sig, c, w_mixed, cell, design, n_cells,
                 robust_k=robust_k, ridge=ridge, ridge_var0=_MODE_VAR0, max_iter=60, **warm)
             cand = [n_ for n_ in mdl2.free if n_ in INSTRUMENT]
-            bad = unidentifiable(np.asarray(rm.cov), mdl2.free, cand, typical=_typical())
+            bad = unidentifiable(np.asarray(rm.cov), mdl2.free, cand, typical=typical_magnitudes())
             if bad:
                 _hold(held, fixed, bad, rm.cov, mdl2.free, elevation)
                 continue

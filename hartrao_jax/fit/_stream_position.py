@@ -49,7 +49,6 @@ from ._fit import (
     SurfaceEffect,
     fit_position,
     hit_points,
-    mode_prior,
     mode_variance_parts,
     position_record,
     scan_arrays,
@@ -57,6 +56,7 @@ from ._fit import (
     surface_components,
     white_sigmas,
 )
+from ._identify import mode_prior
 from ._stream import _count_rows, _NpyRows, _progress, peak_rss_gib
 
 

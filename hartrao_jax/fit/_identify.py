@@ -1,0 +1,100 @@
+"""What the data cannot determine, said in one line: calibration parameters held because they
+are confounded or undetermined, and smooth surface modes whose prior the data hardly shrink
+(with the share of the other estimates' variance that prior carries)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from ..model._model import ZERNIKE_PREFIX
+from ..physics._catalog import INSTRUMENT
+
+
+def hold_note(group, partners, corr, reason, sigmas, elevation_deg, *,
+              then: str = "held at the fixed/prior value") -> str:
+    """One line saying what the data cannot determine, why, and ``then`` what is done about
+    it (``group``, ``partners``, ``corr``, ``reason``: one row of
+    :func:`..solver.unidentifiable`; ``sigmas`` by name; ``elevation_deg`` or None)."""
+    who = " and ".join(group)
+    verb = "is" if len(group) == 1 else "are"
+    where = (f"near zenith (elevation {elevation_deg:.1f} deg)" if elevation_deg is not None
+             and elevation_deg > 80 else f"at elevation {elevation_deg:.1f} deg"
+             if elevation_deg is not None else "")
+    if reason == "correlation":
+        with_ = ", ".join(partners) if partners else "the other unknowns together"
+        text = f"{who} {verb} not separable from {with_} {where} (|correlation| {corr:.4f})"
+    else:
+        sig = ", ".join(f"{n} {sigmas[n]:.2g}" for n in group)
+        text = (f"{who} {verb} not determined {where}: sigma ({sig}) exceeds the typical "
+                f"magnitude" + (f"; correlated with {', '.join(partners)}" if partners else ""))
+    return text.replace("  ", " ") + f"; {then}"
+
+
+def typical_magnitudes() -> dict[str, float]:
+    """Each calibration parameter's typical magnitude (its unit): a sigma above it says the
+    data cannot determine the parameter."""
+    return {k: p.typical for k, p in INSTRUMENT.items()}
+
+
+#: Readable names of the smooth modes (Noll index -> aberration).
+MODE_NAMES = {5: "astigmatism", 6: "astigmatism", 7: "coma", 8: "coma", 9: "trefoil",
+              10: "trefoil", 11: "spherical"}
+#: A mode is "not determined by the data" when they reduce its prior variance by less than this.
+MODE_DETERMINED_MIN = 0.25
+#: An unknown "leans on the modes' prior" when more than this share of its variance is theirs.
+MODE_SHARE_NOTE = 0.5
+
+
+def mode_prior(cov: np.ndarray, names: Sequence[str], ridge: dict | None,
+               ridge_var) -> dict[str, dict[str, float]]:
+    """What the data say about the smooth modes, and how much the other unknowns lean on them.
+
+    ``cov`` is the adjustment's covariance of all unknowns ``names`` (modes included, m^2 for
+    the modes), ``ridge`` maps each mode group to the modes' indices and ``ridge_var`` gives
+    each group's prior variance (m^2). Returns ``{"determined": {mode: 1 - posterior var /
+    prior var}, "share": {name: part of its variance the modes cause}}``. ``determined`` 0
+    means the data add nothing to the prior (a mode that trades with the pose), 1 fully
+    determined. ``share``: with the random effects eliminated as in Henderson's equations the
+    estimate's response to a mode's true value is ``-C[x, m] / prior[m]``, so the modes'
+    part of ``Var(x)`` is ``sum_m C[x, m]^2 / prior[m]`` (the rest is the noise's and the
+    cells'). Empty without modes.
+    """
+    if not ridge:
+        return {}
+    C = np.asarray(cov, float)
+    m_idx = [i for g in ridge.values() for i in g]
+    prior = np.asarray([float(np.asarray(ridge_var)[k]) for k, g in enumerate(ridge.values())
+                        for _ in g])
+    k_idx = [i for i in range(len(names)) if i not in set(m_idx)]
+    ok = prior > 0
+    Ckm = C[np.ix_(k_idx, m_idx)][:, ok]
+    part = np.sum(Ckm**2 / prior[ok], axis=1)
+    var = np.diag(C)[k_idx]
+    share = np.where(var > 0, part / np.where(var > 0, var, 1.0), 0.0)
+    det = 1.0 - np.diag(C)[m_idx] / np.where(ok, prior, np.inf)
+    return {"determined": {names[i]: float(np.clip(d, 0.0, 1.0)) for i, d in zip(m_idx, det)},
+            "share": {names[i]: float(np.clip(v, 0.0, 1.0)) for i, v in zip(k_idx, share)}}
+
+
+def mode_prior_note(mp: dict, modes: dict[str, tuple[float, float]], prior_sd_m: float) -> str:
+    """One line naming the modes the data do not determine and the unknowns that lean on their
+    prior (empty when there are none)."""
+    if not mp:
+        return ""
+    weak = [k for k, d in mp["determined"].items() if d < MODE_DETERMINED_MIN]
+    if not weak:
+        return ""
+    leaning = {k: v for k, v in mp["share"].items() if v > MODE_SHARE_NOTE}
+    kinds = sorted({MODE_NAMES.get(int(k[len(ZERNIKE_PREFIX):]), k) for k in weak})
+    sds = ", ".join(f"{1e6 * modes[k][1]:.0f}" for k in weak if k in modes)
+    text = (f"smooth modes {', '.join(weak)} ({', '.join(kinds)}) are not determined by "
+            f"the data at this position (sd {sds} um against their prior {1e6 * prior_sd_m:.0f} "
+            f"um)")
+    if leaning:
+        text += ("; " + ", ".join(leaning) + " take " + ", ".join(
+            f"{100 * v:.0f}" for v in leaning.values()) + " % of their variance from that prior: "
+            "their sigmas are as wide as the modes' variance (estimated from the modes the data "
+            "show) makes them")
+    return text

@@ -94,8 +94,8 @@ def _keep(camp, preprocess: bool):
     """The preprocessing mask per scan -- and, as fit_campaign calls it once per scan, the place
     to drop JAX's in-memory compilation caches now and then (176 scans of 176 sizes compile
     some thousand programs: without this the process runs out of memory maps, see
-    ``_distributed.release_compiled``)."""
-    from hartrao_jax.fit._distributed import release_compiled
+    ``_config.release_compiled_programs``)."""
+    from hartrao_jax._config import release_compiled_programs
 
     k = None
     if preprocess:
@@ -104,7 +104,7 @@ def _keep(camp, preprocess: bool):
         k = keep_mask_fn(PreprocessConfig(), camp)
 
     def keep(meta, data):
-        release_compiled()
+        release_compiled_programs()
         return k(meta, data) if k is not None else np.ones(len(data), bool)
 
     return keep

@@ -196,13 +196,6 @@ def close_client(client, cluster) -> None:
 # --------------------------------------------------------------------------------------------
 
 
-def release_compiled() -> bool:
-    """Drop JAX's in-memory compiled programs in a worker when its memory maps near the
-    kernel's limit (:func:`.._config.release_compiled_programs`): every scan of a campaign has
-    its own number of points, hence programs of its own. Returns True when it cleared."""
-    return release_compiled_programs()
-
-
 @functools.lru_cache(maxsize=8)
 def _campaign(root: str):
     return load_campaign(root)
@@ -234,7 +227,7 @@ def task_fit_scan(root: str, scan_id: str, model, fixed: dict | None, robust_k: 
 
     worker_setup()
 
-    release_compiled()
+    release_compiled_programs()  # every scan's point count compiles programs of its own
     t0 = time.perf_counter()
     camp = _campaign(root)
     meta = camp.scan(scan_id)
@@ -256,7 +249,7 @@ def task_fit_position(root: str, scan_ids: Sequence[str], model, fixed: dict | N
 
     worker_setup()
 
-    release_compiled()
+    release_compiled_programs()  # every scan's point count compiles programs of its own
     t0 = time.perf_counter()
     camp = _campaign(root)
     metas = [camp.scan(i) for i in scan_ids]
@@ -543,5 +536,5 @@ def _joint_on_workers(client, root, campaign, metas, fits, summaries, names, sha
 
 
 __all__ = ["DaskBackend", "DaskFit", "ScanSummary", "WORKER_ENV",
-           "close_client", "fit_dask", "fit_document", "release_compiled", "start_client",
+           "close_client", "fit_dask", "fit_document", "start_client",
            "thin_scan_fit", "worker_campaign", "worker_setup"]

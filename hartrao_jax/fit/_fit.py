@@ -28,6 +28,7 @@ from ..geometry._geometry import (
     pointing_gravity,
     rot_z,
     square_cells,
+    zernike,
 )
 from ..model._model import (
     N_CONSTS,
@@ -482,6 +483,17 @@ def _absent_modes(rm, ridge: dict | None, tests: dict) -> list[str]:
     return out
 
 
+def zernike_design(X: np.ndarray, names: Sequence[str], aperture_radius_m: float) -> np.ndarray:
+    """``(n, r)``: the Zernike terms ``zern_<j>`` (Noll ``j``, unit coefficient, m) at the
+    north-aligned aperture coordinates of points ``X`` (n, 3), as the model's deviation
+    evaluates them (``u = rho / aperture radius``, azimuth from the telescope x axis)."""
+    X = np.asarray(X, float)
+    u = np.hypot(X[:, 0], X[:, 1]) / aperture_radius_m
+    psi = np.arctan2(X[:, 1], X[:, 0])
+    return np.column_stack([np.asarray(zernike(int(n[len(ZERNIKE_PREFIX):]), u, psi, xp=np))
+                            for n in names])
+
+
 def white_sigmas(response: np.ndarray, cell_var, cov: np.ndarray,
                  mode_part: np.ndarray | None = None) -> np.ndarray:
     """The noise's part of each sigma: ``sqrt(diag(cov) - sum_g R_g diag(cell_var) R_g^T -
@@ -660,9 +672,12 @@ def fit_position(
             x0 = np.array([x_start.get(n_, 0.0) for n_ in mdl2.free])
             ridge = {k_: [mdl2.free.index(f"{ZERNIKE_PREFIX}{j}") for j in g_]
                      for k_, g_ in groups.items()} or None
+            # the modes (last in mdl2.free) enter through their columns at the hit points
             rm = gauss_helmert_mixed(
-                mdl2, l, x0, sig, c, w_mixed, cell, design, n_cells,
-                robust_k=robust_k, ridge=ridge, ridge_var0=_MODE_VAR0, max_iter=60, **warm)
+                model_of(free_of(), kappa) if extra else mdl2, l, x0, sig, c, w_mixed, cell,
+                design, n_cells, robust_k=robust_k, ridge=ridge, ridge_var0=_MODE_VAR0,
+                max_iter=60, mode_design=zernike_design(X_hit, extra, aperture) if extra
+                else None, **warm)
             cand = [n_ for n_ in mdl2.free if n_ in INSTRUMENT]
             bad = unidentifiable(np.asarray(rm.cov), mdl2.free, cand, typical=typical_magnitudes())
             if bad:

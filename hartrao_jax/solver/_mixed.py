@@ -142,22 +142,29 @@ def _chunks(arrays, chunk):
     return out, pad
 
 
-def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U):
+def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U, MZ=None):
     """Linearise every point at ``(l + v, x, c + dev)``; accumulate the normal equations and the
-    per-cell sums; keep per point what the residual update needs."""
+    per-cell sums; keep per point what the residual update needs.
+
+    ``MZ`` (n, r): the design of the last ``r`` unknowns, which enter the deviation linearly
+    (``dev += MZ_i . x[u - r:]``, see ``mode_design`` of :func:`gauss_helmert_mixed`); the
+    condition then takes the first ``u - r``. Their columns of ``a`` are ``dF/ddev MZ_i``."""
     u, k = x.shape[0], U.shape[1]
+    if MZ is None:
+        MZ = jnp.zeros((L.shape[0], 0), x.dtype)
+    u0 = u - MZ.shape[1]
     lin = jax.vmap(partial(_linearize, condition, dev_column, on), in_axes=(0, None, 0))
     # the tail is padded with copies of the last point: weight 0 there (never in any sum);
     # S2 is per point (n, 3) or one vector (3,) for all
     per_s2 = S2.ndim == 2
-    (Lc, Vc, Cc, Wc, Gc, Dc, *S2c), pad = _chunks([L, V, C, W, G, DM] + ([S2] if per_s2 else []),
-                                                 chunk)
+    (Lc, Vc, Cc, Wc, Gc, Dc, Zc, *S2c), pad = _chunks(
+        [L, V, C, W, G, DM, MZ] + ([S2] if per_s2 else []), chunk)
     S2c = S2c[0] if per_s2 else jnp.zeros((Lc.shape[0], 0), S2.dtype)
     Wc = Wc.reshape(-1).at[Wc.size - pad:].set(0.0).reshape(Wc.shape) if pad else Wc
 
     def body(carry, ch):
         N, nv, S, sg, tg, wmw = carry
-        l, v, c, w8, s2, g, dm = ch
+        l, v, c, w8, s2, g, dm, mz = ch
         s2 = s2 if per_s2 else S2
         live = g >= 0
         gi = jnp.where(live, g, 0)
@@ -165,7 +172,9 @@ def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U
         # materialise the linearisation once (a runtime cond, a fusion boundary): F, a, b, e
         # have several consumers each, and XLA would otherwise re-run the derivative in every
         # consumer fusion (3.5x the time of the pass; the same numbers either way)
-        F, a, b, e = _materialize(on, lin(l + v, x, c.at[:, dev_column].add(dev)))
+        F, a, b, e = _materialize(on, lin(l + v, x[:u0], c.at[:, dev_column].add(
+            dev + mz @ x[u0:])))
+        a = jnp.concatenate([a, e[:, None] * mz], axis=1)
         wm, m, ok, q = point_weights(F, b, v, w8, s2)
         a = jnp.where(ok[:, None], a, 0.0)
         wm0 = jnp.where(ok, wm, 0.0)
@@ -188,7 +197,7 @@ def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U
     f = x.dtype
     init = (jnp.zeros((u, u), f), jnp.zeros((u,), f), jnp.zeros((n_cells, k, k), f),
             jnp.zeros((n_cells, k, u), f), jnp.zeros((n_cells, k), f), jnp.zeros((), f))
-    sums, per_point = lax.scan(body, init, (Lc, Vc, Cc, Wc, S2c, Gc, Dc))
+    sums, per_point = lax.scan(body, init, (Lc, Vc, Cc, Wc, S2c, Gc, Dc, Zc))
     n = L.shape[0]
     per_point = tuple(p.reshape((-1,) + p.shape[2:])[:n] for p in per_point)
     return sums, per_point
@@ -337,14 +346,14 @@ def _vce(upd, lin, var, var0, x, U, n_used):
 @eqx.filter_jit
 def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0, v0,
            var0, ridge_idx, ridge_group, n_ridge_groups, tol, max_iter, chunk, n_cells,
-           estimate_variances, robust_k, on):
+           estimate_variances, robust_k, on, MZ):
     f = l.dtype
     upd = partial(_update, var0=var0, **_ridge_args(ridge_idx, ridge_group, n_ridge_groups))
 
     def linearize(x, U, V, weights):
         (N, nv, S, sg, tg, wmw), (a, b, d, wm, m, _) = _pass(
             condition, dev_column, on, n_cells, chunk, l, V, consts, weights, s2, groups, design,
-            x, U)
+            x, U, MZ)
         return _Linearization(N, nv, S, sg, tg, wmw, a, b, d, wm, m)
 
     def vce(lin, var, x, U, weights):
@@ -353,7 +362,7 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
         return _vce(upd, lin, var, var0, x, U, jnp.sum(weights > 0))
 
     def step(state):
-        x, U, V, var, it, _, weights = state
+        x, U, V, var, it, _, weights, _, _ = state
         lin = linearize(x, U, V, weights)
         var = vce(lin, var, x, U, weights)
         up = upd(lin, var, x=x, U=U, n_used=jnp.sum(weights > 0))
@@ -368,20 +377,19 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
         bad = (e > robust_k) & (weights > 0) & (it >= 1)
         weights = jnp.where(bad, 0.0, weights)
         done = step_ok & ~jnp.any(bad)
-        return (x + up.dx, U + up.dU, V_new, var, it + 1, done, weights)
+        return (x + up.dx, U + up.dU, V_new, var, it + 1, done, weights, lin, (x, U, up))
 
     def cond(state):
         return (state[4] < max_iter) & ~state[5]
 
-    state = (x0, U0, v0, var0, jnp.array(0), jnp.array(False), weights)
-    x, U, V, var, it, done, weights = lax.while_loop(cond, step, state)
-    # statistics at the solution: one more linearisation (the step is ~0)
-    lin = linearize(x, U, V, weights)
-    var = vce(lin, var, x, U, weights)
-    up = upd(lin, var, x=x, U=U, n_used=jnp.sum(weights > 0))
+    # the last step's linearisation and solution are carried: the statistics at the solution
+    # come from them (its step was below tol sigma: no further pass over the points)
+    shapes = jax.eval_shape(lambda: step((x0, U0, v0, var0, jnp.array(0), jnp.array(False),
+                                          weights, None, None))[7:])
+    blank = jax.tree.map(lambda t: jnp.zeros(t.shape, t.dtype), shapes)
+    state = (x0, U0, v0, var0, jnp.array(0), jnp.array(False), weights, *blank)
+    x, U, V, var, it, done, weights, lin, (x_lin, U_lin, up) = lax.while_loop(cond, step, state)
     kk = _point_residuals(lin, up, groups)
-    V = s2 * lin.b * kk[:, None]
-    x, U = x + up.dx, U + up.dU
     ok = (weights > 0) & (lin.m > 0)
     omega_pt = jnp.where(ok, kk * kk * jnp.where(lin.m > 0, lin.m, 1.0), 0.0)
     se2 = var[0]
@@ -391,9 +399,9 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
     dev_final = jnp.where(groups >= 0, jnp.sum(design * U[gi], axis=-1), 0.0)
     sigma0 = jnp.sqrt(jnp.sum(weights * omega_pt) / jnp.maximum(n_used - u, 1))
     if n_ridge_groups:  # the modes as fixed effects: one step with their priors removed
-        dx0, _, Q0, _ = _reduce(lin.N, lin.nv, lin.S, lin.sg, lin.tg, U, x, se2 / var[1],
-                                ridge_idx, jnp.zeros_like(ridge_idx, f))
-        ridge_fixed = (x + dx0)[ridge_idx]
+        dx0, _, Q0, _ = _reduce(lin.N, lin.nv, lin.S, lin.sg, lin.tg, U_lin, x_lin,
+                                se2 / var[1], ridge_idx, jnp.zeros_like(ridge_idx, f))
+        ridge_fixed = (x_lin + dx0)[ridge_idx]
         ridge_fixed_cov = se2 * Q0[ridge_idx][:, ridge_idx]
     else:
         ridge_fixed, ridge_fixed_cov = jnp.zeros((0,), f), jnp.zeros((0, 0), f)
@@ -417,9 +425,9 @@ mixed_threads = pass_threads
 
 
 @eqx.filter_jit
-def _part_pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U):
+def _part_pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U, MZ):
     sums, (a, b, d, wm, m, _) = _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W,
-                                      S2, G, DM, x, U)
+                                      S2, G, DM, x, U, MZ)
     return sums, (a, b, d, wm, m), jnp.sum(W > 0)
 
 
@@ -489,7 +497,7 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
         def one(p):
             return jax.block_until_ready(_part_pass(
                 condition, dev_column, on, n_cells, chunk, p["L"], p["V"], p["C"], p["W"],
-                p["S2"], p["G"], p["DM"], x, U))
+                p["S2"], p["G"], p["DM"], x, U, p["MZ"]))
         outs = list(pool.map(one, parts))
         sums = outs[0][0]
         for o in outs[1:]:
@@ -502,6 +510,7 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
 
     x, U, var, it, done = x0, U0, var0, 0, False
     while it < max_iter and not done:
+        pers = per = None  # free the last linearisation's per-point terms before the next pass
         sums, pers, n_used = linearize(x, U)
         var, up, step_ok = update(sums, var, x, U, n_used)
         any_bad = False
@@ -509,21 +518,19 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
             p["V"], p["W"], bad = _part_residuals(per, p["G"], p["S2"], p["W"], up.dx, up.dU,
                                                   var[0], jnp.asarray(it), robust_k)
             any_bad = any_bad or bool(bad)
+        x_lin, U_lin = x, U
         x, U = x + up.dx, U + up.dU
         it += 1
         done = bool(step_ok) and not any_bad
-        pers = per = None  # free this linearisation's per-point terms before the next pass
-    # statistics at the solution: one more linearisation (the step is ~0)
-    sums, pers, n_used = linearize(x, U)
-    var, up, _ = update(sums, var, x, U, n_used)
-    x, U = x + up.dx, U + up.dU
+    # statistics at the solution from the last step's linearisation (its step was below tol
+    # sigma: no further pass over the points)
     se2 = var[0]
     fin = [_part_final(per, p["G"], p["S2"], p["W"], p["DM"], U, up.dx, up.dU, se2)
            for p, per in zip(parts, pers)]
     u = x.shape[0]
     sigma0 = jnp.sqrt((sum(fp[4] for fp in fin[1:]) + fin[0][4]) / jnp.maximum(n_used - u, 1))
-    ridge_fixed, ridge_fixed_cov, response = _part_stats(sums, var, x, U, up.Qxx, ridge_idx,
-                                                          n_ridge_groups)
+    ridge_fixed, ridge_fixed_cov, response = _part_stats(sums, var, x_lin, U_lin, up.Qxx,
+                                                          ridge_idx, n_ridge_groups)
 
     def cat(i):
         return jnp.concatenate([fp[i] for fp in fin])
@@ -539,7 +546,7 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
 
 def _solve_split(condition, dev_column, threads, order, L, x0, S2, C, W, G, DM, U0, V0, var0,
                  ridge_idx, ridge_group, n_ridge_groups, tol, max_iter, chunk, n_cells,
-                 estimate_variances, robust_k):
+                 estimate_variances, robust_k, MZ):
     """The points in cell order (``order``) cut into ``threads`` equal parts (whole chunks;
     the last part's tail padded with copies of its last point at weight 0, outside every
     cell), each part gathered straight from the caller's arrays; :func:`_solve_parts`; the
@@ -562,7 +569,7 @@ def _solve_split(condition, dev_column, threads, order, L, x0, S2, C, W, G, DM, 
 
         f = np.float64
         parts.append({"L": take(L, f), "C": take(C, f), "G": take(G, np.int32, -1),
-                      "DM": take(DM, f), "W": take(W, f, 0.0),
+                      "DM": take(DM, f), "W": take(W, f, 0.0), "MZ": take(MZ, f),
                       "V": jnp.zeros((m, 3), f) if V0 is None else take(V0, f),
                       "S2": take(S2, f) if S2.ndim == 2 else S2})
     res = _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_group,
@@ -601,6 +608,7 @@ def gauss_helmert_mixed(
     max_iter: int = 60,
     chunk_size: int = 8192,
     threads: int | None = None,
+    mode_design: Float[Array, "n r"] | None = None,
 ) -> MixedResult:
     """Gauss-Helmert adjustment of ``condition`` with the surface as a random effect.
 
@@ -623,8 +631,21 @@ def gauss_helmert_mixed(
             component changed by less than 0.5 %.
         threads: parts each pass over the points is split into, one thread each (None:
             :func:`mixed_threads`); the estimates do not depend on it beyond round-off.
+        mode_design: ``(n, r)``: the last ``r`` unknowns of ``x`` are coefficients (m) of
+            deviations known per point, ``dev_i += mode_design_i . x[u - r:]`` (e.g. Zernike
+            modes at each point's aperture coordinates); ``condition`` then takes the first
+            ``u - r`` unknowns. The same model as a condition that evaluates the modes at the
+            moving point itself, up to the shift of the points during the iteration (a
+            relative change of the columns of about 1e-4 on a reflector), at half the cost of
+            the pass (the derivatives of seven Zernike terms doubled it).
+
+    The statistics at the solution (covariance, variance components, residuals) come from the
+    last step's linearisation: its step was below ``tol`` sigma, so no further pass is made.
     """
     n = np.shape(l)[0]
+    max_iter = max(int(max_iter), 1)
+    MZ = (np.zeros((n, 0)) if mode_design is None
+          else np.asarray(mode_design, float).reshape(n, -1))
     f = jnp.float64
     k = design.shape[1]
     ridge_idx, ridge_group, n_groups = ridge_indices(ridge)
@@ -644,7 +665,7 @@ def gauss_helmert_mixed(
                            consts, weights, g_np, design, U0, v0, var0,
                            ridge_idx, ridge_group, n_groups, float(tol), int(max_iter), chunk,
                            int(n_cells), bool(estimate_variances),
-                           jnp.asarray(np.inf if robust_k is None else robust_k, f))
+                           jnp.asarray(np.inf if robust_k is None else robust_k, f), MZ)
         return res
     inv = np.empty_like(order)
     inv[order] = np.arange(n)
@@ -657,7 +678,8 @@ def gauss_helmert_mixed(
                  jnp.asarray(g_np[order], jnp.int32), jnp.asarray(design, f)[o], U0, V0[o], var0,
                  ridge_idx, ridge_group, n_groups, float(tol), int(max_iter), chunk,
                  int(n_cells), bool(estimate_variances),
-                 jnp.asarray(np.inf if robust_k is None else robust_k, f), jnp.ones((), bool))
+                 jnp.asarray(np.inf if robust_k is None else robust_k, f), jnp.ones((), bool),
+                 jnp.asarray(MZ, f)[o])
     back = jnp.asarray(inv)
     return eqx.tree_at(lambda r: (r.v, r.normalized, r.dev, r.omega_point, r.weights), res,
                        (res.v[back], res.normalized[back], res.dev[back],

@@ -47,6 +47,7 @@ from ._format import (  # noqa: F401  (re-exported: the campaign API)
     minimum_points,
     require_points,
 )
+from ._safeio import PARQUET_WRITE_OPTIONS
 
 log = logging.getLogger(__name__)
 
@@ -560,7 +561,7 @@ def write_scan_parquet(path, scan: ScanData) -> None:
     table = pa.table({c: pa.array(getattr(scan, c), type=pa.float32() if c == "intensity"
                                   else pa.float64()) for c in COLUMNS})
     tmp = path.with_name(path.name + ".tmp")
-    pq.write_table(table, tmp, row_group_size=1_000_000)
+    pq.write_table(table, tmp, row_group_size=1_000_000, **PARQUET_WRITE_OPTIONS)
     os.replace(tmp, path)
 
 

@@ -57,6 +57,11 @@ PAUSE_ENV = "HARTRAO_JAX_SAFEIO_PAUSE_S"
 
 _TMP_RE = re.compile(r"^\.(?P<name>.+)\.tmp-(?P<pid>\d+)-[0-9a-f]{8}$")
 _CHUNK = 1 << 20
+#: Keyword arguments of every Parquet table the package writes: no dictionary encoding. Columns
+#: of measurements and residuals (float64) never repeat a value, and pyarrow's attempt to
+#: dictionary-encode each one took 5/6 of the write (12 residual tables of 2.1e5 rows, 318 MB:
+#: 2.02 s with it, 0.33 s without, the same size within 1 %). Any Parquet reader reads both.
+PARQUET_WRITE_OPTIONS: dict[str, Any] = {"use_dictionary": False}
 
 
 # ----------------------------------------------------------------------------- strict JSON
@@ -357,7 +362,8 @@ class OutputDir:
         """A pyarrow table as Parquet (``pyarrow.parquet.write_table`` keyword arguments)."""
         import pyarrow.parquet as pq
 
-        return self.write_with(rel, lambda t: pq.write_table(table, t, **kwargs))
+        opts = {**PARQUET_WRITE_OPTIONS, **kwargs}
+        return self.write_with(rel, lambda t: pq.write_table(table, t, **opts))
 
     def savefig(self, rel: str, fig, **kwargs) -> pathlib.Path:
         """A Matplotlib figure (format from ``rel``'s suffix unless given)."""

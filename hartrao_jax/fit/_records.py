@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..campaign._safeio import OutputDir, write_file_atomic
+from ..campaign._safeio import PARQUET_WRITE_OPTIONS, OutputDir, write_file_atomic
 from ..geometry._geometry import face_of
 from ..model._model import parameter_unit
 from ._fit import CampaignFit, Held, ScanFit
@@ -107,7 +107,8 @@ def write_residuals(path: Path, s: ScanFit) -> None:
         "Y_m": s.X_tel[:, 1],
         "Z_m": s.X_tel[:, 2],
     })
-    write_file_atomic(path, lambda t: pq.write_table(table, t), durable=False)
+    write_file_atomic(path, lambda t: pq.write_table(table, t, **PARQUET_WRITE_OPTIONS),
+                      durable=False)
 
 
 def write_fit(out_dir: str | Path, cf: CampaignFit, *, residuals: bool = True) -> Path:

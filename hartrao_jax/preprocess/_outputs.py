@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..campaign._campaign import Campaign
-from ..campaign._safeio import OutputDir, write_file_atomic
+from ..campaign._safeio import PARQUET_WRITE_OPTIONS, OutputDir, write_file_atomic
 from ._types import KEPT, PREPROCESS_SCHEMA, REASONS, PreprocessConfig, PreprocessResult
 
 
@@ -99,7 +99,8 @@ def write_masks(out_dir, results: Mapping[str, PreprocessResult]) -> Path:
     d = Path(out_dir) / "masks"
     for sid, res in results.items():
         table = pa.table({"row": res.row, "reason": res.reason, "patch": res.patch})
-        write_file_atomic(d / f"{sid}.parquet", lambda t, tb=table: pq.write_table(tb, t),
+        write_file_atomic(d / f"{sid}.parquet",
+                          lambda t, tb=table: pq.write_table(tb, t, **PARQUET_WRITE_OPTIONS),
                           durable=False)
     return d
 

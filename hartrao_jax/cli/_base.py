@@ -213,8 +213,9 @@ def print_fit_table(cf, title="fit") -> None:
             _console().print(ct)
         for line in dict.fromkeys(notes):
             _console().print(f"not identifiable: {escape(line)}")
-        for line in prior:
-            _console().print(f"prior-dominated: {escape(line)}")
+        for line in prior:  # modes the data do not determine, or modes not carried at all
+            label = "surface modes" if "not shown by the data" in line else "prior-dominated"
+            _console().print(f"{label}: {escape(line)}")
         return
     if extra:
         ct = Table(title="calibration (″ = arcsec)", padding=(0, 1))

@@ -9,7 +9,11 @@ the rejection limit is searched with its core, not only its rim. On a reflector 
 layout the panels' offsets and tilts are the filter's nuisance (the "Panels" section of
 :mod:`._locate`), so the search runs once, on the start model, and a bump inside a panel is
 neither hidden by the panel pattern nor taken by its panel's offset; the refit of a candidate gets
-those points back near it (its robust rejection may drop them again). Up to
+those points back near it (its robust rejection may drop them again). A bump as wide as the
+panels is their offsets to that filter: when it finds nothing, the widths of 1.5 m and more
+are searched by :func:`._wide.search_wide` (the windowed filter against a parametric bootstrap
+of the panels' random effect), and any accepted bump that wide has its sigmas widened by the
+panels' factor (:func:`._wide.panel_factor`). Up to
 :data:`MAX_BUMPS` rounds, each stopping at the first candidate that does not stand out.
 An accepted candidate becomes the catalog's ``local_deformation`` term of the model
 (``bump_x_m, bump_y_m, bump_amp_m, bump_width_m``, :func:`._physics.local_deformation`), free
@@ -36,8 +40,9 @@ import numpy as np
 
 from ..geometry._geometry import polar_to_cartesian
 from ..model._model import bump_names
-from ._locate import NOT_DISTINGUISHABLE, coherent, covered_ids, scan_point, search
+from ._locate import NOT_DISTINGUISHABLE, Search, coherent, covered_ids, scan_point, search
 from ._state import Finding, _evaluate, _global_sigma0, _refit_all, _restore, _rms, _save
+from ._wide import WIDE_WIDTHS_M, panel_factor, search_wide
 
 ALPHA_LOCAL = 1e-3  # of the maximum over the reflector's placements
 MAX_BUMPS = 4  # rounds of search and model; each stops at the first insignificant candidate
@@ -138,6 +143,13 @@ def local_step(ctx, S: Sequence, spec, record: list[dict], notes: list[str]) -> 
                     abs(b["values"][b["names"][3]])) for b in spec.bumps]
         srch = search(xy, r, alpha=ALPHA_LOCAL, min_amplitude_m=ctx.config.min_effect_m * 5,
                       exclude=exclude, groups=ids if ctx.has_layout else None)
+        if ctx.has_layout and (srch.candidate is None or not srch.candidate.significant):
+            # as wide as the panels: the windowed filter against the panels' random effect
+            wide = search_wide(xy, r, ids, alpha=ALPHA_LOCAL, exclude=exclude,
+                               min_amplitude_m=ctx.config.min_effect_m * 5, seed=k)
+            if wide.candidate is not None and wide.candidate.significant:
+                srch = Search(list(srch.maps) + list(wide.maps), wide.candidate, srch.sigma_m,
+                              [w for w in srch.skipped_widths if w not in WIDE_WIDTHS_M])
         c = srch.candidate
         if c is None:
             record.append({"search": k, "statement": "no place of the surface is covered densely "
@@ -198,6 +210,11 @@ def local_step(ctx, S: Sequence, spec, record: list[dict], notes: list[str]) -> 
                                                    else "not finite)"))
             break
         spec.bumps[-1]["values"] = {n: est[n][0] for n in names}
+        if ctx.has_layout and abs(est[names[3]][0]) >= WIDE_WIDTHS_M[0]:
+            # as wide as the panels (whichever search found it): the panels' random effect
+            # blurs its amplitude beyond the narrow search's roughness
+            c.roughness = max(c.roughness, panel_factor(
+                xy, r, ids, est[names[0]][0], est[names[1]][0], abs(est[names[3]][0])))
         estimate, where, pt, sid = _estimate(ctx, S, names, est, c.roughness)
         expl = _sentence(estimate, c.p_value, c.n_peaks, before[1], after[1])
         f_ = c.roughness
@@ -211,8 +228,12 @@ def local_step(ctx, S: Sequence, spec, record: list[dict], notes: list[str]) -> 
             rms_after_m=after[1], explanation=expl,
             effect_size_m=abs(estimate["amplitude_m"]["value"]),
             extra={"centre_scan_m": pt, "centre_scan_of": sid, "parameters": list(names),
-                   "null": {"method": "maximum of the matched filter over the reflector's own "
-                                      "placements (peak-height tail, same surface)",
+                   "null": {"method": (
+                                "maximum of the windowed matched filter against a parametric "
+                                "bootstrap of the panels' random effect"
+                                if c.tail.get("null") == "panel random effect" else
+                                "maximum of the matched filter over the reflector's own "
+                                "placements (peak-height tail, same surface)"),
                             "p_value": c.p_value, "t": c.t, "n_peaks": c.n_peaks,
                             "roughness_factor": c.roughness, "tail": c.tail},
                    "sigma_note": "sigmas are the adjustment's times the roughness factor "

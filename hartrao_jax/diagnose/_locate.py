@@ -241,25 +241,23 @@ def _group_sums(ij: np.ndarray, r: np.ndarray, panels, shape, sw: float, sigma: 
     return Q1, Q2
 
 
-def width_map(xy: np.ndarray, r: np.ndarray, w: float, sigma: float, density: float,
-              min_coverage: float = 0.7, min_points: float = 8.0,
-              panels=None, tau2: float = 0.0) -> WidthMap | None:
-    """Matched-filter maps of width ``w`` (see the module docstring); ``panels``: the points'
-    panels (:func:`_panel_columns`), whose offsets (and tilts of variance ``tau2``) are then
-    the filter's nuisance instead of the local background (the module docstring, "Panels")."""
+def grid_of(xy: np.ndarray, w: float) -> tuple[np.ndarray, tuple[int, int], np.ndarray, float]:
+    """The filter's grid for width ``w``: ``(origin, shape, ij (n, 2) cell of every point,
+    cell size h = w / 4)``; shape ``(0, 0)`` when it would exceed 2.5e7 cells."""
     h = w / 4.0
     pad = 4 * BACKGROUND * w
     lo = xy.min(0) - pad
-    shape = tuple(np.ceil((xy.max(0) + pad - lo) / h).astype(int) + 1)
+    shape = tuple(int(v) for v in np.ceil((xy.max(0) + pad - lo) / h).astype(int) + 1)
     if shape[0] * shape[1] > 2.5e7:
-        return None
-    ij = np.floor((xy - lo) / h).astype(np.int64)
-    C = np.zeros(shape)
-    R = np.zeros(shape)
-    np.add.at(C, (ij[:, 0], ij[:, 1]), 1.0)
-    np.add.at(R, (ij[:, 0], ij[:, 1]), r)
-    sw = w / h
-    # points under the bump (unweighted sum of g^2) and coverage of the disc of radius w
+        return lo, (0, 0), np.zeros((0, 2), np.int64), h
+    return lo, shape, np.floor((xy - lo) / h).astype(np.int64), h
+
+
+def coverage(C: np.ndarray, sw: float, h: float, density: float, min_coverage: float = 0.7,
+             min_points: float = 8.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(covered, ng, disc)``: centres whose bump (width ``sw`` cells) holds enough points,
+    whose disc of radius w is covered and whose core holds points; ``ng`` the unweighted
+    sum of ``g^2`` per centre; ``disc`` the footprint of radius w (cells)."""
     ng = _gauss(C, sw / math.sqrt(2.0))
     yy, xx = np.mgrid[-4:5, -4:5]
     disc = (xx * xx + yy * yy <= 16).astype(float)
@@ -271,17 +269,70 @@ def width_map(xy: np.ndarray, r: np.ndarray, w: float, sigma: float, density: fl
     expect_core = density * core.sum() * h * h
     covered = (ng >= min_points) & (n_disc >= min_coverage * expect) & (
         n_core >= max(1.0, 0.6 * expect_core))
-    if panels is None:  # a g + b under the background window W (Gaussian of BACKGROUND w)
+    return covered, ng, disc
+
+
+@dataclass
+class BackgroundFilter:
+    """The matched filter ``a g + b`` under the background window (Gaussian of BACKGROUND w)
+    on one grid: everything that depends on the points' positions only. ``a = (S11 Sgr - Sg1
+    S1r) / det`` with ``Sgr``, ``S1r`` the residual sums filtered at ``s1``, ``sb`` cells."""
+
+    S11: np.ndarray
+    Sg1: np.ndarray
+    det: np.ndarray
+    valid: np.ndarray
+    se_unit: np.ndarray  # se(a) / sigma
+    s1: float
+    sb: float
+
+    @classmethod
+    def of(cls, C: np.ndarray, sw: float, covered: np.ndarray) -> BackgroundFilter:
         sb = BACKGROUND * sw
         s1 = 1.0 / math.sqrt(1.0 / sb**2 + 1.0 / sw**2)  # W g
         s2 = 1.0 / math.sqrt(1.0 / sb**2 + 2.0 / sw**2)  # W g^2
         S11, Sg1, Sgg = _gauss(C, sb), _gauss(C, s1), _gauss(C, s2)
-        Sgr, S1r = _gauss(R, s1), _gauss(R, sb)
         det = S11 * Sgg - Sg1 * Sg1
         valid = covered & (det > 1e-9 * np.maximum(S11 * Sgg, 1e-300)) & (S11 > 3.0 * Sgg)
         detv = np.where(valid, det, 1.0)
-        a = np.where(valid, (S11 * Sgr - Sg1 * S1r) / detv, 0.0)
-        se = sigma * np.sqrt(np.where(valid, np.maximum(S11, 0.0) / detv, 1.0))
+        return cls(S11, Sg1, detv, valid,
+                   np.sqrt(np.where(valid, np.maximum(S11, 0.0) / detv, 1.0)), s1, sb)
+
+    def amplitude(self, R: np.ndarray, axes=(0, 1)) -> np.ndarray:
+        """``a`` per centre from the gridded residual sums ``R`` (the grid's axes ``axes``;
+        further axes are replicates)."""
+        def g(a, s):
+            sig = [0.0] * a.ndim
+            for ax in axes:
+                sig[ax] = s
+            return ndimage.gaussian_filter(a, sig, mode="constant", truncate=4.0) * (
+                2 * math.pi * s * s)
+        ex = (slice(None),) * 2 + (None,) * (R.ndim - 2)
+        a = (self.S11[ex] * g(R, self.s1) - self.Sg1[ex] * g(R, self.sb)) / self.det[ex]
+        return np.where(self.valid[ex], a, 0.0)
+
+
+def width_map(xy: np.ndarray, r: np.ndarray, w: float, sigma: float, density: float,
+              min_coverage: float = 0.7, min_points: float = 8.0,
+              panels=None, tau2: float = 0.0) -> WidthMap | None:
+    """Matched-filter maps of width ``w`` (see the module docstring); ``panels``: the points'
+    panels (:func:`_panel_columns`), whose offsets (and tilts of variance ``tau2``) are then
+    the filter's nuisance instead of the local background (the module docstring, "Panels")."""
+    lo, shape, ij, h = grid_of(xy, w)
+    if shape == (0, 0):
+        return None
+    C = np.zeros(shape)
+    R = np.zeros(shape)
+    np.add.at(C, (ij[:, 0], ij[:, 1]), 1.0)
+    np.add.at(R, (ij[:, 0], ij[:, 1]), r)
+    sw = w / h
+    # points under the bump (unweighted sum of g^2) and coverage of the disc of radius w
+    covered, ng, disc = coverage(C, sw, h, density, min_coverage, min_points)
+    if panels is None:  # a g + b under the background window W (Gaussian of BACKGROUND w)
+        bf = BackgroundFilter.of(C, sw, covered)
+        valid = bf.valid
+        a = bf.amplitude(R)
+        se = sigma * bf.se_unit
     else:  # a g + one offset per panel, unwindowed: sums over the bump's own points
         Q1, Q2 = _group_sums(ij, r, panels, shape, sw, sigma, tau2)
         den = ng - Q2  # sum of the bump's within-panel part squared
@@ -295,14 +346,20 @@ def width_map(xy: np.ndarray, r: np.ndarray, w: float, sigma: float, density: fl
     if valid.sum() < 16:
         return WidthMap(w, h, lo, a, z, np.zeros_like(z), valid, float("nan"),
                         np.zeros((0, 2), int))
-    zv = z[valid]
-    s_w = float(1.4826 * np.median(np.abs(zv - np.median(zv))))
-    s_w = max(s_w, 1.0)  # never below the white noise
+    s_w = roughness_of(z[valid])
     t = np.where(valid, z / s_w, 0.0)
     at = np.abs(t)
     mx = ndimage.maximum_filter(at, footprint=disc.astype(bool), mode="constant")
     pk = np.argwhere(valid & (at == mx) & (at > 0))
     return WidthMap(w, h, lo, a, z, t, valid, s_w, pk)
+
+
+def roughness_of(z: np.ndarray, axis=None) -> np.ndarray | float:
+    """The roughness factor ``s_w``: the robust spread (``1.4826 MAD``) of the white scores
+    ``z`` over the valid centres, never below 1 (white noise)."""
+    med = np.median(z, axis=axis, keepdims=axis is not None)
+    s = 1.4826 * np.median(np.abs(z - med), axis=axis)
+    return np.maximum(s, 1.0) if axis is not None else max(float(s), 1.0)
 
 
 def _distinct_peaks(maps: Sequence[WidthMap], exclude=()) -> np.ndarray:

@@ -143,6 +143,12 @@ CASES: tuple[Case, ...] = (
          {"local_deformation": {"amplitude_m": 1.0e-3, "x_m": 4.0, "y_m": 3.0, "width_m": 0.6}},
          1.0e-3, "a smooth bump of 1 mm, 0.6 m wide (the catalog's local_deformation), "
          "concealed under 0.15 mm rms panel offsets and tilts and 0.8 mm noise"),
+    Case("local_deformation_wide", "local_deformation",
+         {"local_deformation": {"amplitude_m": 2.0e-3, "x_m": -6.0, "y_m": 3.0,
+                                "width_m": 2.5}},
+         2.0e-3, "a smooth bump of 2 mm, 2.5 m wide (wider than a panel: its panels' offsets "
+         "take it up unless judged against their random effect), under 0.15 mm rms panel "
+         "offsets and tilts and 0.8 mm noise"),
     Case("unexplained_intensity", "unexplained", {}, 3e-4,
          "range walk of +-0.3 mm with the intensity (not in the catalog), partly absorbed by "
          "f and tz", post=_intensity_range_error),

@@ -248,6 +248,10 @@ def _check_campaign(ctx, kwargs: Mapping[str, Any]) -> None:
                             f"{model!r} ({n_free} free parameters, 50 points each)")
     if cmd == "fit":
         _check_memory(camp, metas, bool(kwargs.get("per_cycle") or kwargs.get("batch")))
+    elif cmd == "fit-dask" and not kwargs.get("scheduler"):
+        # a LocalCluster on this machine: its workers share the memory, one position each
+        _check_memory(camp, metas, bool(kwargs.get("per_cycle")),
+                      workers=max(1, int(kwargs.get("n_workers") or 1)))
 
 
 def available_memory_gib() -> float | None:
@@ -269,12 +273,14 @@ def available_memory_gib() -> float | None:
     return None
 
 
-def _check_memory(camp, metas, per_cycle: bool) -> None:
+def _check_memory(camp, metas, per_cycle: bool, workers: int = 1) -> None:
     """Refuse an in-memory fit whose largest adjustment (a position's scans together, or the
-    largest scan with ``--per-cycle``) needs more memory than is available."""
+    largest scan with ``--per-cycle``) needs more memory than is available (to each of
+    ``workers`` local Dask workers, which adjust one position each at a time)."""
     avail = available_memory_gib()
     if avail is None:
         return
+    avail = avail / workers
     groups: dict[str, list] = {}
     for m in metas:
         groups.setdefault(m.id if per_cycle else m.position, []).append(m)
@@ -288,11 +294,13 @@ def _check_memory(camp, metas, per_cycle: bool) -> None:
         if need > avail:
             what = (f"scan {key!r} holds {n:,} rows" if per_cycle else
                     f"position {key!r}: its {len(ms)} scan(s) hold {n:,} rows")
+            share = f" to each of {workers} local workers" if workers > 1 else ""
             raise CampaignError(camp.root / "campaign.toml", "size",
                                 f"{what}; an in-memory fit needs about {need:.1f} GiB "
                                 f"({FIT_BYTES_PER_ROW} bytes per row), {avail:.1f} GiB are "
-                                "available: use `hartrao-jax fit-stream` (bounded memory)"
-                                + ("" if per_cycle else " or `fit --per-cycle`"))
+                                f"available{share}: use `hartrao-jax fit-stream` (bounded "
+                                "memory)" + (" or fewer --workers" if workers > 1 else "")
+                                + ("" if per_cycle else " or `--per-cycle`"))
 
 
 def _check_results(ctx, kwargs: Mapping[str, Any]) -> None:

@@ -974,6 +974,12 @@ def test_fit_refused_before_any_work_when_memory_is_short(camp, tmp_path, monkey
         assert len(lines) == 1 and lines[0].startswith("error: "), r.stderr
         assert who in lines[0] and "fit-stream" in lines[0] and "GiB are available" in lines[0]
         assert not (tmp_path / "o").exists()
+    r = CliRunner().invoke(main, ["fit-dask", str(camp), "--out", str(tmp_path / "o"),
+                                  "--workers", "2"])
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.exit_code == 2 and len(lines) == 1, r.output
+    assert "to each of 2 local workers" in lines[0] and "fewer --workers" in lines[0]
+    assert not (tmp_path / "o").exists()
     monkeypatch.setenv(MEMORY_ENV, "1000")
     from hartrao_jax.cli._checks import available_memory_gib
 

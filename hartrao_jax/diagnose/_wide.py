@@ -9,15 +9,17 @@ The null: a parametric bootstrap of the panel random effect
 -----------------------------------------------------------
 The residuals of the points are modelled as ``r_i = P_i u_p(i) + e_i``: per panel an offset
 and two tilts along the aperture axes (``P_i = (1, x_i - x_p, y_i - y_p)``), independent
-between panels, of variances ``var_offset`` and ``var_tilt`` estimated from the moments of
-the per-panel plane fits beyond the noise; ``e`` white of the residuals' robust spread. ``B``
-replicate surfaces of that model are drawn on the filter's grid (the gridded sums of ``P_i
-u_p`` per cell, one sparse product for all replicates; the noise per cell ``N(0, sigma^2
-n_cell)``), filtered exactly as the recording (the same roughness standardisation per
-replicate) and the maximum of ``|t|`` over every centre and wide width is taken. The
-recording's maximum is judged against those ``B`` maxima (a Gumbel distribution fitted by
-its moments; the empirical fraction where it is not in the far tail). A bump inflates the
-estimated panel variances: conservative.
+between panels, of variances ``var_offset`` and ``var_tilt`` estimated from the robust spread
+(``1.4826 MAD``) of the per-panel plane fits beyond the noise (a bump moves only its own
+panels' fits); ``e`` white, of the pooled residual spread of those fits. :data:`REPLICATES`
+surfaces of that model are drawn on the filter's grid (the gridded sums of ``P_i u_p`` per
+cell, one sparse product for all replicates; the noise per cell ``N(0, noise^2 n_cell)``) and
+filtered exactly as the recording. Each width's white scores ``z`` are divided by the null's
+own spread at that width (the median over the replicates of their robust spread), for the
+recording and the replicates alike (the recording's own spread grows with the bump it is to
+find), and the maximum of ``|z| / s`` over every centre and width is taken. The recording's
+maximum is judged against the replicates' maxima: a Gumbel distribution fitted by its
+moments (the empirical fraction where that is larger, outside the far tail).
 
 Smooth deformation is not in that model (a real reflector's astigmatism, which the
 background window only partly removes at 3 m): a candidate must also not be an ordinary peak

@@ -378,9 +378,9 @@ def _distinct_peaks(maps: Sequence[WidthMap], exclude=()) -> np.ndarray:
             t = np.abs(m.t[m.peaks[:, 0], m.peaks[:, 1]])
             rows.append(np.column_stack([t, np.full(len(t), k), m.peaks, c,
                                          np.full(len(t), m.width_m)])[far])
-    if not rows:
-        return np.zeros((0, 7))
-    P = np.concatenate(rows)
+    P = np.concatenate(rows) if rows else np.zeros((0, 7))
+    if not len(P):  # no peak, or every one next to a deformation already modelled
+        return np.zeros((0, 4))
     P = P[np.argsort(-P[:, 0])]
     from scipy.spatial import cKDTree
 

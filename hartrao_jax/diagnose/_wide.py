@@ -236,6 +236,8 @@ def search_wide(xy: np.ndarray, r: np.ndarray, groups: np.ndarray, *, alpha: flo
         if not g.bf.valid.any() or g.shape != m.valid.shape:
             continue
         far = _far_from(g.centres, exclude, m.width_m)
+        if not far.any():  # every centre next to a deformation already modelled
+            continue
         z_null = g.scores(U, sigma, noise, rng)
         s_null = max(float(np.median(roughness_of(z_null, axis=0))), 1.0)
         maxima = np.maximum(maxima, np.max(np.abs(z_null[far]), axis=0) / s_null)

@@ -60,3 +60,18 @@ def test_panels_alone_are_no_finding_and_a_wide_bump_is():
     assert np.hypot(c.x_m + 6.0, c.y_m - 3.0) < 1.0 and c.width_m >= 1.5
     assert c.roughness > 2.0  # the panels' random effect blurs the amplitude
     assert panel_factor(xy, r, cell, -6.0, 3.0, 2.5) > 2.0
+
+
+def test_a_partial_recording_and_an_excluded_neighbourhood_never_fail():
+    """A strip of the aperture, and a search whose every centre lies next to a modelled
+    deformation: a candidate or none, never an exception."""
+    xy, r, cell = surface(3, n=20000)
+    strip = np.abs(xy[:, 1]) < 1.0
+    s = search_wide(xy[strip], r[strip], cell[strip], alpha=1e-3, min_amplitude_m=1e-5,
+                    replicates=20)
+    assert s.candidate is None or not s.candidate.significant
+    s = search_wide(xy, r, cell, alpha=1e-3, min_amplitude_m=1e-5, replicates=20,
+                    exclude=[(0.0, 0.0, 40.0)])
+    assert s.candidate is None or not s.candidate.significant
+    assert search_wide(xy[:5], r[:5], cell[:5], alpha=1e-3, min_amplitude_m=1e-5).candidate \
+        is None

@@ -343,6 +343,19 @@ def _vce(upd, lin, var, var0, x, U, n_used):
     return v
 
 
+def _blank_step(n: int, x0, U0, var0):
+    """Zeros shaped as one step's ``(linearisation, (x, U, update))`` of :func:`_solve`
+    (the loop's carry before its first step)."""
+    u, (g, k), r = x0.shape[0], U0.shape, var0[2].shape[0]
+    f = x0.dtype
+    z = partial(jnp.zeros, dtype=f)
+    lin = _Linearization(z((u, u)), z((u,)), z((g, k, k)), z((g, k, u)), z((g, k)), z(()),
+                         z((n, u)), z((n, 3)), z((n, k)), z((n,)), z((n,)))
+    up = _Update(z((u,)), z((g, k)), z((u, u)), z((g, k, k)), z(()), z(()), z((k,)), z((r,)),
+                 (z(()), z((k,)), z((r,))))
+    return lin, (z((u,)), z((g, k)), up)
+
+
 @eqx.filter_jit
 def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0, v0,
            var0, ridge_idx, ridge_group, n_ridge_groups, tol, max_iter, chunk, n_cells,
@@ -384,10 +397,8 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
 
     # the last step's linearisation and solution are carried: the statistics at the solution
     # come from them (its step was below tol sigma: no further pass over the points)
-    shapes = jax.eval_shape(lambda: step((x0, U0, v0, var0, jnp.array(0), jnp.array(False),
-                                          weights, None, None))[7:])
-    blank = jax.tree.map(lambda t: jnp.zeros(t.shape, t.dtype), shapes)
-    state = (x0, U0, v0, var0, jnp.array(0), jnp.array(False), weights, *blank)
+    state = (x0, U0, v0, var0, jnp.array(0), jnp.array(False), weights,
+             *_blank_step(l.shape[0], x0, U0, var0))
     x, U, V, var, it, done, weights, lin, (x_lin, U_lin, up) = lax.while_loop(cond, step, state)
     kk = _point_residuals(lin, up, groups)
     ok = (weights > 0) & (lin.m > 0)

@@ -191,7 +191,7 @@ def test_mode_design_equals_modes_inside_the_condition():
     sigmas and variance components within 0.5 %. (At the points' true positions instead,
     0.05 sigma: the range noise moves an observation across the surface by up to 15 mm, and
     the condition sees the modes where the observation is.)"""
-    lobs, X = two_face_scan(3, n=8000, modes={6: 3e-4, 8: 1e-4})
+    lobs, X = two_face_scan(3, n=4000, modes={6: 3e-4, 8: 1e-4})
     js = (5, 6, 7, 8, 11)
     names = ["tx", "ty", "tz", "rx", "ry", "f"] + [f"zern_{j}" for j in js]
     full = make_model(names, aperture_radius_m=EDGES[-1])

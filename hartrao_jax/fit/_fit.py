@@ -28,7 +28,7 @@ from ..geometry._geometry import (
     pointing_gravity,
     rot_z,
     square_cells,
-    zernike,
+    zernike_columns,
 )
 from ..model._model import (
     N_CONSTS,
@@ -483,17 +483,6 @@ def _absent_modes(rm, ridge: dict | None, tests: dict) -> list[str]:
     return out
 
 
-def zernike_design(X: np.ndarray, names: Sequence[str], aperture_radius_m: float) -> np.ndarray:
-    """``(n, r)``: the Zernike terms ``zern_<j>`` (Noll ``j``, unit coefficient, m) at the
-    north-aligned aperture coordinates of points ``X`` (n, 3), as the model's deviation
-    evaluates them (``u = rho / aperture radius``, azimuth from the telescope x axis)."""
-    X = np.asarray(X, float)
-    u = np.hypot(X[:, 0], X[:, 1]) / aperture_radius_m
-    psi = np.arctan2(X[:, 1], X[:, 0])
-    return np.column_stack([np.asarray(zernike(int(n[len(ZERNIKE_PREFIX):]), u, psi, xp=np))
-                            for n in names])
-
-
 def white_sigmas(response: np.ndarray, cell_var, cov: np.ndarray,
                  mode_part: np.ndarray | None = None) -> np.ndarray:
     """The noise's part of each sigma: ``sqrt(diag(cov) - sum_g R_g diag(cell_var) R_g^T -
@@ -667,17 +656,18 @@ def fit_position(
         warm: dict = {"v0": np.asarray(res.v), "cell_var0": np.asarray(_CELL_VAR0)}
         w_mixed = used.astype(float)
         for _ in range(3 + len(groups)):
-            extra = tuple(f"{ZERNIKE_PREFIX}{j}" for g_ in groups.values() for j in g_)
+            modes = [j for g_ in groups.values() for j in g_]
+            extra = tuple(f"{ZERNIKE_PREFIX}{j}" for j in modes)
             mdl2 = model_of(free_of(extra), kappa)
             x0 = np.array([x_start.get(n_, 0.0) for n_ in mdl2.free])
             ridge = {k_: [mdl2.free.index(f"{ZERNIKE_PREFIX}{j}") for j in g_]
                      for k_, g_ in groups.items()} or None
             # the modes (last in mdl2.free) enter through their columns at the hit points
+            cond, mz = ((model_of(free_of(), kappa), zernike_columns(X_hit, modes, aperture))
+                        if modes else (mdl2, None))
             rm = gauss_helmert_mixed(
-                model_of(free_of(), kappa) if extra else mdl2, l, x0, sig, c, w_mixed, cell,
-                design, n_cells, robust_k=robust_k, ridge=ridge, ridge_var0=_MODE_VAR0,
-                max_iter=60, mode_design=zernike_design(X_hit, extra, aperture) if extra
-                else None, **warm)
+                cond, l, x0, sig, c, w_mixed, cell, design, n_cells, robust_k=robust_k,
+                ridge=ridge, ridge_var0=_MODE_VAR0, max_iter=60, mode_design=mz, **warm)
             cand = [n_ for n_ in mdl2.free if n_ in INSTRUMENT]
             bad = unidentifiable(np.asarray(rm.cov), mdl2.free, cand, typical=typical_magnitudes())
             if bad:

@@ -15,6 +15,7 @@ from ._geometry import (
     scanner_to_telescope,
     square_cells,
     zernike,
+    zernike_columns,
 )
 
 __all__ = [
@@ -31,4 +32,5 @@ __all__ = [
     "rot_z",
     "scanner_to_telescope",
     "zernike",
+    "zernike_columns",
 ]

@@ -380,3 +380,18 @@ def zernike(j: int, u: ArrayLike, psi: ArrayLike, xp=jnp) -> Array:
         return np.sqrt(n + 1.0) * R
     ang = xp.cos(ma * psi) if m > 0 else xp.sin(ma * psi)
     return np.sqrt(2.0 * (n + 1.0)) * R * ang
+
+
+def zernike_columns(X: Float[ArrayLike, "n d"], modes, aperture_radius_m: float
+                    ) -> Float[np.ndarray, "n r"]:
+    """The Zernike terms ``Z_j`` (Noll ``j`` of ``modes``, unit coefficient) at the aperture
+    coordinates of points ``X`` (m; columns x, y of the telescope frame, any further ones
+    ignored): ``u = rho / aperture_radius_m``, azimuth from the x axis. NumPy, one column per
+    mode: the design of a Zernike fit or of the smooth modes of a random effect."""
+    X = np.asarray(X, float)
+    u = np.hypot(X[:, 0], X[:, 1]) / aperture_radius_m
+    psi = np.arctan2(X[:, 1], X[:, 0])
+    out = np.empty((len(X), len(modes)))
+    for i, j in enumerate(modes):
+        out[:, i] = zernike(int(j), u, psi, xp=np)
+    return out

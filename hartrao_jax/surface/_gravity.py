@@ -44,7 +44,7 @@ import numpy as np
 from ..campaign._campaign import default_campaign, load_campaign
 from ..campaign._safeio import OutputDir, verify_result_dir, write_file_atomic
 from ..campaign._schedule import DEC_LIMITS_DEG, HA_LIMIT_DEG
-from ..geometry._geometry import panel_cells, panel_ids, telescope_axes_hadec
+from ..geometry._geometry import panel_cells, panel_ids, telescope_axes_hadec, zernike_columns
 from ..physics._catalog import DEFAULT_ZERNIKE_MODES
 from ._gravity_samples import (
     NUISANCE_MODES,
@@ -93,10 +93,8 @@ def zernike_projection(X: np.ndarray, dev: np.ndarray, aperture_radius_m: float,
     panels_per_ring)``; without a layout the point rms, which includes the measurement noise).
     """
 
-    u = np.hypot(X[:, 0], X[:, 1]) / aperture_radius_m
-    psi = np.arctan2(X[:, 1], X[:, 0])
     allm = tuple(nuisance) + tuple(j for j in modes if j not in nuisance)
-    A = np.column_stack([zernike_np(j, u, psi) for j in allm])
+    A = zernike_columns(X, allm, aperture_radius_m)
     coef, *_ = np.linalg.lstsq(A, dev, rcond=None)
     r = dev - A @ coef
     cells, _, n_cells, _ = panel_cells(X, *(layout or (None, None)))

@@ -21,7 +21,7 @@ import numpy as np
 from ..campaign._campaign import load_campaign
 from ..campaign._safeio import verify_result_dir
 from ..fit._fit import scan_arrays, sigma_vector
-from ..geometry._geometry import zernike
+from ..geometry._geometry import zernike, zernike_columns
 from ..model._model import N_CONSTS, make_model
 from ..solver._ghm import bucket_size
 
@@ -196,10 +196,8 @@ def mode_response(model, obs, v, consts, used, x, sigma_l, X: np.ndarray,
         Q, G, i_f = _linear_response(model, obs, v, consts, used, x, sigma_l)
     except np.linalg.LinAlgError:  # a singular scan: no response, no correction
         return None, None
-    u = np.hypot(X[:, 0], X[:, 1]) / aperture_radius_m
-    psi = np.arctan2(X[:, 1], X[:, 0])
     allm = tuple(nuisance) + tuple(j for j in modes if j not in nuisance)
-    A = np.column_stack([zernike_np(j, u, psi) for j in allm])
+    A = zernike_columns(X, allm, aperture_radius_m)
     Zm = A[:, [allm.index(j) for j in modes]]
     dX = Q.T @ Zm  # (u, modes): parameter change per unit mode
     R = Zm - G @ dX  # what each mode leaves in the deviations

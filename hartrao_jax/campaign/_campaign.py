@@ -47,7 +47,7 @@ from ._format import (  # noqa: F401  (re-exported: the campaign API)
     minimum_points,
     require_points,
 )
-from ._safeio import PARQUET_WRITE_OPTIONS
+from ._safeio import write_table
 
 log = logging.getLogger(__name__)
 
@@ -555,13 +555,12 @@ def read_scan_e57(path, cycle: int, *, max_range_m: float = MAX_RANGE_M) -> Scan
 def write_scan_parquet(path, scan: ScanData) -> None:
     """Write a scan table (float64 columns, float32 intensity); `row` is not written."""
     import pyarrow as pa
-    import pyarrow.parquet as pq
 
     path = pathlib.Path(path)
     table = pa.table({c: pa.array(getattr(scan, c), type=pa.float32() if c == "intensity"
                                   else pa.float64()) for c in COLUMNS})
     tmp = path.with_name(path.name + ".tmp")
-    pq.write_table(table, tmp, row_group_size=1_000_000, **PARQUET_WRITE_OPTIONS)
+    write_table(table, tmp, row_group_size=1_000_000)
     os.replace(tmp, path)
 
 

@@ -57,11 +57,20 @@ PAUSE_ENV = "HARTRAO_JAX_SAFEIO_PAUSE_S"
 
 _TMP_RE = re.compile(r"^\.(?P<name>.+)\.tmp-(?P<pid>\d+)-[0-9a-f]{8}$")
 _CHUNK = 1 << 20
-#: Keyword arguments of every Parquet table the package writes: no dictionary encoding. Columns
-#: of measurements and residuals (float64) never repeat a value, and pyarrow's attempt to
-#: dictionary-encode each one took 5/6 of the write (12 residual tables of 2.1e5 rows, 318 MB:
-#: 2.02 s with it, 0.33 s without, the same size within 1 %). Any Parquet reader reads both.
+#: Keyword arguments of every Parquet table the package writes (:func:`write_table`): no
+#: dictionary encoding. Columns of measurements and residuals (float64) never repeat a value,
+#: and pyarrow's attempt to dictionary-encode each one took 5/6 of the write (12 residual tables
+#: of 2.1e5 rows, 318 MB: 2.02 s with it, 0.33 s without, the same size within 1 %). Any Parquet
+#: reader reads both.
 PARQUET_WRITE_OPTIONS: dict[str, Any] = {"use_dictionary": False}
+
+
+def write_table(table, path, **kwargs) -> None:
+    """Write a pyarrow table as Parquet with the package's options (:data:`PARQUET_WRITE_OPTIONS`;
+    ``kwargs``: further ``pyarrow.parquet.write_table`` arguments, which win)."""
+    import pyarrow.parquet as pq
+
+    pq.write_table(table, path, **{**PARQUET_WRITE_OPTIONS, **kwargs})
 
 
 # ----------------------------------------------------------------------------- strict JSON
@@ -359,11 +368,9 @@ class OutputDir:
         return self.write_text(rel, dumps_strict(obj, indent=indent, default=default))
 
     def write_parquet(self, rel: str, table, **kwargs) -> pathlib.Path:
-        """A pyarrow table as Parquet (``pyarrow.parquet.write_table`` keyword arguments)."""
-        import pyarrow.parquet as pq
-
-        opts = {**PARQUET_WRITE_OPTIONS, **kwargs}
-        return self.write_with(rel, lambda t: pq.write_table(table, t, **opts))
+        """A pyarrow table as Parquet (:func:`write_table`; ``pyarrow.parquet.write_table``
+        keyword arguments)."""
+        return self.write_with(rel, lambda t: write_table(table, t, **kwargs))
 
     def savefig(self, rel: str, fig, **kwargs) -> pathlib.Path:
         """A Matplotlib figure (format from ``rel``'s suffix unless given)."""

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..campaign._safeio import PARQUET_WRITE_OPTIONS, OutputDir, write_file_atomic
+from ..campaign._safeio import OutputDir, write_file_atomic, write_table
 from ..geometry._geometry import face_of
 from ..model._model import parameter_unit
 from ._fit import CampaignFit, Held, ScanFit
@@ -85,7 +85,6 @@ def write_residuals(path: Path, s: ScanFit) -> None:
     Written to a temporary name and renamed (never a half-written table at ``path``).
     """
     import pyarrow as pa
-    import pyarrow.parquet as pq
 
 
     d = s.data
@@ -107,8 +106,7 @@ def write_residuals(path: Path, s: ScanFit) -> None:
         "Y_m": s.X_tel[:, 1],
         "Z_m": s.X_tel[:, 2],
     })
-    write_file_atomic(path, lambda t: pq.write_table(table, t, **PARQUET_WRITE_OPTIONS),
-                      durable=False)
+    write_file_atomic(path, lambda t: write_table(table, t), durable=False)
 
 
 def write_fit(out_dir: str | Path, cf: CampaignFit, *, residuals: bool = True) -> Path:

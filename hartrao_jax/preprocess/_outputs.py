@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..campaign._campaign import Campaign
-from ..campaign._safeio import PARQUET_WRITE_OPTIONS, OutputDir, write_file_atomic
+from ..campaign._safeio import OutputDir, write_file_atomic, write_table
 from ._types import KEPT, PREPROCESS_SCHEMA, REASONS, PreprocessConfig, PreprocessResult
 
 
@@ -93,14 +93,12 @@ def write_masks(out_dir, results: Mapping[str, PreprocessResult]) -> Path:
     """``out_dir/masks/<scan>.parquet``: ``row`` (file row), ``reason`` (uint8), ``patch``
     (each written to a temporary name and renamed)."""
     import pyarrow as pa
-    import pyarrow.parquet as pq
 
 
     d = Path(out_dir) / "masks"
     for sid, res in results.items():
         table = pa.table({"row": res.row, "reason": res.reason, "patch": res.patch})
-        write_file_atomic(d / f"{sid}.parquet",
-                          lambda t, tb=table: pq.write_table(tb, t, **PARQUET_WRITE_OPTIONS),
+        write_file_atomic(d / f"{sid}.parquet", lambda t, tb=table: write_table(tb, t),
                           durable=False)
     return d
 

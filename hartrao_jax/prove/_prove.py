@@ -33,7 +33,7 @@ import numpy as np
 from scipy import stats
 
 from .._config import enable_compilation_cache, release_compiled_programs
-from ..campaign._safeio import PARQUET_WRITE_OPTIONS
+from ..campaign._safeio import write_table
 from ..diagnose._diagnose import diagnose
 from ..model._model import parameter_unit
 from ..simulate._simulate import simulate_campaign
@@ -86,7 +86,7 @@ def _intensity_range_error(out: Path, seed: int, k_m: float = 6e-4) -> dict:
         inten = cols["intensity"].astype(float)
         med = float(np.median(inten[(inten > 0.5)])) if np.any(inten > 0.5) else 0.8
         cols["range_m"] = cols["range_m"] + np.where(inten > med, 0.5, -0.5) * k_m
-        pq.write_table(pa.table(cols, schema=t.schema), f, **PARQUET_WRITE_OPTIONS)
+        write_table(pa.table(cols, schema=t.schema), f)
     return {"intensity_range_k_m": k_m}
 
 

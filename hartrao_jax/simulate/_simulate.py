@@ -41,7 +41,7 @@ import numpy as np
 from jaxtyping import Array
 
 from ..campaign._campaign import Campaign, ScanData, ScanMeta, default_campaign, write_campaign
-from ..campaign._safeio import PARQUET_WRITE_OPTIONS, write_json_atomic
+from ..campaign._safeio import write_json_atomic, write_table
 from ..campaign._schedule import CAMPAIGN_STEP_RAD, PRESET_TOURS, plan_positions
 from ..geometry._geometry import (
     decompose_zyx,
@@ -868,11 +868,10 @@ class _LazyScans(Mapping):
 
 def _write_truth_table(path: pathlib.Path, lab: Mapping[str, np.ndarray]) -> None:
     import pyarrow as pa
-    import pyarrow.parquet as pq
 
     cols = ["row", "cls", "panel", "deviation_m", "X", "Y", "Z", "range_true_m", "phi_true_rad",
             "theta_true_rad", "time_s", "incidence_rad"]
-    pq.write_table(pa.table({c: lab[c] for c in cols}), path, **PARQUET_WRITE_OPTIONS)
+    write_table(pa.table({c: lab[c] for c in cols}), path)
 
 
 def simulate_campaign(out_dir, preset: str = "demo", effects: Mapping[str, Any] | None = None,

@@ -228,10 +228,13 @@ def _check_campaign(ctx, kwargs: Mapping[str, Any]) -> None:
     n_free = len([n for n in names if n not in fixed])
     need = minimum_points(n_free)
     metas = [camp.scan(s) for s in ids] if ids else list(camp.scans)
+    # rows from the Parquet footers (None: another format, sizes unknown before reading)
+    rows = {m.id: _parquet_rows(camp.root / m.file) if m.file.lower().endswith(".parquet")
+            else None for m in metas}
     small = []
     for m in metas:
+        n = rows[m.id]
         if m.file.lower().endswith(".parquet"):
-            n = _parquet_rows(camp.root / m.file)
             if n == 0:
                 raise CampaignError(camp.root / m.file, "rows", f"scan {m.id!r}: the scan table "
                                     "has no rows, expected at least one observation")
@@ -247,10 +250,10 @@ def _check_campaign(ctx, kwargs: Mapping[str, Any]) -> None:
                             f"scan {m.id!r} has {n} rows, expected at least {need} for model "
                             f"{model!r} ({n_free} free parameters, 50 points each)")
     if cmd == "fit":
-        _check_memory(camp, metas, bool(kwargs.get("per_cycle") or kwargs.get("batch")))
+        _check_memory(camp, metas, rows, bool(kwargs.get("per_cycle") or kwargs.get("batch")))
     elif cmd == "fit-dask" and not kwargs.get("scheduler"):
         # a LocalCluster on this machine: its workers share the memory, one position each
-        _check_memory(camp, metas, bool(kwargs.get("per_cycle")),
+        _check_memory(camp, metas, rows, bool(kwargs.get("per_cycle")),
                       workers=max(1, int(kwargs.get("n_workers") or 1)))
 
 
@@ -273,10 +276,12 @@ def available_memory_gib() -> float | None:
     return None
 
 
-def _check_memory(camp, metas, per_cycle: bool, workers: int = 1) -> None:
+def _check_memory(camp, metas, rows: Mapping[str, int | None], per_cycle: bool,
+                  workers: int = 1) -> None:
     """Refuse an in-memory fit whose largest adjustment (a position's scans together, or the
     largest scan with ``--per-cycle``) needs more memory than is available (to each of
-    ``workers`` local Dask workers, which adjust one position each at a time)."""
+    ``workers`` local Dask workers, which adjust one position each at a time); ``rows``: each
+    scan's row count (None: unknown)."""
     avail = available_memory_gib()
     if avail is None:
         return
@@ -285,11 +290,10 @@ def _check_memory(camp, metas, per_cycle: bool, workers: int = 1) -> None:
     for m in metas:
         groups.setdefault(m.id if per_cycle else m.position, []).append(m)
     for key, ms in groups.items():
-        rows = [_parquet_rows(camp.root / m.file) if m.file.lower().endswith(".parquet")
-                else None for m in ms]
-        if any(r is None for r in rows):
+        counts = [rows[m.id] for m in ms]
+        if any(r is None for r in counts):
             continue  # E57/PTX/XYZ sizes are not known before reading: not checked
-        n = sum(rows)
+        n = sum(counts)
         need = n * FIT_BYTES_PER_ROW / 2**30
         if need > avail:
             what = (f"scan {key!r} holds {n:,} rows" if per_cycle else

@@ -298,13 +298,11 @@ class BackgroundFilter:
         return cls(S11, Sg1, detv, valid,
                    np.sqrt(np.where(valid, np.maximum(S11, 0.0) / detv, 1.0)), s1, sb)
 
-    def amplitude(self, R: np.ndarray, axes=(0, 1)) -> np.ndarray:
-        """``a`` per centre from the gridded residual sums ``R`` (the grid's axes ``axes``;
-        further axes are replicates)."""
+    def amplitude(self, R: np.ndarray) -> np.ndarray:
+        """``a`` per centre from the gridded residual sums ``R`` (the grid on its first two
+        axes; further axes are replicates, not filtered)."""
         def g(a, s):
-            sig = [0.0] * a.ndim
-            for ax in axes:
-                sig[ax] = s
+            sig = [s, s] + [0.0] * (a.ndim - 2)
             return ndimage.gaussian_filter(a, sig, mode="constant", truncate=4.0) * (
                 2 * math.pi * s * s)
         ex = (slice(None),) * 2 + (None,) * (R.ndim - 2)
@@ -413,13 +411,14 @@ def _p_tail(t: float, tail: dict) -> float:
 
 
 def width_maps(xy: np.ndarray, r: np.ndarray, widths: Sequence[float] = WIDTHS_M,
-               groups: np.ndarray | None = None):
+               groups: np.ndarray | None = None, density: float | None = None):
     """The matched-filter maps of residuals ``r`` (m, normal) at aperture positions ``xy`` (m)
     for every width: ``(maps, sigma, skipped widths)``; ``sigma`` is the residuals' robust
     spread (m). Residuals are taken about their median and clipped to 5 sigma (no single
     point, a mixed pixel or the deep core of a structure, weighs more than that). ``groups``:
     the points' panel ids (one offset per panel is then the filter's nuisance; points of no
-    panel, id < 0, are left out)."""
+    panel, id < 0, are left out). ``density``: the points' median density (1/m^2) when the
+    caller has it (default: measured here)."""
     xy = np.asarray(xy, float)
     r = np.asarray(r, float)
     ok = np.all(np.isfinite(xy), 1) & np.isfinite(r)
@@ -433,7 +432,7 @@ def width_maps(xy: np.ndarray, r: np.ndarray, widths: Sequence[float] = WIDTHS_M
     med = float(np.median(r))
     sigma = float(1.4826 * np.median(np.abs(r - med))) or float(np.std(r)) or 1e-4
     r = np.clip(r - med, -5 * sigma, 5 * sigma)
-    dens = _density(xy)
+    dens = _density(xy) if density is None else density
     panels = _panel_columns(xy, groups) if groups is not None else None
     tau2 = tilt_variance(r, panels, sigma) if panels is not None else 0.0
     maps, skipped = [], []

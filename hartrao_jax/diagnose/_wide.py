@@ -37,6 +37,7 @@ NumPy/SciPy; units metres.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 
@@ -139,9 +140,14 @@ class _Grid:
         self.C = np.bincount(self.flat, minlength=n_cells).astype(float).reshape(self.shape)
         covered, _, _ = coverage(self.C, w / self.h, self.h, density)
         self.bf = BackgroundFilter.of(self.C, w / self.h, covered)
-        self.A = _panel_design(self.flat, n_cells, panels)
+        self._panels = panels
         self.cells = np.argwhere(self.bf.valid)  # rows: x index, columns: y index
         self.centres = self.lo + (self.cells + 0.5) * self.h
+
+    @functools.cached_property
+    def A(self) -> sparse.csr_matrix:
+        """The panels' design on this grid (:func:`_panel_design`; the replicates only)."""
+        return _panel_design(self.flat, self.C.size, self._panels)
 
     def scores(self, U: np.ndarray, sigma: float, noise: float, rng) -> np.ndarray:
         """White scores ``z = a / se(a)`` at the valid centres (valid, B) of the replicates
@@ -218,13 +224,13 @@ def search_wide(xy: np.ndarray, r: np.ndarray, groups: np.ndarray, *, alpha: flo
     (the median over the replicates of their robust spread), for the recording and the
     replicates alike: the recording's own spread would grow with the bump it is to find."""
     xy, r, groups = _usable(xy, r, groups)
-    maps, sigma, skipped = width_maps(xy, r, widths)
+    density = _density(xy) if len(r) >= 16 else 0.0  # (fewer: nothing is searched)
+    maps, sigma, skipped = width_maps(xy, r, widths, density=density)
     own = judge(maps, sigma, skipped, alpha=alpha, min_amplitude_m=min_amplitude_m,
                 exclude=exclude)
     if own.candidate is None or len(r) < 16:
         return own
     panels, var_o, var_t, noise = _panel_model(xy, r, groups, sigma)
-    density = _density(xy)
     sd = np.repeat([[math.sqrt(var_o), math.sqrt(var_t), math.sqrt(var_t)]], len(panels), 0)
     sd[[P.shape[1] < 3 for _, P in panels], 1:] = 0.0
     rng = np.random.default_rng(seed)

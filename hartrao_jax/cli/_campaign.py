@@ -16,7 +16,7 @@ from ..campaign._schedule import TOURS, campaign_plan, check_plan, plan_table
 from ..fit._distributed import close_client, fit_dask, start_client
 from ..fit._fit import fit_campaign
 from ..fit._joint import fit_joint, write_joint_fit
-from ..fit._stream import stream_document, stream_fit_campaign, stream_fit_scan
+from ..fit._stream import kept_store, stream_document, stream_fit_campaign, stream_fit_scan
 from ..fit._stream_position import stream_fit_positions
 from ..physics._catalog import CALIBRATION_OPTION
 from ..preprocess import preprocess_keep
@@ -198,7 +198,8 @@ def fit_dask_command(campaign, out_dir, scheduler, n_workers, model, scans, fixe
 @click.option("--rows-per-chunk", default=1_000_000, show_default=True, type=int)
 @click.option("--store", default=None, type=click.Path(file_okay=False),
               help="Directory of the per-point results (v, weights, standardized residuals; "
-                   "one sub-directory per scan for several scans; default: temporary).")
+                   "one sub-directory per scan for several scans; default: not kept, a temporary "
+                   "directory removed at the end).")
 @click.option("--json", "json_file", default=None, type=click.Path(dir_okay=False))
 @click.option("--robust-k", default=4.0, show_default=True, type=float)
 @click.option("--dask/--no-dask", "use_dask", default=False, show_default=True,
@@ -230,9 +231,12 @@ def fit_stream(campaign, scan_ids, model, rows_per_chunk, store, json_file, robu
                               use_dask, scheduler, workers)
         return
     if len(ids) == 1 and not use_dask:
-        r = stream_fit_scan(camp, ids[0], model, rows_per_chunk=rows_per_chunk, store=store,
-                            robust_k=robust_k or None)
-        doc = stream_document(r)
+        with kept_store(store) as st:
+            r = stream_fit_scan(camp, ids[0], model, rows_per_chunk=rows_per_chunk, store=st,
+                                robust_k=robust_k or None)
+            doc = stream_document(r)
+        if store is None:
+            doc["store"] = None
         if json_file:
             write_json_atomic(json_file, doc, indent=1)
         click.echo(json.dumps(strict_json({k: doc[k] for k in (

@@ -57,7 +57,7 @@ from ._fit import (
     white_sigmas,
 )
 from ._identify import mode_prior
-from ._stream import _count_rows, _NpyRows, _progress, peak_rss_gib
+from ._stream import _count_rows, _NpyRows, _progress, kept_store, peak_rss_gib
 
 
 def _sample_rows(campaign: Campaign, meta: ScanMeta, rows_per_chunk: int, n_sample: int,
@@ -262,10 +262,17 @@ def _record(start: PositionFit, st, x, final, var, sums, per_scan, converged, pa
 
 def _position_task(root: str, scan_ids: list[str], model, store: str | None,
                    rows_per_chunk: int, robust_k: float | None) -> dict:
-    """One position streamed where this runs (in-process or on a Dask worker)."""
+    """One position streamed where this runs (in-process or on a Dask worker); the per-point
+    results stay in ``store`` (None: a temporary directory, removed)."""
     camp = worker_campaign(root)  # on a Dask worker: float64, the compilation cache
-    return stream_fit_position(camp, scan_ids, model, rows_per_chunk=rows_per_chunk,
-                               store=store, robust_k=robust_k)
+    with kept_store(store) as st:
+        rec = stream_fit_position(camp, scan_ids, model, rows_per_chunk=rows_per_chunk,
+                                  store=st, robust_k=robust_k)
+    if store is None:  # the per-point results were not asked for: removed with the directory
+        rec["store"] = None
+        for s in rec["scans"]:
+            s["store"] = None
+    return rec
 
 
 def stream_fit_positions(

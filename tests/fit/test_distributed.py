@@ -303,12 +303,19 @@ def test_stream_campaign_in_process_and_on_dask(scatter_campaign, tmp_path):
             e["value"], rel=1e-10, abs=1e-8 * e["sigma"])
 
 
-def test_cli_fit_stream_every_scan(scatter_campaign, tmp_path):
+def test_cli_fit_stream_every_scan(scatter_campaign, tmp_path, monkeypatch):
+    """Without ``--store`` the per-point results are not kept: nothing is left in the
+    temporary directory (a full-resolution scan's results take about 0.5 GB)."""
+    import tempfile
+
     from click.testing import CliRunner
 
     import hartrao_jax.cli._campaign  # noqa: F401  (registers the commands)
     from hartrao_jax.cli import main
 
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp))
     r = CliRunner().invoke(main, ["fit-stream", str(scatter_campaign.root), "--rows-per-chunk",
                                   "5000", "--json", str(tmp_path / "st.json"), "--per-cycle"])
     assert r.exit_code == 0, r.output
@@ -325,5 +332,7 @@ def test_cli_fit_stream_every_scan(scatter_campaign, tmp_path):
     assert p["faces"] == 2 and p["converged"] and p["f"]["sigma"] > 0
     assert [s["scan"] for s in doc["scans"]] == ["r23c1", "r23c2"]
     assert "streamed 1 positions (2 scans)" in r.output
+    assert p["store"] is None and all(s["store"] is None for s in doc["scans"])
+    assert list(tmp.iterdir()) == []
     r = CliRunner().invoke(main, ["fit-stream", str(scatter_campaign.root), "--scan", "nope"])
     assert r.exit_code == 2 and "nope" in r.output

@@ -222,6 +222,7 @@ def print_fit_table(cf, title="fit") -> None:
         ct.add_column("scan", justify="right")
         for n in extra:
             ct.add_column(escape(f"{n} [{_scale_unit(parameter_unit(n))[1]}]"), justify="right")
+        notes = []
         for s in cf.scans:
             row = [s.meta.id]
             for n in extra:
@@ -230,9 +231,12 @@ def print_fit_table(cf, title="fit") -> None:
                     v, sg = s.estimates[n]
                     row.append(_pm(v * sc, sg * sc, dg))
                 else:
-                    row.append("fixed")
+                    row.append("held" if n in s.held else "fixed")
             ct.add_row(*row)
+            notes += [f"{s.meta.id}: {h.note}" for h in s.held.values()]
         _console().print(ct)
+        for line in notes:
+            _console().print(f"not identifiable: {escape(line)}")
     pt = Table(title="positions (per-cycle fits: inverse-variance mean of the cycles)",
                padding=(0, 1))
     for c in ("position", "elevation [°]", "f [m]", "σf [mm]"):

@@ -25,6 +25,8 @@ def print_joint_summary(jf: JointFit, console=None) -> None:
             t.add_row(g, n, f"{v * scale:.3f}{unit}", f"{s * scale:.3f}{unit}",
                       f"{gg['gain']:.3f}", f"{gg['ideal_gain']:.3f}")
     console.print(t)
+    for h in jf.held.values():
+        console.print(f"not identifiable: {h.note}")
     cd = jf.correlation_drop()["max_abs_corr_f_calibration"]
     console.print(f"max |corr(f, calibration)|: per scan median {cd['per_scan']['median']:.3f} "
                   f"(max {cd['per_scan']['max']:.3f}) -> joint median {cd['joint']['median']:.3f} "

@@ -102,6 +102,9 @@ class ScanFit(Estimates):
     gravity: np.ndarray
     elevation_deg: float
     notes: list[str] = field(default_factory=list)
+    #: parameters of the model the scan cannot determine (two-face ones on a one-face scan),
+    #: held at their fixed/prior value instead of estimated
+    held: dict[str, Held] = field(default_factory=dict)
 
     def value(self, name: str) -> float:
         """Estimated or fixed value of a parameter (0 for a parameter not in the model)."""
@@ -361,6 +364,8 @@ def fit_scan(
     """
 
     fixed = dict(fixed or {})
+    held = one_face_holds(parse_names(model), fixed) if meta.cycle == 0 else {}
+    fixed.update({n: h.value for n, h in held.items()})
     data, g, init, window = prepare_scan(campaign, meta, data, window_m=window_m, keep=keep)
     mdl = make_model(model, fixed, aperture_radius_m=campaign.telescope.diameter_m / 2)
     n = len(data)
@@ -379,6 +384,7 @@ def fit_scan(
         res = robust_gauss_helmert(mdl, l, x0, sig, c, w, k=robust_k, max_iter=max_iter)
     fit = finish_scan_fit(campaign, meta, mdl, pdata, res, g, init, wpad,
                           heading_hint_rad=heading_hint_rad)
+    fit.held = held
     if n_pad == n:
         return fit
     # back to the scan's own rows (the padding rows are unused and outside the window)
@@ -537,6 +543,15 @@ def two_face_parameters(names: Iterable[str]) -> tuple[str, ...]:
     return tuple(n for n in names if n in INSTRUMENT and INSTRUMENT[n].two_face != "no")
 
 
+def one_face_holds(names: Iterable[str], fixed: dict[str, float]) -> dict[str, Held]:
+    """The two-face parameters among ``names`` (not already fixed), held at their fixed value
+    or 0: one face cannot separate them from the pose and f (``campaign-format.md``, cycle 0)."""
+    return {n: Held(fixed.get(n, 0.0), f"{n} flips sign between the faces: a one-face "
+                    "recording cannot separate it from the pose and f; held at "
+                    f"{fixed.get(n, 0.0):g}")
+            for n in two_face_parameters(names) if n not in fixed}
+
+
 def _faces(metas: Sequence[ScanMeta]) -> int:
     return 2 if {1, 2} <= {m.cycle for m in metas} else 1
 
@@ -594,10 +609,7 @@ def fit_position(
     names = tuple(n for n in parse_names(model) if n not in fixed)
     held: dict[str, Held] = {}
     if faces == 1:
-        for n in two_face_parameters(names):
-            held[n] = Held(fixed.get(n, 0.0), f"{n} flips sign between the faces: a one-face "
-                           "recording cannot separate it from the pose and f; held at "
-                           f"{fixed.get(n, 0.0):g}")
+        held.update(one_face_holds(names, fixed))
     prepared = []
     for i, m in enumerate(metas):
         data = datas[i] if datas is not None else read_scan(campaign, m)

@@ -54,7 +54,16 @@ from ..solver._ghm import (
     normal_equations,
 )
 from ._align import mean_heading, scan_heading
-from ._fit import CampaignFit, ScanFit, finish_scan_fit, fit_campaign, scan_arrays, sigma_vector
+from ._fit import (
+    CampaignFit,
+    Held,
+    ScanFit,
+    finish_scan_fit,
+    fit_campaign,
+    scan_arrays,
+    sigma_vector,
+    two_face_parameters,
+)
 from ._records import fit_json, write_fit_dir
 
 log = logging.getLogger("hartrao_jax")
@@ -387,6 +396,9 @@ class JointFit:
     scans: list[ScanFit]
     per_scan: CampaignFit
     solution: SchurSolution
+    #: shared parameters asked for that the scans cannot determine (two-face ones on one-face
+    #: scans), held at their fixed/prior value
+    held: dict[str, Held] = field(default_factory=dict)
 
     @property
     def sigma0(self) -> float:
@@ -504,6 +516,7 @@ def fit_joint(
     """
     if group not in GROUPS and group != "tour":
         raise ValueError(f"group: expected one of {', '.join(GROUPS)}, found {group!r}")
+    shared = _shareable(campaign, scans, shared)
     if start is None or start.position_fits:  # the joint adjustment starts from single cycles
         start = fit_campaign(campaign, model, scans=scans, fixed=fixed, robust_k=robust_k,
                              keep=keep, batch=batch, progress=progress, per_cycle=True)
@@ -512,7 +525,8 @@ def fit_joint(
                             [s for s in start.scans if s.meta.id in set(scans)])
     fits = list(start.scans)
     names = tuple(fits[0].names)
-    shared = check_shared(names, shared)
+    held = {n: h for n, h in fits[0].held.items() if n in shared}  # two-face, one-face scans
+    shared = check_shared(names, [n for n in shared if n not in held])
     groups = [group_of(s.meta, group) for s in fits]
     if backend is None:
         backend = LocalBackend(problems_from_fits(campaign, fits))
@@ -523,7 +537,30 @@ def fit_joint(
     gmap: dict[str, list[str]] = {}
     for s, g in zip(fits, groups):
         gmap.setdefault(g, []).append(s.meta.id)
-    return JointFit(campaign, names, shared, group, gmap, scans_out, start, sol)
+    return JointFit(campaign, names, shared, group, gmap, scans_out, start, sol, held)
+
+
+def _shareable(campaign: Campaign, scans: Sequence[str] | None, shared: Sequence[str]
+               ) -> tuple[str, ...]:
+    """``shared``, checked before any work against the faces of the scans: one-face scans
+    (cycle 0) hold the two-face parameters (:func:`._fit.one_face_holds`), so a joint
+    adjustment of them has nothing to share if only those are asked for, and one-face and
+    two-face scans cannot share them."""
+    metas = [campaign.scan(s) for s in scans] if scans else list(campaign.scans)
+    one = [m.id for m in metas if m.cycle == 0]
+    two_face = two_face_parameters(shared)
+    if not one or not two_face:
+        return tuple(shared)
+    if len(one) < len(metas):
+        raise ValueError(f"--shared: {', '.join(two_face)} flip sign between the faces; the "
+                         f"one-face scans ({', '.join(one[:3])}{', ...' if len(one) > 3 else ''}"
+                         ") cannot share them with two-face scans: expected scans of one kind "
+                         "(--scans)")
+    if set(two_face) == set(shared):
+        raise ValueError(f"--shared: {', '.join(shared)} flip sign between the faces and every "
+                         "scan is one face (cycle 0), so they are not estimable: nothing to "
+                         "share; expected a parameter one face determines, or two-face scans")
+    return tuple(shared)
 
 
 def joint_scan_fit(campaign: Campaign, s: ScanFit, x: np.ndarray, cov: np.ndarray, N: np.ndarray,
@@ -541,7 +578,7 @@ def joint_scan_fit(campaign: Campaign, s: ScanFit, x: np.ndarray, cov: np.ndarra
                         else heading_hint_rad)
     scan_sigma0 = math.sqrt(omega / max(n_used - u_object, 1))
     return dataclasses.replace(
-        f, n_rejected=s.n_rejected, n_window=s.n_window, sigma0=sigma0,
+        f, n_rejected=s.n_rejected, n_window=s.n_window, sigma0=sigma0, held=s.held,
         notes=list(s.notes) + [f"joint adjustment; sigma0 of this scan's residuals "
                                f"{scan_sigma0:.4f}"])
 
@@ -601,6 +638,9 @@ def joint_json(jf: JointFit, *, base: dict | None = None) -> dict:
             entry["groups_chi2"] = float(np.sum(w * (vals - mean) ** 2))
             entry["groups_dof"] = len(vals) - 1
         shared[n] = entry
+    for n, h in jf.held.items():
+        shared[n] = {"value": h.value, "sigma": None, "identifiable": False, "note": h.note,
+                     "unit": parameter_unit(n), "group": jf.group}
     doc["shared"] = shared
     sol = jf.solution
     doc["joint"] = {

@@ -39,7 +39,7 @@ def scan_record(s: ScanFit, held: dict[str, Held] | None = None) -> dict:
             **{n: {"value": v, "sigma": sg, "unit": parameter_unit(n)}
                for n, (v, sg) in s.estimates.items()},
             **{n: {"value": h.value, "sigma": None, "identifiable": False, "note": h.note,
-                   "unit": parameter_unit(n)} for n, h in (held or {}).items()},
+                   "unit": parameter_unit(n)} for n, h in {**s.held, **(held or {})}.items()},
         },
         "sigma0": s.sigma0,
         "n_points": s.n_points,

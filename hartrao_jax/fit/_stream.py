@@ -66,9 +66,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..campaign._campaign import Campaign, ScanMeta, iter_scan_chunks
+from ..campaign._campaign import _concat as concat_scans
+from ..campaign._format import CampaignError
 from ..geometry._geometry import pointing_gravity
 from ..model._model import N_CONSTS, make_model, parameter_unit
-from ..preprocess._initial import InitialValues, geometry_window, initial_values
+from ..preprocess._initial import InitialValues, choose_initial_values, geometry_window
 from ..solver._kernel import (
     REJECT_BELOW,
     linearize_rev,
@@ -78,7 +80,7 @@ from ..solver._kernel import (
     thread_pool,
 )
 from ._distributed import worker_campaign
-from ._fit import Estimates, _progress, _x0, sigma_vector
+from ._fit import Estimates, _progress, _x0, one_face_holds, parse_names, sigma_vector
 
 log = logging.getLogger("hartrao_jax")
 
@@ -219,6 +221,7 @@ class StreamFit(Estimates):
     round_iterations: list = field(default_factory=list)
     ratios: list = field(default_factory=list)
     stalled_rounds: list = field(default_factory=list)
+    held: dict = field(default_factory=dict)  # name -> Held: two-face ones of a one-face scan
 
 
 class _Cached:
@@ -246,14 +249,11 @@ def _count_rows(campaign: Campaign, meta: ScanMeta) -> int:
 
 
 def _sample(campaign, meta, rows_per_chunk: int, n_rows: int, n_sample: int, seed: int):
+    """A random sample of about ``1.5 n_sample`` of the scan's rows (one read of the file)."""
     rng = np.random.default_rng(seed)
     frac = min(1.0, 1.5 * n_sample / max(n_rows, 1))
-    parts = []
-    for ch in iter_scan_chunks(campaign, meta, rows_per_chunk):
-        pick = rng.random(len(ch)) < frac
-        parts.append((ch.range_m[pick], ch.phi_rad[pick], ch.theta_rad[pick]))
-    r, phi, th = (np.concatenate([p[i] for p in parts]) for i in range(3))
-    return r, phi, th
+    return concat_scans([ch.subset(np.flatnonzero(rng.random(len(ch)) < frac))
+                         for ch in iter_scan_chunks(campaign, meta, rows_per_chunk)])
 
 
 @jax.jit
@@ -313,6 +313,8 @@ def stream_fit_scan(
     t_start = time.perf_counter()
     meta = campaign.scan(scan) if isinstance(scan, str) else scan
     fixed = dict(fixed or {})
+    held = one_face_holds(parse_names(model), fixed) if meta.cycle == 0 else {}
+    fixed.update({n: h.value for n, h in held.items()})
     mdl = make_model(model, fixed, aperture_radius_m=campaign.telescope.diameter_m / 2)
     names = mdl.free
     u = len(names)
@@ -325,9 +327,11 @@ def stream_fit_scan(
     n_rows = _count_rows(campaign, meta)
     g = pointing_gravity(meta, campaign.telescope, campaign.site)
     if init is None:
-        r, phi, th = _sample(campaign, meta, rows_per_chunk, n_rows, n_sample, seed)
-        init = initial_values(r, phi, th, g, focal_length_m=campaign.telescope.focal_length_m,
-                              seed=seed)
+        # as the in-memory fit chooses them: from the pointing, or pose-free (one-face
+        # exports, offset reflectors)
+        init = choose_initial_values(
+            campaign, meta, _sample(campaign, meta, rows_per_chunk, n_rows, n_sample, seed), g,
+            seed=seed)
     timings["initial_values_s"] = time.perf_counter() - t0
 
     inner = int(min(INNER_CHUNK, max(256, 1 << math.ceil(math.log2(max(rows_per_chunk, 1))))))
@@ -526,6 +530,12 @@ def stream_fit_scan(
             f_.close(remove=True)
         for f_ in (out_v, out_w, out_e):
             f_.close()
+    if n_used <= u or not math.isfinite(sigma0):  # never a NaN estimate passed on
+        raise CampaignError(
+            f"{meta.id}: {n_used:,} of {n_rows:,} rows are within the window of the paraboloid "
+            f"after {total_it} iterations (initial f {init.x.get('f', math.nan):.4g} m, "
+            f"{100 * init.inlier_fraction:.0f} % of the sample near it): too few for {u} "
+            "unknowns; expected a scan of the reflector that its initial values find")
     timings["adjustment_s"] = time.perf_counter() - t0
     timings["s_per_pass"] = timings["adjustment_s"] / max(state["passes"], 1)
     cov = sigma0**2 * Ninv
@@ -533,7 +543,7 @@ def stream_fit_scan(
     return StreamFit(meta.id, names, np.asarray(x), cov, N, sigma0, n_rows, n_window,
                      n_used, state["n_seen"] - n_window - n_used, total_it, rounds,
                      state["passes"], converged, time.perf_counter() - t_start, store, init,
-                     timings, round_its, ratios, [])
+                     timings, round_its, ratios, [], held)
 
 
 def peak_rss_gib() -> float:
@@ -546,8 +556,11 @@ def stream_document(r: StreamFit) -> dict:
     """The JSON record of one streamed scan (``"schema": "hartrao-stream/1"``; SI units)."""
 
     return {"schema": "hartrao-stream/1", "scan": r.id, "model": list(r.names),
-            "estimates": {n: {"value": v, "sigma": s, "unit": parameter_unit(n)}
-                          for n, (v, s) in r.estimates.items()},
+            "estimates": {**{n: {"value": v, "sigma": s, "unit": parameter_unit(n)}
+                             for n, (v, s) in r.estimates.items()},
+                          **{n: {"value": h.value, "sigma": None, "identifiable": False,
+                                 "note": h.note, "unit": parameter_unit(n)}
+                             for n, h in r.held.items()}},
             "sigma0": r.sigma0, "n_rows": r.n_rows, "n_points": r.n_points,
             "n_rejected": r.n_rejected, "n_outside_window": r.n_window,
             "iterations": r.iterations, "rounds": r.rounds, "passes": r.passes,

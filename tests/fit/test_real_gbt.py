@@ -101,3 +101,35 @@ def test_real_gbt_bump_region_is_located(tmp_path):
         found.append(np.asarray(s.data.subset(s.used).range_m)[sel].mean())
         found[-1] = np.median(P[sel] @ np.eye(3), axis=0) if False else found[-1]
     assert abs(found[0] - found[1]) < 0.5  # the same place whatever the focal-length choice
+
+
+@needs_real
+def test_real_gbt_one_face_per_cycle_fit_holds_the_two_face_parameters(scan10):
+    """A one-face recording (cycle 0) never estimates x4/x6/x7, per cycle or jointly: with
+    them estimated the extended model put f 15 mm from the independent 60.0355 m."""
+    from hartrao_jax.fit._joint import fit_joint
+    from hartrao_jax.fit._records import scan_record
+
+    s = fit_scan(scan10, scan10.scans[0], "extended")
+    assert set(s.held) == {"x4", "x6", "x7"} and not set(s.held) & set(s.names)
+    rec = scan_record(s)["estimates"]
+    for n in ("x4", "x6", "x7"):
+        assert rec[n]["identifiable"] is False and rec[n]["sigma"] is None
+        assert rec[n]["value"] == 0.0 and "one-face" in rec[n]["note"]
+    assert abs(s.value("f") - 60.0355) < 3e-3
+    with pytest.raises(ValueError, match="every scan is one face"):
+        fit_joint(scan10, "extended", shared=("x4", "x6", "x7"), group="campaign")
+
+
+@needs_real
+def test_real_gbt_streamed_per_cycle_starts_like_the_in_memory_fit(scan10, tmp_path):
+    """fit-stream --per-cycle on a one-face export of an offset reflector: initial values from
+    the pose-free quadric as in memory (from the pointing it kept 0 points and printed
+    f = nan), the two-face parameters held."""
+    from hartrao_jax.fit._stream import stream_document, stream_fit_scan
+
+    doc = stream_document(stream_fit_scan(scan10, scan10.scans[0], "extended",
+                                          rows_per_chunk=20_000, store=tmp_path / "s"))
+    assert doc["n_points"] > 0.9 * doc["n_rows"] and doc["converged"]
+    assert abs(doc["estimates"]["f"]["value"] - 60.0355) < 3e-3
+    assert doc["estimates"]["x6"]["identifiable"] is False

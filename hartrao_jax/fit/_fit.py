@@ -262,7 +262,10 @@ class CampaignFit:
                 row.update(ha_deg=m.ha_deg, dec_deg=m.dec_deg)
             if m.azimuth_deg is not None or m.elevation_deg is not None:
                 row.update(azimuth_deg=m.azimuth_deg)
-            row.update(elevation_deg=fits[0].elevation_deg,
+            faces = _faces([s.meta for s in fits])
+            row.update(elevation_deg=fits[0].elevation_deg, faces=faces,
+                       kind=("inverse-variance mean of per-cycle fits" if len(fits) > 1
+                             else "one cycle" if faces == 2 or fits[0].meta.cycle else "one face"),
                        f={"value": mean, "sigma": sig},
                        gravity=[float(a) for a in fits[0].gravity],
                        scans=[s.meta.id for s in fits])

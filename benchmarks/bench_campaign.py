@@ -237,6 +237,34 @@ def stage_stream(a) -> None:
            / 2**30})
 
 
+def stage_stream_dask(a) -> None:
+    """Every position of ``--camp`` streamed as one two-face adjustment per position (the
+    full-resolution path: ``fit-stream --dask``), one Dask task per position on ``--workers``
+    worker processes of one thread; the per-point results are not kept."""
+    from hartrao_jax._config import enable_compilation_cache
+    from hartrao_jax.campaign._campaign import load_campaign
+    from hartrao_jax.fit._distributed import close_client, start_client
+    from hartrao_jax.fit._stream_position import stream_fit_positions
+
+    enable_compilation_cache()
+    camp = load_campaign(a.camp)
+    t0 = time.perf_counter()
+    client, cluster = start_client(n_workers=a.workers)
+    t_start = time.perf_counter() - t0
+    try:
+        doc = stream_fit_positions(camp, None, "extended", rows_per_chunk=a.rows_per_chunk,
+                                   client=client)
+    finally:
+        close_client(client, cluster)
+    recs = doc["positions"]
+    _emit({"positions": len(recs), "scans": len(doc["scans"]), "cluster_start_s": t_start,
+           "fit_s": doc["seconds"], "end_to_end_s": time.perf_counter() - t0,
+           "workers": doc["workers"], "rows": sum(r["n_rows"] for r in recs),
+           "per_position": [{k: r[k] for k in ("position", "n_rows", "n_points", "passes",
+                                                 "seconds", "peak_rss_gib", "sigma0")}
+                            | {"f": r["f"], "converged": r["converged"]} for r in recs]})
+
+
 # --------------------------------------------------------------------------------------------
 # orchestration
 # --------------------------------------------------------------------------------------------
@@ -260,7 +288,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.stage:
         {"simulate": stage_simulate, "fit-local": stage_fit_local, "fit-dask": stage_fit_dask,
-         "simulate-full": stage_simulate_full, "stream": stage_stream}[a.stage](a)
+         "simulate-full": stage_simulate_full, "stream": stage_stream,
+         "stream-dask": stage_stream_dask}[a.stage](a)
         return 0
 
     from _common import machine_info, write_results

@@ -15,7 +15,8 @@ resolution a position has 2.6e7 points; here it is adjusted without holding them
    current solution, robust rejection at ``robust_k`` noise sigmas from there, linearisation
    at ``l + v``); :func:`.solver.mixed_step` re-estimates the variance components from the
    sums and takes the Gauss-Newton step of ``x`` and the cells. Iterations stop when every
-   step is below ``tol`` of its sigma; one more pass writes the per-point results.
+   step is below ``tol`` of its sigma; with a ``store``, one more pass writes the per-point
+   results (without, the statistics are the last step's: one read of every row fewer).
 
 Memory: a chunk of ``rows_per_chunk`` rows and the per-cell sums (g x 3 x u); nothing per point
 is kept between passes (the residuals are recomputed at each pass from the solution).
@@ -28,7 +29,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tempfile
 import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -57,7 +57,7 @@ from ._fit import (
     white_sigmas,
 )
 from ._identify import mode_prior
-from ._stream import _count_rows, _NpyRows, _progress, kept_store, peak_rss_gib
+from ._stream import _count_rows, _NpyRows, _progress, peak_rss_gib
 
 
 def _sample_rows(campaign: Campaign, meta: ScanMeta, rows_per_chunk: int, n_sample: int,
@@ -120,14 +120,15 @@ def stream_fit_position(
     :func:`._fit.position_record`) with the streaming figures added (``n_rows``, ``passes``,
     ``seconds``, ``peak_rss_gib``, ``start``: the sample adjustment's f and sigma0) and
     ``scans[]``: per scan its rows, points, rejections, sigma0 and the ``store`` of its
-    per-point results.
+    per-point results (``store`` None: none are written, and the final pass that writes them
+    is saved).
     """
     t_start = time.perf_counter()
     metas = [campaign.scan(s) if isinstance(s, str) else s for s in scans]
     if len({m.position for m in metas}) != 1:
         raise ValueError("stream_fit_position: scans of one position expected, found "
                          + ", ".join(sorted({m.position for m in metas})))
-    store = Path(store) if store is not None else Path(tempfile.mkdtemp(prefix="hartrao-stream-"))
+    store = None if store is None else Path(store)
     timings = {}
     t0 = time.perf_counter()
     samples, n_rows = [], []
@@ -176,6 +177,8 @@ def stream_fit_position(
         return total, per_scan
 
     for m, nr in zip(metas, n_rows):
+        if store is None:
+            continue
         d = store / m.id
         d.mkdir(parents=True, exist_ok=True)
         outs[m.id] = {"v": _NpyRows(d / "v.npy", np.float64, nr, (3,)),
@@ -188,20 +191,22 @@ def stream_fit_position(
         with _progress(not progress) as prog:
             task = prog.add_task(f"streaming position {metas[0].position}", total=max_iter + 1)
             for _ in range(max_iter):
-                sums, _ = stream_pass(x, U, var, write=False)
+                sums, per_scan = stream_pass(x, U, var, write=False)
                 passes += 1
-                step = mixed_step(sums, var, var0, x, U, ridge_idx, ridge_group, n_groups)
-                x, U, var = step.x, step.U, step.var
-                ratios.append(float(step.ratio))
+                final = mixed_step(sums, var, var0, x, U, ridge_idx, ridge_group, n_groups)
+                x, U, var = final.x, final.U, final.var
+                ratios.append(float(final.ratio))
                 prog.advance(task)
                 if ratios[-1] < tol:
                     converged = True
                     break
-            # statistics and per-point results at the solution
-            sums, per_scan = stream_pass(x, U, var, write=True)
-            passes += 1
-            final = mixed_step(sums, var, var0, x, U, ridge_idx, ridge_group, n_groups,
-                               estimate_variances=False)
+            if store is not None:  # per-point results (and the statistics) at the solution
+                sums, per_scan = stream_pass(x, U, var, write=True)
+                passes += 1
+                final = mixed_step(sums, var, var0, x, U, ridge_idx, ridge_group, n_groups,
+                                   estimate_variances=False)
+            # else: the statistics of the last step's linearisation (its step below tol
+            # sigma), as the in-memory adjustment: one read of every row fewer
             prog.advance(task)
     finally:
         for o in outs.values():
@@ -211,13 +216,15 @@ def stream_fit_position(
     rec = _record(start, st, x, final, var, sums, per_scan, converged, passes)
     rec.update(n_rows=int(sum(n_rows)), n_sample=[len(d) for d in samples], passes=passes,
                ratios=ratios, seconds=time.perf_counter() - t_start,
-               peak_rss_gib=peak_rss_gib(), timings=timings, store=str(store),
+               peak_rss_gib=peak_rss_gib(), timings=timings,
+               store=None if store is None else str(store),
                start={"f": {"value": start.estimate("f")[0], "sigma": start.estimate("f")[1],
                             "unit": "m"}, "sigma0": start.sigma0, "n_points": start.n_points})
     r_e = float(final.redundancy_noise)
     rec["scans"] = [
         {"scan": m.id, "n_rows": nr, "n_points": int(nu),
-         "sigma0": _sigma0(om, nu, r_e, sums), "store": str(store / m.id)}
+         "sigma0": _sigma0(om, nu, r_e, sums),
+         "store": None if store is None else str(store / m.id)}
         for m, nr, (om, nu) in zip(metas, n_rows, per_scan)]
     return rec
 
@@ -263,16 +270,10 @@ def _record(start: PositionFit, st, x, final, var, sums, per_scan, converged, pa
 def _position_task(root: str, scan_ids: list[str], model, store: str | None,
                    rows_per_chunk: int, robust_k: float | None) -> dict:
     """One position streamed where this runs (in-process or on a Dask worker); the per-point
-    results stay in ``store`` (None: a temporary directory, removed)."""
+    results stay in ``store`` (None: not written)."""
     camp = worker_campaign(root)  # on a Dask worker: float64, the compilation cache
-    with kept_store(store) as st:
-        rec = stream_fit_position(camp, scan_ids, model, rows_per_chunk=rows_per_chunk,
-                                  store=st, robust_k=robust_k)
-    if store is None:  # the per-point results were not asked for: removed with the directory
-        rec["store"] = None
-        for s in rec["scans"]:
-            s["store"] = None
-    return rec
+    return stream_fit_position(camp, scan_ids, model, rows_per_chunk=rows_per_chunk,
+                               store=store, robust_k=robust_k)
 
 
 def stream_fit_positions(

@@ -45,6 +45,14 @@ def test_streamed_position_equals_in_memory(campaign, tmp_path):
         assert len(w) == s["n_rows"] and int(np.sum(w > 0)) == s["n_points"]
         assert 0.8 < s["sigma0"] < 1.25
     json.dumps(rec, allow_nan=False)
+    # without a store: no per-point results, no final pass, the same answer
+    bare = stream_fit_position(campaign, ids, "extended", rows_per_chunk=4000, n_sample=6000)
+    assert bare["passes"] == rec["passes"] - 1 and bare["store"] is None
+    assert all(s["store"] is None for s in bare["scans"])
+    for name, s in zip(ref.names, ref.sigma):
+        assert abs(bare[name]["value"] - rec[name]["value"]) < 0.01 * s, name
+        assert bare[name]["sigma"] == pytest.approx(rec[name]["sigma"], rel=0.01), name
+    assert bare["sigma0"] == pytest.approx(rec["sigma0"], rel=1e-3)
 
 
 def test_streamed_one_face_holds_the_two_face_parameters(campaign, tmp_path):

@@ -170,6 +170,9 @@ class MixedState:
     variances (r,))`` and ``var0`` their start values; ``ridge``: the modes' indices in ``x``;
     ``kappa_rad``: the north alignment; ``cell_m`` and ``cell_keys``: the square cells (no
     panel layout; None with one); ``inits``: each scan's initial values (its geometry window).
+    ``condition``: ``model`` without the modes, which enter through their Zernike columns
+    (Noll ``modes``, aperture radius ``aperture_m``) at the points' hit positions, as
+    ``mode_design`` of :func:`..solver.gauss_helmert_mixed` (``model`` itself when none).
     """
 
     model: ParaboloidModel
@@ -182,6 +185,9 @@ class MixedState:
     cell_m: float
     cell_keys: np.ndarray | None
     inits: list[InitialValues]
+    condition: ParaboloidModel
+    modes: tuple[int, ...] = ()
+    aperture_m: float = 1.0
 
 
 @dataclass
@@ -725,7 +731,7 @@ def fit_position(
         mixed = MixedState(mdl2, xs, np.asarray(rm.u), (float(rm.noise_var), np.asarray(
             rm.cell_var), np.asarray(rm.ridge_var)), (1.0, np.asarray(_CELL_VAR0), np.full(
                 len(ridge or ()), _MODE_VAR0)), ridge, kappa, cell_m, keys,
-            [p[2] for p in prepared])
+            [p[2] for p in prepared], cond, tuple(modes), aperture)
         free = tuple(mdl2.free[i] for i in keep_idx)
         x_pos, cov_pos = xs[keep_idx], cov[np.ix_(keep_idx, keep_idx)]
         mdl_final = model_of(free, kappa)

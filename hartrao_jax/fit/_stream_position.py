@@ -38,7 +38,7 @@ import numpy as np
 
 from ..campaign._campaign import Campaign, ScanMeta, iter_scan_chunks
 from ..campaign._campaign import _concat as concat_scans
-from ..geometry._geometry import panel_cells, square_cells
+from ..geometry._geometry import panel_cells, square_cells, zernike_columns
 from ..model._model import ZERNIKE_PREFIX
 from ..preprocess._initial import geometry_window
 from ..solver._ghm import bucket_size
@@ -86,16 +86,19 @@ def _chunk_inputs(campaign, st, ch, init, window_m, x):
     n = len(ch)
     l, c = scan_arrays(ch)
     w = geometry_window(ch.range_m, ch.phi_rad, ch.theta_rad, init.x, window_m).astype(float)
-    X_hit = np.asarray(hit_points(st.model, l, x, c, sigma_vector(campaign), st.kappa_rad))
+    u0 = len(st.condition.free)
+    X_hit = np.asarray(hit_points(st.condition, l, x[:u0], c, sigma_vector(campaign),
+                                  st.kappa_rad))
     cell, design = _cells(st, campaign.telescope, X_hit)
+    mz = zernike_columns(X_hit, st.modes, st.aperture_m)
     size = bucket_size(n)
     if size > n:
-        pad = np.zeros(size - n, np.int64)
-        l, c, design = l[np.r_[np.arange(n), pad]], c[np.r_[np.arange(n), pad]], np.concatenate(
-            [design, np.zeros((size - n, design.shape[1]))])
+        pad = np.r_[np.arange(n), np.zeros(size - n, np.int64)]
+        l, c = l[pad], c[pad]
+        design, mz = (np.concatenate([a, np.zeros((size - n, a.shape[1]))]) for a in (design, mz))
         w = np.concatenate([w, np.zeros(size - n)])
         cell = np.concatenate([cell, np.full(size - n, -1)])
-    return l, c, w, cell, design
+    return l, c, w, cell, design, mz
 
 
 def stream_fit_position(
@@ -161,16 +164,20 @@ def stream_fit_position(
             om = nu = 0.0
             for ch in iter_scan_chunks(campaign, m, rows_per_chunk):
                 n = len(ch)
-                l, c, w, cell, design = _chunk_inputs(campaign, st, ch, st.inits[i], window_m,
-                                                      x)
-                sums, pc = mixed_chunk(st.model, l, c, w, np.broadcast_to(sig**2, l.shape),
-                                       cell, design, x, U, var[0], k_rob)
+                # cells and mode columns where the start solution puts the beams (as the
+                # in-memory adjustment keeps its white fit's): the same at every pass
+                l, c, w, cell, design, mz = _chunk_inputs(campaign, st, ch, st.inits[i],
+                                                          window_m, st.x)
+                sums, pc = mixed_chunk(st.condition, l, c, w, np.broadcast_to(sig**2, l.shape),
+                                       cell, design, x, U, var[0], k_rob, mode_design=mz)
                 total = sums if total is None else total + sums
                 om += float(sums.omega)
                 nu += float(sums.n_used)
                 if write:
+                    xs = np.asarray(x)
                     dev = np.where(cell[:n] >= 0, np.sum(design[:n] * np.asarray(U)[
-                        np.maximum(cell[:n], 0)], axis=1), 0.0)
+                        np.maximum(cell[:n], 0)], axis=1), 0.0) + mz[:n] @ xs[len(xs) -
+                                                                          mz.shape[1]:]
                     for key, val in (("v", pc.v), ("w", pc.weights), ("e", pc.e), ("dev", dev)):
                         outs[m.id][key].write_rows(ch.row, np.asarray(val)[:n])
             per_scan.append((om, nu))

@@ -750,6 +750,7 @@ def mixed_chunk(
     *,
     dev_column: int = 1,
     chunk: int = 8192,
+    mode_design: Float[Array, "n r"] | None = None,
 ) -> tuple[MixedSums, MixedChunk]:
     """One chunk of points of a streamed :func:`gauss_helmert_mixed` (constant memory per chunk).
 
@@ -759,27 +760,34 @@ def mixed_chunk(
        exactly when its residual is beyond the limit there).
     2. The linearisation at ``(l + v, x, c + dev)`` and its sums (as one pass of the in-memory
        solver). The sums of all chunks give the step by :func:`mixed_step`.
+
+    ``mode_design`` (n, r): the last ``r`` unknowns of ``x`` enter the deviation through these
+    per-point columns (as ``mode_design`` of :func:`gauss_helmert_mixed`); ``condition`` then
+    takes the first ``u - r``.
     """
+    MZ = (jnp.zeros((l.shape[0], 0), x.dtype) if mode_design is None
+          else jnp.asarray(mode_design, x.dtype))
     # ``on`` enters the compiled program as an argument: a constant True would let XLA fold
     # the materialising cond of the pass away and recompute the derivatives in every consumer
     # (10x the time with the 30 unknowns of the diagnosis' candidates: 2.1 s for 2.6e5 points)
     return _mixed_chunk(condition, l, consts, weights, s2, groups, design, x, U, noise_var,
-                        robust_k, jnp.ones((), bool), dev_column=dev_column, chunk=chunk)
+                        robust_k, jnp.ones((), bool), MZ, dev_column=dev_column, chunk=chunk)
 
 
 @eqx.filter_jit
 def _mixed_chunk(condition, l, consts, weights, s2, groups, design, x, U, noise_var, robust_k,
-                 on, *, dev_column, chunk):
+                 on, MZ, *, dev_column, chunk):
     n_cells = U.shape[0]
     f = l.dtype
+    u0 = x.shape[0] - MZ.shape[1]
     g_key = jnp.where(groups >= 0, groups, n_cells)
     order = jnp.argsort(g_key, stable=True)
-    L, C, W, S2, G, DM = (a[order] for a in (l, consts, weights, s2, groups, design))
+    L, C, W, S2, G, DM, Z = (a[order] for a in (l, consts, weights, s2, groups, design, MZ))
     live = G >= 0
     gi = jnp.where(live, G, 0)
-    dev = jnp.where(live, jnp.sum(DM * U[gi], axis=-1), 0.0)
+    dev = jnp.where(live, jnp.sum(DM * U[gi], axis=-1), 0.0) + Z @ x[u0:]
     cond = materialize_trig(condition, on)
-    F0, b0 = jax.vmap(jax.value_and_grad(lambda ll, cc: cond(ll, x, cc)))(
+    F0, b0 = jax.vmap(jax.value_and_grad(lambda ll, cc: cond(ll, x[:u0], cc)))(
         L, C.at[:, dev_column].add(dev))
     m0 = jnp.sum(b0 * b0 * S2, axis=-1)
     ok = m0 > 0
@@ -788,7 +796,7 @@ def _mixed_chunk(condition, l, consts, weights, s2, groups, design, x, U, noise_
     e = jnp.abs(k0) * jnp.sqrt(m0) / jnp.sqrt(noise_var)
     W = jnp.where((W > 0) & (e > robust_k), 0.0, W)
     (N, nv, S, sg, tg, wmw), _ = _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W,
-                                       S2, G, DM, x, U)
+                                       S2, G, DM, x, U, Z)
     used = (W > 0) & ok
     sums = MixedSums(N, nv, S, sg, tg, wmw, jnp.sum(used).astype(f),
                      jnp.sum(jnp.where(used, k0 * k0 * m0, 0.0)))

@@ -127,6 +127,10 @@ def sensitivity(campaign, json_file, model, params, fixes, scans, joint, batch, 
     t0 = time.time()
     # implicit derivatives of the per-scan adjustment
     picked = scans.split(",") if scans else None
+    if joint and all(camp.scan(s).cycle == 0 for s in picked or [m.id for m in camp.scans]):
+        raise UserError("--joint: every scan is one face (cycle 0), whose two-face calibration "
+                        "parameters are held, not estimated: there is no joint estimate to hold "
+                        "them at; expected two-face scans, or no --joint")
     keep = preprocess_keep(preprocess, camp)
     start = fit_campaign(camp, model, scans=picked, fixed=_parse_fixes(fixes), keep=keep,
                          batch=batch, per_cycle=True)

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import tempfile
 import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -57,7 +58,7 @@ from ._fit import (
     white_sigmas,
 )
 from ._identify import mode_prior
-from ._stream import _count_rows, _NpyRows, _progress, peak_rss_gib
+from ._stream import _count_rows, _NpyRows, _progress, _SlotFile, peak_rss_gib
 
 
 def _sample_rows(campaign: Campaign, meta: ScanMeta, rows_per_chunk: int, n_sample: int,
@@ -80,25 +81,72 @@ def _cells(st, tel, X_tel):
     return cell, np.column_stack([np.ones(len(cell)), local]) * (cell >= 0)[:, None]
 
 
-def _chunk_inputs(campaign, st, ch, init, window_m, x):
-    """Observations, constants, window weights, cells and design of one chunk, padded to a
-    size bucket (copies of the first row at weight 0, in no cell): few compiled shapes."""
+def _padded_obs(ch) -> tuple[np.ndarray, np.ndarray]:
+    """Observations and constants of one chunk, padded to a size bucket with copies of the
+    first row (weight 0 and in no cell: see :func:`_chunk_geometry`): few compiled shapes."""
     n = len(ch)
     l, c = scan_arrays(ch)
-    w = geometry_window(ch.range_m, ch.phi_rad, ch.theta_rad, init.x, window_m).astype(float)
-    u0 = len(st.condition.free)
-    X_hit = np.asarray(hit_points(st.condition, l, x[:u0], c, sigma_vector(campaign),
-                                  st.kappa_rad))
-    cell, design = _cells(st, campaign.telescope, X_hit)
-    mz = zernike_columns(X_hit, st.modes, st.aperture_m)
     size = bucket_size(n)
     if size > n:
         pad = np.r_[np.arange(n), np.zeros(size - n, np.int64)]
         l, c = l[pad], c[pad]
-        design, mz = (np.concatenate([a, np.zeros((size - n, a.shape[1]))]) for a in (design, mz))
-        w = np.concatenate([w, np.zeros(size - n)])
-        cell = np.concatenate([cell, np.full(size - n, -1)])
-    return l, c, w, cell, design, mz
+    return l, c
+
+
+def _chunk_geometry(campaign, st, ch, init, window_m, x, l, c) -> tuple[np.ndarray, ...]:
+    """Window weights (float32), cells (int32), cell design ``(1, local coordinates)`` and
+    smooth-mode columns (float32) of one chunk, padded as :func:`_padded_obs` (``l, c``) with
+    weight 0 and cell -1, where ``x`` puts the beams (their hit points)."""
+    n = len(ch)
+    w = geometry_window(ch.range_m, ch.phi_rad, ch.theta_rad, init.x, window_m)
+    u0 = len(st.condition.free)
+    X_hit = np.asarray(hit_points(st.condition, l[:n], x[:u0], c[:n], sigma_vector(campaign),
+                                  st.kappa_rad))
+    cell, design = _cells(st, campaign.telescope, X_hit)
+    mz = zernike_columns(X_hit, st.modes, st.aperture_m)
+    size = len(l)
+    out = (np.zeros(size, np.float32), np.full(size, -1, np.int32),
+           np.zeros((size, design.shape[1]), np.float32), np.zeros((size, mz.shape[1]),
+                                                                   np.float32))
+    for a, v in zip(out, (w, cell, design, mz)):
+        a[:n] = v
+    return out
+
+
+class _GeometryCache:
+    """Each chunk's :func:`_chunk_geometry`, computed at the first pass and read back at the
+    later ones from flat files in a temporary directory (44 B per row and smooth mode count
+    below 7; removed by :meth:`close`): the cells and columns are the same at every pass, and
+    the hit points, cells and Zernike terms took as long as the adjustment's own chunk (0.9 of
+    2.0 s per 1e6 rows)."""
+
+    def __init__(self, k: int, r: int, where=None):
+        self._dir = tempfile.TemporaryDirectory(prefix="hartrao-geometry-", dir=where)
+        d = Path(self._dir.name)
+        self.files = (_SlotFile(d / "w.bin", np.float32), _SlotFile(d / "cell.bin", np.int32),
+                      _SlotFile(d / "design.bin", np.float32, (k,)),
+                      _SlotFile(d / "mz.bin", np.float32, (r,)) if r else None)
+        self.slots: dict[tuple[int, int], tuple[int, int]] = {}
+        self.end = 0
+
+    def get(self, key: tuple[int, int], compute) -> tuple[np.ndarray, ...]:
+        if key in self.slots:
+            start, size = self.slots[key]
+            return tuple(np.zeros((size, 0), np.float32) if f is None else f.read(start, size)
+                         for f in self.files)
+        arrays = compute()
+        self.slots[key] = (self.end, len(arrays[0]))
+        for f, a in zip(self.files, arrays):
+            if f is not None:
+                f.write(self.end, a)
+        self.end += len(arrays[0])
+        return arrays
+
+    def close(self) -> None:
+        for f in self.files:
+            if f is not None:
+                f.close()
+        self._dir.cleanup()
 
 
 def stream_fit_position(
@@ -162,12 +210,13 @@ def stream_fit_position(
         total, per_scan = None, []
         for i, m in enumerate(metas):
             om = nu = 0.0
-            for ch in iter_scan_chunks(campaign, m, rows_per_chunk):
+            for j, ch in enumerate(iter_scan_chunks(campaign, m, rows_per_chunk)):
                 n = len(ch)
+                l, c = _padded_obs(ch)
                 # cells and mode columns where the start solution puts the beams (as the
                 # in-memory adjustment keeps its white fit's): the same at every pass
-                l, c, w, cell, design, mz = _chunk_inputs(campaign, st, ch, st.inits[i],
-                                                          window_m, st.x)
+                w, cell, design, mz = geometry.get((i, j), lambda: _chunk_geometry(
+                    campaign, st, ch, st.inits[i], window_m, st.x, l, c))
                 sums, pc = mixed_chunk(st.condition, l, c, w, np.broadcast_to(sig**2, l.shape),
                                        cell, design, x, U, var[0], k_rob, mode_design=mz)
                 total = sums if total is None else total + sums
@@ -194,6 +243,7 @@ def stream_fit_position(
                       "dev": _NpyRows(d / "dev.npy", np.float64, nr)}
     t0 = time.perf_counter()
     ratios, passes, converged = [], 0, False
+    geometry = _GeometryCache(3, len(st.modes))
     try:
         with _progress(not progress) as prog:
             task = prog.add_task(f"streaming position {metas[0].position}", total=max_iter + 1)
@@ -216,6 +266,7 @@ def stream_fit_position(
             # sigma), as the in-memory adjustment: one read of every row fewer
             prog.advance(task)
     finally:
+        geometry.close()
         for o in outs.values():
             for f_ in o.values():
                 f_.close()

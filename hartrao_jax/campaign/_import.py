@@ -402,7 +402,8 @@ def _ptx_grid(path, lines: _Lines, h: dict, chunk_rows: int, line_period_s: floa
                    f"of scan {h['scan_index'] + 1}, found the end of the file (truncated)")
             if not allow_truncated:
                 raise CampaignError(path, f"line {lines.n + 1}",
-                                    msg + "; allow_truncated keeps the points read")
+                                    msg + "; --allow-truncated (allow_truncated=True) keeps "
+                                    "the points read")
             log.warning("%s: line %d: %s; keeping the %d cells read", path, lines.n + 1, msg,
                         n_read)
             h["truncated"] = True

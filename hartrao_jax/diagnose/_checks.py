@@ -38,6 +38,12 @@ def _signature_check(ctx, S, spec, joint, o: _Option, options: Sequence[_Option]
                          period_s=sc.period_s)
         t.notes.append("signature")
         o.payload.cand.info["signature"] = sig
+        if o.effect == "impulsive_shift" and _at_edge(sc) and any(
+                x is not o and x.kind == "catalog" and x.effect == "drift" and x.eligible
+                and x.log_p < math.log(cfg.alpha) and sc.id in x.payload.cand.scans
+                for x in options):
+            return ("a shift window at the start or end of the scan is what a drift leaves "
+                    "once the pose takes up its mean: the drift is modelled first")
         others = [s for s in S if s.meta.position == sc.meta.position and s.id != sc.id]
         if not others:
             return ""
@@ -85,6 +91,17 @@ def _alternatives(joint: _Joint, best: _Option, options: Sequence[_Option]) -> l
             out.append({"effect": c.effect, "statistic": _num(o.T),
                         "correlation": float(r), "joint_statistic": _num(t.T)})
     return out
+
+
+def _at_edge(sc: _Scan) -> bool:
+    """The scan's shift window (``window_s``) starts in its first or ends in its last time
+    bin of the search (``search["edges"]``, s)."""
+    edges = (sc.search or {}).get("edges")
+    if sc.window_s is None or edges is None or len(edges) < 3:
+        return False
+    start, dur = sc.window_s
+    width = float(edges[1] - edges[0])
+    return start - float(edges[0]) <= width or float(edges[-1]) - (start + dur) <= width
 
 
 def _same_motion(effect: str, a: _Scan, b: _Scan) -> bool:

@@ -178,10 +178,13 @@ def stage_fit_local(a) -> None:
     _emit(res)
 
 
-def stage_fit_dask(a) -> None:
+def _on_local_cluster(a, run):
+    """``run(campaign, client)`` on a LocalCluster of ``a.workers`` workers (the campaign of
+    ``a.camp``, compilation cache on); returns its result, the start time (perf_counter) and
+    the cluster's start-up seconds."""
     from hartrao_jax._config import enable_compilation_cache
     from hartrao_jax.campaign._campaign import load_campaign
-    from hartrao_jax.fit._distributed import close_client, fit_dask, start_client
+    from hartrao_jax.fit._distributed import close_client, start_client
 
     enable_compilation_cache()
     camp = load_campaign(a.camp)
@@ -189,10 +192,17 @@ def stage_fit_dask(a) -> None:
     client, cluster = start_client(n_workers=a.workers)
     t_start = time.perf_counter() - t0
     try:
-        res = fit_dask(camp, "extended", client=client, preprocess=a.preprocess,
-                       out_dir=Path(a.out) / "fit-dask")
+        return run(camp, client), t0, t_start
     finally:
         close_client(client, cluster)
+
+
+def stage_fit_dask(a) -> None:
+    from hartrao_jax.fit._distributed import fit_dask
+
+    res, t0, t_start = _on_local_cluster(a, lambda camp, client: fit_dask(
+        camp, "extended", client=client, preprocess=a.preprocess,
+        out_dir=Path(a.out) / "fit-dask"))
     per = [s.seconds for s in res.summaries]
     _emit({"scans": len(res.summaries), "cluster_start_s": t_start, "fit_s": res.seconds,
            "end_to_end_s": time.perf_counter() - t0, "workers": res.n_workers,
@@ -241,21 +251,10 @@ def stage_stream_dask(a) -> None:
     """Every position of ``--camp`` streamed as one two-face adjustment per position (the
     full-resolution path: ``fit-stream --dask``), one Dask task per position on ``--workers``
     worker processes of one thread; the per-point results are not kept."""
-    from hartrao_jax._config import enable_compilation_cache
-    from hartrao_jax.campaign._campaign import load_campaign
-    from hartrao_jax.fit._distributed import close_client, start_client
     from hartrao_jax.fit._stream_position import stream_fit_positions
 
-    enable_compilation_cache()
-    camp = load_campaign(a.camp)
-    t0 = time.perf_counter()
-    client, cluster = start_client(n_workers=a.workers)
-    t_start = time.perf_counter() - t0
-    try:
-        doc = stream_fit_positions(camp, None, "extended", rows_per_chunk=a.rows_per_chunk,
-                                   client=client)
-    finally:
-        close_client(client, cluster)
+    doc, t0, t_start = _on_local_cluster(a, lambda camp, client: stream_fit_positions(
+        camp, None, "extended", rows_per_chunk=a.rows_per_chunk, client=client))
     recs = doc["positions"]
     _emit({"positions": len(recs), "scans": len(doc["scans"]), "cluster_start_s": t_start,
            "fit_s": doc["seconds"], "end_to_end_s": time.perf_counter() - t0,

@@ -16,7 +16,7 @@ from ..campaign._schedule import TOURS, campaign_plan, check_plan, plan_table
 from ..fit._distributed import close_client, fit_dask, start_client
 from ..fit._fit import fit_campaign
 from ..fit._joint import fit_joint, write_joint_fit
-from ..fit._stream import kept_store, stream_document, stream_fit_campaign, stream_fit_scan
+from ..fit._stream import stream_fit_campaign, stream_scan_document
 from ..fit._stream_position import stream_fit_positions
 from ..physics._catalog import CALIBRATION_OPTION
 from ..preprocess import preprocess_keep
@@ -235,18 +235,15 @@ def fit_stream(campaign, scan_ids, model, rows_per_chunk, store, json_file, robu
                               use_dask, scheduler, workers)
         return
     if len(ids) == 1 and not use_dask:
-        with kept_store(store) as st:
-            r = stream_fit_scan(camp, ids[0], model, rows_per_chunk=rows_per_chunk, store=st,
-                                robust_k=robust_k or None)
-            doc = stream_document(r)
-        if store is None:
-            doc["store"] = None
+        doc = stream_scan_document(camp, ids[0], model, store, rows_per_chunk,
+                                   robust_k or None)
         if json_file:
             write_json_atomic(json_file, doc, indent=1)
         click.echo(json.dumps(strict_json({k: doc[k] for k in (
             "scan", "sigma0", "n_points", "iterations", "passes", "seconds", "peak_rss_gib")}),
             allow_nan=False))
-        click.echo(f"f = {r.estimates['f'][0]:.6f} ± {r.estimates['f'][1]:.6f} m")
+        f = doc["estimates"]["f"]
+        click.echo(f"f = {f['value']:.6f} ± {f['sigma']:.6f} m")
         return
     doc = _streamed(stream_fit_campaign, camp, ids, model, rows_per_chunk, store, json_file,
                     robust_k, use_dask, scheduler, workers)

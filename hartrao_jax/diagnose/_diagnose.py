@@ -59,7 +59,7 @@ import numpy as np
 
 from ..campaign._campaign import Campaign, ScanData, ScanMeta, load_campaign
 from ..model._model import parse_model
-from ..physics._catalog import EFFECTS
+from ..physics._catalog import EFFECTS, two_face_parameters
 from ._apply_catalog import _apply_catalog
 from ._apply_covariate import _apply_covariate, _apply_dish
 from ._checks import _alternatives, _signature_check
@@ -77,7 +77,7 @@ from ._options import (
     _static_confounded,
 )
 from ._panels import _apply_panels
-from ._recording import capabilities, skipped_searches, two_face_parameters
+from ._recording import capabilities, skipped_searches
 from ._result import Diagnosis
 from ._start import _start_scans
 from ._state import (

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..physics._catalog import INSTRUMENT
+from ..physics._catalog import two_face_parameters
 
 NOMINAL_TIME_FORMATS = ("xyz", "ptx")  # imports whose time_s is a nominal clock
 
@@ -69,11 +69,6 @@ def capabilities(metas: Sequence, datas: Sequence) -> Capabilities:
             inten, why_i = False, why
     two = all(int(m.cycle) in (1, 2) for m in metas)
     return Capabilities(times, two, inten, why_t, why_i)
-
-
-def two_face_parameters() -> tuple[str, ...]:
-    """Instrument parameters with a two-face-sensitive part (``INSTRUMENT[k].two_face``)."""
-    return tuple(k for k, p in INSTRUMENT.items() if p.two_face != "no")
 
 
 def skipped_searches(cap: Capabilities, wanted=None) -> list[dict]:

@@ -53,7 +53,14 @@ from ..solver._ghm import (
 )
 from ..solver._mixed import gauss_helmert_mixed, ridge_chi2, unidentifiable
 from ._align import Alignment, mean_heading, north_alignment, scan_heading
-from ._identify import hold_note, mode_prior, mode_prior_note, typical_magnitudes
+from ._identify import (
+    Held,
+    hold_parameters,
+    mode_prior,
+    mode_prior_note,
+    one_face_holds,
+    typical_magnitudes,
+)
 
 log = logging.getLogger("hartrao_jax")
 
@@ -121,16 +128,6 @@ class ScanFit(Estimates):
     def correlation(self) -> np.ndarray:
         s = self.sigma
         return self.cov / np.outer(s, s)
-
-
-@dataclass
-class Held:
-    """A parameter the data cannot determine: held at ``value`` (its fixed or prior value)."""
-
-    value: float
-    note: str
-    confounded_with: tuple[str, ...] = ()
-    correlation: float | None = None
 
 
 @dataclass
@@ -447,11 +444,6 @@ def finish_scan_fit(
     notes = []
     if not bool(res.converged):
         notes.append(f"not converged after {int(res.iterations)} iterations")
-    if meta.cycle == 0:
-        two_face = [n for n in names if n in INSTRUMENT and INSTRUMENT[n].two_face != "no"]
-        if two_face:
-            notes.append("one-face scan: " + ", ".join(two_face) + " are not separable from the "
-                         "object parameters without a second face")
     return ScanFit(
         meta=meta, model=mdl, names=names, x=x, cov=np.asarray(res.cov),
         sigma0=float(res.sigma0), iterations=int(res.iterations), converged=bool(res.converged),
@@ -546,21 +538,6 @@ def surface_components(var: tuple, redundancy: tuple, ridge: dict | None) -> tup
     return variances, shares
 
 
-def two_face_parameters(names: Iterable[str]) -> tuple[str, ...]:
-    """Calibration parameters whose effect flips between the faces: a one-face recording cannot
-    separate them from the pose and f."""
-    return tuple(n for n in names if n in INSTRUMENT and INSTRUMENT[n].two_face != "no")
-
-
-def one_face_holds(names: Iterable[str], fixed: dict[str, float]) -> dict[str, Held]:
-    """The two-face parameters among ``names`` (not already fixed), held at their fixed value
-    or 0: one face cannot separate them from the pose and f (``campaign-format.md``, cycle 0)."""
-    return {n: Held(fixed.get(n, 0.0), f"{n} flips sign between the faces: a one-face "
-                    "recording cannot separate it from the pose and f; held at "
-                    f"{fixed.get(n, 0.0):g}")
-            for n in two_face_parameters(names) if n not in fixed}
-
-
 def _faces(metas: Sequence[ScanMeta]) -> int:
     return 2 if {1, 2} <= {m.cycle for m in metas} else 1
 
@@ -572,14 +549,6 @@ def padded(data: ScanData, n_pad: int) -> ScanData:
     if n_pad <= n:
         return data
     return data.subset(np.concatenate([np.arange(n), np.zeros(n_pad - n, np.int64)]))
-
-
-def _hold(held, fixed, bad, cov, names, elevation):
-    sig = dict(zip(names, np.sqrt(np.diag(np.asarray(cov)))))
-    for group, partners, corr, reason in bad:
-        note = hold_note(group, partners, corr, reason, sig, elevation)
-        for n_ in group:
-            held[n_] = Held(fixed.get(n_, 0.0), note, partners, corr)
 
 
 def fit_position(
@@ -657,7 +626,7 @@ def fit_position(
         bad = unidentifiable(np.asarray(res.cov), mdl.free, cand, typical=typical_magnitudes())
         if not bad:
             break
-        _hold(held, fixed, bad, res.cov, mdl.free, elevation)
+        hold_parameters(held, fixed, bad, res.cov, mdl.free, elevation)
     used = np.asarray(res.weights) > 0
     fit1 = finish_scan_fit(campaign, metas[0], mdl, pdata, res, g, init, used,
                            heading_hint_rad=heading_hint_rad)
@@ -692,7 +661,7 @@ def fit_position(
             cand = [n_ for n_ in mdl2.free if n_ in INSTRUMENT]
             bad = unidentifiable(np.asarray(rm.cov), mdl2.free, cand, typical=typical_magnitudes())
             if bad:
-                _hold(held, fixed, bad, rm.cov, mdl2.free, elevation)
+                hold_parameters(held, fixed, bad, rm.cov, mdl2.free, elevation)
                 continue
             absent = _absent_modes(rm, ridge, mode_tests)
             if not absent:
@@ -775,7 +744,6 @@ def fit_position(
                       converged=jnp.asarray(converged))
         sf = finish_scan_fit(campaign, m, mdl_final, data, gh, gg, init_s, window,
                              heading_hint_rad=heading_hint_rad)
-        sf.notes = [t for t in sf.notes if not t.startswith("one-face scan")]
         sf.notes.append("two-face position adjustment" if faces == 2 else
                         "one usable face: adjusted alone")
         scans.append(sf)
@@ -934,9 +902,12 @@ def fit_campaign(
         plist = [pfits[p] for p in groups]
         return CampaignFit(campaign, names, [by_id[m.id] for m in metas], position_fits=plist)
     order = sorted(metas, key=lambda m: -tilt[m.id])
-    if batch:
-        fits = _fit_batch(campaign, order, model, fixed=fixed, robust_k=robust_k, keep=keep,
-                          progress=progress)
+    if batch:  # one compiled call per kind: one-face scans hold the two-face parameters
+        fits = {}
+        for kind in ([m for m in order if m.cycle == 0], [m for m in order if m.cycle != 0]):
+            if kind:
+                fits.update(_fit_batch(campaign, kind, model, fixed=fixed, robust_k=robust_k,
+                                       keep=keep, progress=progress))
     else:
         fits = {}
         headings = []
@@ -959,8 +930,11 @@ def parse_names(model) -> tuple[str, ...]:
 
 
 def _fit_batch(campaign, metas, model, *, fixed, robust_k, keep, progress) -> dict[str, ScanFit]:
-    """All scans padded to one shape and adjusted in one compiled call (vmap)."""
+    """All scans padded to one shape and adjusted in one compiled call (vmap); one-face scans
+    (all of ``metas`` or none) hold the two-face parameters, as :func:`fit_scan`."""
     fixed = dict(fixed or {})
+    held = one_face_holds(parse_names(model), fixed) if metas[0].cycle == 0 else {}
+    fixed.update({n: h.value for n, h in held.items()})
     mdl = make_model(model, fixed, aperture_radius_m=campaign.telescope.diameter_m / 2)
     prepared = []
     with _progress(not progress) as prog:
@@ -1003,6 +977,7 @@ def _fit_batch(campaign, metas, model, *, fixed, robust_k, keep, progress) -> di
         )
         fit = finish_scan_fit(campaign, m, mdl, data, rb, g, init, window,
                               heading_hint_rad=mean_heading(headings))
+        fit.held = held
         headings.append(scan_heading(fit))
         out[m.id] = fit
     return out

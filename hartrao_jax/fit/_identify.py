@@ -1,15 +1,27 @@
 """What the data cannot determine, said in one line: calibration parameters held because they
 are confounded or undetermined, and smooth surface modes whose prior the data hardly shrink
-(with the share of the other estimates' variance that prior carries)."""
+(with the share of the other estimates' variance that prior carries), and two-face parameters
+on one-face recordings."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..model._model import ZERNIKE_PREFIX
-from ..physics._catalog import INSTRUMENT
+from ..physics._catalog import INSTRUMENT, two_face_parameters
+
+
+@dataclass
+class Held:
+    """A parameter the data cannot determine: held at ``value`` (its fixed or prior value)."""
+
+    value: float
+    note: str
+    confounded_with: tuple[str, ...] = ()
+    correlation: float | None = None
 
 
 def hold_note(group, partners, corr, reason, sigmas, elevation_deg, *,
@@ -30,6 +42,26 @@ def hold_note(group, partners, corr, reason, sigmas, elevation_deg, *,
         text = (f"{who} {verb} not determined {where}: sigma ({sig}) exceeds the typical "
                 f"magnitude" + (f"; correlated with {', '.join(partners)}" if partners else ""))
     return text.replace("  ", " ") + f"; {then}"
+
+
+def hold_parameters(held: dict[str, Held], fixed: dict[str, float], bad, cov, names,
+                    elevation) -> None:
+    """Add to ``held`` the parameters of each row of ``bad`` (:func:`..solver.unidentifiable`
+    on ``cov`` over ``names``), held at their ``fixed`` value or 0, with the note."""
+    sig = dict(zip(names, np.sqrt(np.diag(np.asarray(cov)))))
+    for group, partners, corr, reason in bad:
+        note = hold_note(group, partners, corr, reason, sig, elevation)
+        for n_ in group:
+            held[n_] = Held(fixed.get(n_, 0.0), note, partners, corr)
+
+
+def one_face_holds(names: Iterable[str], fixed: dict[str, float]) -> dict[str, Held]:
+    """The two-face parameters among ``names`` (not already fixed), held at their fixed value
+    or 0: one face cannot separate them from the pose and f (``campaign-format.md``, cycle 0)."""
+    return {n: Held(fixed.get(n, 0.0), f"{n} flips sign between the faces: a one-face "
+                    "recording cannot separate it from the pose and f; held at "
+                    f"{fixed.get(n, 0.0):g}")
+            for n in two_face_parameters(names) if n not in fixed}
 
 
 def typical_magnitudes() -> dict[str, float]:

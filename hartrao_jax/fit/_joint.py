@@ -43,7 +43,7 @@ import numpy as np
 
 from ..campaign._campaign import Campaign, ScanMeta
 from ..model._model import parameter_unit
-from ..physics._catalog import CALIBRATION, OBJECT_PARAMETERS
+from ..physics._catalog import CALIBRATION, OBJECT_PARAMETERS, two_face_parameters
 from ..solver._ghm import (
     GHResult,
     _chunked,
@@ -56,14 +56,13 @@ from ..solver._ghm import (
 from ._align import mean_heading, scan_heading
 from ._fit import (
     CampaignFit,
-    Held,
     ScanFit,
     finish_scan_fit,
     fit_campaign,
     scan_arrays,
     sigma_vector,
-    two_face_parameters,
 )
+from ._identify import Held
 from ._records import fit_json, write_fit_dir
 
 log = logging.getLogger("hartrao_jax")

@@ -80,7 +80,8 @@ from ..solver._kernel import (
     thread_pool,
 )
 from ._distributed import worker_campaign
-from ._fit import Estimates, _progress, _x0, one_face_holds, parse_names, sigma_vector
+from ._fit import Estimates, _progress, _x0, parse_names, sigma_vector
+from ._identify import one_face_holds
 
 log = logging.getLogger("hartrao_jax")
 
@@ -568,19 +569,25 @@ def stream_document(r: StreamFit) -> dict:
             "store": str(r.store), "timings": r.timings}
 
 
+def stream_scan_document(campaign: Campaign, scan_id: str, model, store: str | None,
+                         rows_per_chunk: int, robust_k: float | None) -> dict:
+    """One scan streamed (:func:`stream_fit_scan`), its JSON record (:func:`stream_document`);
+    the per-point results stay in ``store`` (None: not kept, ``"store": null``)."""
+    with kept_store(store) as st:
+        doc = stream_document(stream_fit_scan(campaign, scan_id, model,
+                                              rows_per_chunk=rows_per_chunk, store=st,
+                                              robust_k=robust_k))
+    if store is None:
+        doc["store"] = None
+    return doc
+
+
 def _stream_task(root: str, scan_id: str, model, store: str | None, rows_per_chunk: int,
                  robust_k: float | None) -> dict:
     """One scan streamed where this runs (in-process or on a Dask worker): its small record;
     the per-point results stay in ``store`` (on the worker's disk; None: not kept)."""
-
     camp = worker_campaign(root)  # on a Dask worker: float64, the compilation cache
-    with kept_store(store) as st:
-        r = stream_fit_scan(camp, scan_id, model, rows_per_chunk=rows_per_chunk, store=st,
-                            robust_k=robust_k)
-        doc = stream_document(r)
-    if store is None:
-        doc["store"] = None
-    return doc
+    return stream_scan_document(camp, scan_id, model, store, rows_per_chunk, robust_k)
 
 
 @contextlib.contextmanager

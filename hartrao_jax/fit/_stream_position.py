@@ -202,6 +202,7 @@ def stream_fit_position(
     var0 = tuple(jnp.asarray(v, jnp.float64) for v in st.var0)
     var = tuple(jnp.asarray(v, jnp.float64) for v in st.var)
     x, U = jnp.asarray(st.x), jnp.asarray(st.u)
+    u0 = len(st.condition.free)  # the unknowns before the smooth modes
     outs = {}
 
     def stream_pass(x, U, var, write: bool):
@@ -222,25 +223,22 @@ def stream_fit_position(
                 total = sums if total is None else total + sums
                 om += float(sums.omega)
                 nu += float(sums.n_used)
-                if write:
-                    xs = np.asarray(x)
+                if write:  # the surface's deviation at each point: cells and modes
                     dev = np.where(cell[:n] >= 0, np.sum(design[:n] * np.asarray(U)[
-                        np.maximum(cell[:n], 0)], axis=1), 0.0) + mz[:n] @ xs[len(xs) -
-                                                                          mz.shape[1]:]
+                        np.maximum(cell[:n], 0)], axis=1), 0.0) + mz[:n] @ np.asarray(x)[u0:]
                     for key, val in (("v", pc.v), ("w", pc.weights), ("e", pc.e), ("dev", dev)):
                         outs[m.id][key].write_rows(ch.row, np.asarray(val)[:n])
             per_scan.append((om, nu))
         return total, per_scan
 
-    for m, nr in zip(metas, n_rows):
-        if store is None:
-            continue
-        d = store / m.id
-        d.mkdir(parents=True, exist_ok=True)
-        outs[m.id] = {"v": _NpyRows(d / "v.npy", np.float64, nr, (3,)),
-                      "w": _NpyRows(d / "w.npy", np.float32, nr),
-                      "e": _NpyRows(d / "e.npy", np.float64, nr),
-                      "dev": _NpyRows(d / "dev.npy", np.float64, nr)}
+    if store is not None:  # the per-point results asked for
+        for m, nr in zip(metas, n_rows):
+            d = store / m.id
+            d.mkdir(parents=True, exist_ok=True)
+            outs[m.id] = {"v": _NpyRows(d / "v.npy", np.float64, nr, (3,)),
+                          "w": _NpyRows(d / "w.npy", np.float32, nr),
+                          "e": _NpyRows(d / "e.npy", np.float64, nr),
+                          "dev": _NpyRows(d / "dev.npy", np.float64, nr)}
     t0 = time.perf_counter()
     ratios, passes, converged = [], 0, False
     geometry = _GeometryCache(3, len(st.modes))

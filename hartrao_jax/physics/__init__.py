@@ -9,6 +9,7 @@ from ._catalog import (
     Effect,
     inseparable_pairs,
     paraboloid_condition,
+    two_face_parameters,
 )
 
 __all__ = [
@@ -19,4 +20,5 @@ __all__ = [
     "INSTRUMENT",
     "paraboloid_condition",
     "SIMPLIFIED",
+    "two_face_parameters",
 ]

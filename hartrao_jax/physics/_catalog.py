@@ -277,6 +277,14 @@ def face_signatures(names, r: np.ndarray, a: np.ndarray, theta0: np.ndarray):
     return np.asarray(odd), np.asarray(even)
 
 
+def two_face_parameters(names=None) -> tuple[str, ...]:
+    """The instrument parameters (among ``names``; None: the whole catalog) whose effect flips
+    sign between the faces (``Effect.two_face``): a one-face recording cannot separate them
+    from the pose and f."""
+    names = INSTRUMENT if names is None else names
+    return tuple(n for n in names if n in INSTRUMENT and INSTRUMENT[n].two_face != "no")
+
+
 def inseparable_pairs(
     names, *, threshold: float = 0.9999, seed: int = 0
 ) -> list[tuple[str, str, float]]:

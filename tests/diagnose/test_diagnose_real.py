@@ -11,7 +11,7 @@ import pytest
 
 from hartrao_jax.campaign._import import import_file
 from hartrao_jax.diagnose import DiagnoseConfig, diagnose
-from hartrao_jax.diagnose._recording import two_face_parameters
+from hartrao_jax.physics import two_face_parameters
 
 REAL = Path(os.environ.get("HARTRAO_REAL_DATA",
                            Path(__file__).resolve().parents[3] / "shared" / "real")) / "gbt-lassi"

@@ -117,6 +117,11 @@ def test_real_gbt_one_face_per_cycle_fit_holds_the_two_face_parameters(scan10):
         assert rec[n]["identifiable"] is False and rec[n]["sigma"] is None
         assert rec[n]["value"] == 0.0 and "one-face" in rec[n]["note"]
     assert abs(s.value("f") - 60.0355) < 3e-3
+    from hartrao_jax.fit._fit import fit_campaign
+
+    (b,) = fit_campaign(scan10, "extended", per_cycle=True, batch=True, progress=False).scans
+    assert set(b.held) == {"x4", "x6", "x7"} and not set(b.held) & set(b.names)
+    assert abs(b.value("f") - 60.0355) < 3e-3
     with pytest.raises(ValueError, match="every scan is one face"):
         fit_joint(scan10, "extended", shared=("x4", "x6", "x7"), group="campaign")
 

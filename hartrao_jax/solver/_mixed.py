@@ -767,21 +767,26 @@ def mixed_chunk(
     """
     MZ = (jnp.zeros((l.shape[0], 0), x.dtype) if mode_design is None
           else jnp.asarray(mode_design, x.dtype))
+    # the cell order by NumPy's stable sort (radix sort on small integers: 0.016 s per 1e6
+    # points, where XLA's CPU argsort takes 0.15 s, and the inverse took one more)
+    g = np.asarray(groups)
+    n_cells = U.shape[0]
+    key = np.where(g >= 0, g, n_cells).astype(np.int16 if n_cells < 2**15 else np.int32)
+    order = np.argsort(key, kind="stable")
     # ``on`` enters the compiled program as an argument: a constant True would let XLA fold
     # the materialising cond of the pass away and recompute the derivatives in every consumer
     # (10x the time with the 30 unknowns of the diagnosis' candidates: 2.1 s for 2.6e5 points)
     return _mixed_chunk(condition, l, consts, weights, s2, groups, design, x, U, noise_var,
-                        robust_k, jnp.ones((), bool), MZ, dev_column=dev_column, chunk=chunk)
+                        robust_k, jnp.ones((), bool), MZ, order.astype(np.int32),
+                        dev_column=dev_column, chunk=chunk)
 
 
 @eqx.filter_jit
 def _mixed_chunk(condition, l, consts, weights, s2, groups, design, x, U, noise_var, robust_k,
-                 on, MZ, *, dev_column, chunk):
+                 on, MZ, order, *, dev_column, chunk):
     n_cells = U.shape[0]
     f = l.dtype
     u0 = x.shape[0] - MZ.shape[1]
-    g_key = jnp.where(groups >= 0, groups, n_cells)
-    order = jnp.argsort(g_key, stable=True)
     L, C, W, S2, G, DM, Z = (a[order] for a in (l, consts, weights, s2, groups, design, MZ))
     live = G >= 0
     gi = jnp.where(live, G, 0)
@@ -800,7 +805,7 @@ def _mixed_chunk(condition, l, consts, weights, s2, groups, design, x, U, noise_
     used = (W > 0) & ok
     sums = MixedSums(N, nv, S, sg, tg, wmw, jnp.sum(used).astype(f),
                      jnp.sum(jnp.where(used, k0 * k0 * m0, 0.0)))
-    back = jnp.argsort(order)
+    back = jnp.zeros_like(order).at[order].set(jnp.arange(order.shape[0], dtype=order.dtype))
     return sums, MixedChunk(V[back], e[back], W[back])
 
 

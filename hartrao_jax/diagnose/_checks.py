@@ -68,16 +68,29 @@ def _signature_check(ctx, S, spec, joint, o: _Option, options: Sequence[_Option]
     return ""
 
 
+# below this likelihood ratio between two candidates the data hardly tell them apart (20:
+# "strong" evidence on Kass & Raftery's scale starts there)
+AMBIGUOUS_LIKELIHOOD_RATIO = 20.0
+
+
 def _alternatives(joint: _Joint, best: _Option, options: Sequence[_Option]) -> list[dict]:
     """Other significant candidates of the same family that the data hardly tell apart from
     the accepted one (|correlation of the estimates| > 0.9): the choice between them rests on
-    a small difference of their statistics."""
+    a small difference of their statistics (a likelihood ratio below
+    :data:`AMBIGUOUS_LIKELIHOOD_RATIO`; a larger one is a clear choice).
+
+    ``likelihood_ratio``: ``exp((T_best - T_alt) / 2)``, how much better the accepted one
+    explains the data (score statistics of one dof each, as twice the log-likelihood gain of
+    each model over the current one)."""
     if best.kind != "catalog" or best.family != "instrument":
         return []
     cb = best.payload.cand
     out = []
     for o in options:
         if o is best or o.kind != "catalog" or o.family != "instrument" or not o.log_p < 0:
+            continue
+        lr = math.exp(min(0.5 * (best.T - o.T), 700.0))
+        if lr >= AMBIGUOUS_LIKELIHOOD_RATIO:
             continue
         c = o.payload.cand
         pair = _Candidate("pair", "instrument", np.concatenate([cb.idx, c.idx]),
@@ -89,7 +102,8 @@ def _alternatives(joint: _Joint, best: _Option, options: Sequence[_Option]) -> l
         r = t.cov[0, 1] / math.sqrt(max(t.cov[0, 0] * t.cov[1, 1], 1e-300))
         if abs(r) > 0.9:
             out.append({"effect": c.effect, "statistic": _num(o.T),
-                        "correlation": float(r), "joint_statistic": _num(t.T)})
+                        "correlation": float(r), "joint_statistic": _num(t.T),
+                        "likelihood_ratio": _num(lr)})
     return out
 
 

@@ -212,6 +212,14 @@ def _apply(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, o: _Op
                    explanation=part.get("explanation", expl), extra=part.get("extra", {}))
 
 
+def _ambiguity(effect: str, alternatives: Sequence[dict]) -> str:
+    """One sentence naming the alternatives the data hardly tell apart from ``effect``."""
+    alts = "; ".join(f"{a['effect']} (correlation {a['correlation']:+.3f}, likelihood ratio "
+                     f"{a['likelihood_ratio']:.3g} in favour of {effect})" for a in alternatives)
+    return (f"The data hardly tell it apart from {alts}: the choice rests on that ratio "
+            "alone.")
+
+
 def _record(f: Finding, best: _Option, before: tuple[float, float],
             after: tuple[float, float]) -> None:
     """The statistics of the step and sigma0 / rms (m) before and after it, on the finding."""
@@ -241,6 +249,7 @@ def _model_step(ctx: _Context, S: Sequence[_Scan], spec: _Spec, joint: _Joint, b
     f = _apply(ctx, S, spec, joint, best)
     if alternatives:
         f.extra["alternatives"] = alternatives
+        f.explanation += " " + _ambiguity(f.effect, alternatives)
     after = (_global_sigma0(S), _rms(S))
     lost = any(st["converged"] and not sc.converged for sc, st in zip(S, saved[0]))
     if after[0] > before[0] * (1.0 + 1e-3) or lost:

@@ -16,3 +16,15 @@ def test_shift_window_at_the_edge_of_the_scan():
         sc = SimpleNamespace(window_s=window, search={"edges": edges})
         assert _at_edge(sc) is edge, window
     assert _at_edge(SimpleNamespace(window_s=(0.0, 0.3), search={})) is False
+
+
+def test_ambiguous_choice_is_said_in_the_explanation():
+    """Two candidates the data hardly tell apart: the finding's sentence names the other with
+    the likelihood ratio the choice rests on."""
+    from hartrao_jax.diagnose._checks import AMBIGUOUS_LIKELIHOOD_RATIO
+    from hartrao_jax.diagnose._diagnose import _ambiguity
+
+    s = _ambiguity("x1n", [{"effect": "x5n", "correlation": -0.9857, "likelihood_ratio": 1.884}])
+    assert s == ("The data hardly tell it apart from x5n (correlation -0.986, likelihood ratio "
+                 "1.88 in favour of x1n): the choice rests on that ratio alone.")
+    assert AMBIGUOUS_LIKELIHOOD_RATIO == 20.0

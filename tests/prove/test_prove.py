@@ -77,3 +77,14 @@ def test_a_held_width_scores_the_amplitude_alone():
                       "width_m": {"value": 0.5, "sigma": None}},
          "sigma0_before": 1.01, "sigma0_after": 1.0, "rms_before_m": 8e-4, "rms_after_m": 7e-4}
     assert score(_case("local_deformation"), _doc([f]), truth, 1, 1.0).estimate_ok is True
+
+
+def test_expected_effect_named_as_the_alternative_is_counted_apart():
+    """x1n accepted where x5n was simulated, x5n named as the alternative the data hardly tell
+    apart (the diagnosis' ``alternatives``): still a false finding, counted as ambiguous."""
+    f = {"effect": "x1n", "scans": ["a"], "estimate": {},
+         "alternatives": [{"effect": "x5n", "correlation": -0.986, "likelihood_ratio": 1.9}]}
+    s = score(_case("x5n"), _doc([f]), {"effects": {"x5n": 3e-5}, "scans": [{"id": "a"}]}, 1, 1.0)
+    assert (s.found, s.false, s.as_alternative) == (False, ["x1n"], True)
+    s = score(_case("x5n"), _doc([{**f, "alternatives": []}]), {}, 1, 1.0)
+    assert s.as_alternative is False

@@ -92,3 +92,16 @@ def test_streamed_position_with_smooth_modes_converges_to_the_in_memory_one(tmp_
     for name, v, s in zip(ref.names, ref.x, ref.sigma):
         assert abs(rec[name]["value"] - v) < 0.25 * s, name  # measured: at most 0.13
         assert rec[name]["sigma"] == pytest.approx(s, rel=0.01), name  # 0.15 %
+
+
+def test_remaining_error_from_contracting_steps():
+    """The error left after the last step: the step itself, or the geometric rest of steps
+    that contract fast (the full-resolution position's 3.1, 0.082 sigma -> 0.0022)."""
+    import pytest
+
+    from hartrao_jax.fit._stream_position import _remaining
+
+    assert _remaining([0.5]) == 0.5
+    assert _remaining([3.119, 0.08194]) == pytest.approx(0.08194 * 0.02627 / 0.97373, rel=1e-3)
+    assert _remaining([0.1, 0.06]) == 0.06  # contracting slowly: the step itself
+    assert _remaining([0.0, 0.0]) == 0.0

@@ -222,7 +222,7 @@ def stream_fit_position(
                 # in-memory adjustment keeps its white fit's): the same at every pass
                 w, cell, design, mz = geometry.get((i, j), lambda: _chunk_geometry(
                     campaign, st, ch, st.inits[i], window_m, st.x, l, c))
-                sums, pc = mixed_chunk(st.condition, l, c, w, np.broadcast_to(sig**2, l.shape),
+                sums, pc = mixed_chunk(st.condition, l, c, w, sig**2,
                                        cell, design, x, U, var[0], k_rob, mode_design=mz)
                 total = sums if total is None else total + sums
                 om += float(sums.omega)

@@ -142,13 +142,19 @@ def _chunks(arrays, chunk):
     return out, pad
 
 
-def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U, MZ=None):
+def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U, MZ=None,
+          robust=None):
     """Linearise every point at ``(l + v, x, c + dev)``; accumulate the normal equations and the
     per-cell sums; keep per point what the residual update needs.
 
     ``MZ`` (n, r): the design of the last ``r`` unknowns, which enter the deviation linearly
     (``dev += MZ_i . x[u - r:]``, see ``mode_design`` of :func:`gauss_helmert_mixed`); the
-    condition then takes the first ``u - r``. Their columns of ``a`` are ``dF/ddev MZ_i``."""
+    condition then takes the first ``u - r``. Their columns of ``a`` are ``dF/ddev MZ_i``.
+
+    ``robust = (noise_var, robust_k)``: ``V`` is not given but computed in the same loop, the
+    first-order residuals at ``(l, x, c + dev)`` (see :func:`mixed_chunk`), points beyond
+    ``robust_k`` get weight 0, and the sums gain ``n_used`` and ``omega``; per point ``(v, e,
+    weight)`` are kept instead (one pass over the points' memory, not three)."""
     u, k = x.shape[0], U.shape[1]
     if MZ is None:
         MZ = jnp.zeros((L.shape[0], 0), x.dtype)
@@ -157,23 +163,37 @@ def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U
     # the tail is padded with copies of the last point: weight 0 there (never in any sum);
     # S2 is per point (n, 3) or one vector (3,) for all
     per_s2 = S2.ndim == 2
+    if V is None:  # computed in the loop (``robust``); a stand-in of no size to chunk
+        V = jnp.zeros((L.shape[0], 0), L.dtype)
     (Lc, Vc, Cc, Wc, Gc, Dc, Zc, *S2c), pad = _chunks(
         [L, V, C, W, G, DM, MZ] + ([S2] if per_s2 else []), chunk)
     S2c = S2c[0] if per_s2 else jnp.zeros((Lc.shape[0], 0), S2.dtype)
     Wc = Wc.reshape(-1).at[Wc.size - pad:].set(0.0).reshape(Wc.shape) if pad else Wc
+    first = jax.vmap(jax.value_and_grad(
+        lambda ll, xx, cc: materialize_trig(condition, on)(ll, xx, cc)), in_axes=(0, None, 0))
 
     def body(carry, ch):
-        N, nv, S, sg, tg, wmw = carry
+        N, nv, S, sg, tg, wmw, *used = carry
         l, v, c, w8, s2, g, dm, mz = ch
         s2 = s2 if per_s2 else S2
         live = g >= 0
         gi = jnp.where(live, g, 0)
         dev = jnp.where(live, jnp.sum(dm * U[gi], axis=-1), 0.0)
+        c = c.at[:, dev_column].add(dev + mz @ x[u0:])
+        if robust is not None:  # residuals at (l, x, c + dev) and the robust rejection there
+            F0, b0 = first(l, x[:u0], c)
+            m0 = jnp.sum(b0 * b0 * s2, axis=-1)
+            ok0 = m0 > 0
+            k0 = jnp.where(ok0, -F0 / jnp.where(ok0, m0, 1.0), 0.0)
+            v = s2 * b0 * k0[:, None]
+            e0 = jnp.abs(k0) * jnp.sqrt(m0) / jnp.sqrt(robust[0])
+            w8 = jnp.where((w8 > 0) & (e0 > robust[1]), 0.0, w8)
+            in0 = (w8 > 0) & ok0
+            used = [used[0] + jnp.sum(in0), used[1] + jnp.sum(jnp.where(in0, k0 * k0 * m0, 0.0))]
         # materialise the linearisation once (a runtime cond, a fusion boundary): F, a, b, e
         # have several consumers each, and XLA would otherwise re-run the derivative in every
         # consumer fusion (3.5x the time of the pass; the same numbers either way)
-        F, a, b, e = _materialize(on, lin(l + v, x[:u0], c.at[:, dev_column].add(
-            dev + mz @ x[u0:])))
+        F, a, b, e = _materialize(on, lin(l + v, x[:u0], c))
         a = jnp.concatenate([a, e[:, None] * mz], axis=1)
         wm, m, ok, q = point_weights(F, b, v, w8, s2)
         a = jnp.where(ok[:, None], a, 0.0)
@@ -191,12 +211,14 @@ def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U
         S = S + tot[:, : k * k].reshape(n_cells, k, k)
         sg = sg + tot[:, k * k: k * k + k * u].reshape(n_cells, k, u)
         tg = tg + tot[:, k * k + k * u:]
-        return (N + aq.T @ a, nv + aq.T @ wm0, S, sg, tg, wmw + jnp.sum(q * wm0 * wm0)), (
-            a, b, d, wm, m, dev)
+        keep = (v, e0, w8) if robust is not None else (a, b, d, wm, m, dev)
+        return (N + aq.T @ a, nv + aq.T @ wm0, S, sg, tg, wmw + jnp.sum(q * wm0 * wm0),
+                *used), keep
 
     f = x.dtype
     init = (jnp.zeros((u, u), f), jnp.zeros((u,), f), jnp.zeros((n_cells, k, k), f),
-            jnp.zeros((n_cells, k, u), f), jnp.zeros((n_cells, k), f), jnp.zeros((), f))
+            jnp.zeros((n_cells, k, u), f), jnp.zeros((n_cells, k), f), jnp.zeros((), f)) + (
+        (jnp.zeros((), f), jnp.zeros((), f)) if robust is not None else ())
     sums, per_point = lax.scan(body, init, (Lc, Vc, Cc, Wc, S2c, Gc, Dc, Zc))
     n = L.shape[0]
     per_point = tuple(p.reshape((-1,) + p.shape[2:])[:n] for p in per_point)
@@ -740,7 +762,7 @@ def mixed_chunk(
     l: Float[Array, "n 3"],
     consts: Float[Array, "n c"],
     weights: Float[Array, " n"],
-    s2: Float[Array, "n 3"],
+    s2: Float[Array, "n 3"] | Float[Array, " 3"],
     groups: Int[Array, " n"],
     design: Float[Array, "n k"],
     x: Float[Array, " u"],
@@ -763,7 +785,11 @@ def mixed_chunk(
 
     ``mode_design`` (n, r): the last ``r`` unknowns of ``x`` enter the deviation through these
     per-point columns (as ``mode_design`` of :func:`gauss_helmert_mixed`); ``condition`` then
-    takes the first ``u - r``.
+    takes the first ``u - r``. ``s2``: the observations' variances per point (n, 3), or one
+    vector (3,) for all.
+
+    Steps 1 and 2 run in one loop over blocks of ``chunk`` points (the residuals of a block
+    are linearised while its rows are in cache: 0.61 -> 0.46 s per 1e6 points on one core).
     """
     MZ = (jnp.zeros((l.shape[0], 0), x.dtype) if mode_design is None
           else jnp.asarray(mode_design, x.dtype))
@@ -786,25 +812,12 @@ def _mixed_chunk(condition, l, consts, weights, s2, groups, design, x, U, noise_
                  on, MZ, order, *, dev_column, chunk):
     n_cells = U.shape[0]
     f = l.dtype
-    u0 = x.shape[0] - MZ.shape[1]
-    L, C, W, S2, G, DM, Z = (a[order] for a in (l, consts, weights, s2, groups, design, MZ))
-    live = G >= 0
-    gi = jnp.where(live, G, 0)
-    dev = jnp.where(live, jnp.sum(DM * U[gi], axis=-1), 0.0) + Z @ x[u0:]
-    cond = materialize_trig(condition, on)
-    F0, b0 = jax.vmap(jax.value_and_grad(lambda ll, cc: cond(ll, x[:u0], cc)))(
-        L, C.at[:, dev_column].add(dev))
-    m0 = jnp.sum(b0 * b0 * S2, axis=-1)
-    ok = m0 > 0
-    k0 = jnp.where(ok, -F0 / jnp.where(ok, m0, 1.0), 0.0)
-    V = S2 * b0 * k0[:, None]
-    e = jnp.abs(k0) * jnp.sqrt(m0) / jnp.sqrt(noise_var)
-    W = jnp.where((W > 0) & (e > robust_k), 0.0, W)
-    (N, nv, S, sg, tg, wmw), _ = _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W,
-                                       S2, G, DM, x, U, Z)
-    used = (W > 0) & ok
-    sums = MixedSums(N, nv, S, sg, tg, wmw, jnp.sum(used).astype(f),
-                     jnp.sum(jnp.where(used, k0 * k0 * m0, 0.0)))
+    L, C, W, G, DM, Z = (a[order] for a in (l, consts, weights, groups, design, MZ))
+    S2 = s2[order] if s2.ndim == 2 else s2
+    (N, nv, S, sg, tg, wmw, n_used, omega), (V, e, W) = _pass(
+        condition, dev_column, on, n_cells, chunk, L, None, C, W, S2, G, DM, x, U, Z,
+        robust=(noise_var, robust_k))
+    sums = MixedSums(N, nv, S, sg, tg, wmw, n_used.astype(f), omega)
     back = jnp.zeros_like(order).at[order].set(jnp.arange(order.shape[0], dtype=order.dtype))
     return sums, MixedChunk(V[back], e[back], W[back])
 

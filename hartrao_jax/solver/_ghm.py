@@ -187,12 +187,15 @@ def _pass_misclosure(condition, L, C, x):
 
 
 def _gauss_helmert(condition, l, x0, sigma_l, consts, weights, v0, tol, *, max_iter, chunk_size,
-                   robust_k=None, max_rounds=6):
+                   robust_k=None, max_rounds=6, on=None):
     """One adjustment: the one-pass kernel (:mod:`._kernel`) and the result's statistics
-    (``robust_k``: the kernel's rejection inside the iteration, a runtime scalar)."""
+    (``robust_k``: the kernel's rejection inside the iteration, a runtime scalar). ``on``: the
+    materialising switch (True); inside a trace it must come in as an argument of the traced
+    function, a value made there would be a constant that XLA folds away."""
     u = x0.shape[0]
     x, N, Ninv, V, K, M, F0, omega, it, done, weights = gh_one_pass(
-        condition, l, x0, sigma_l, consts, weights, v0, jnp.ones((), bool), tol,
+        condition, l, x0, sigma_l, consts, weights, v0,
+        jnp.ones((), bool) if on is None else on, tol,
         lin=linearize_rev, chunk=chunk_size, max_iter=max_iter, robust_k=robust_k,
         max_rounds=max_rounds)
     red = jnp.sum(weights > 0) - u
@@ -361,12 +364,13 @@ def gauss_helmert_batch(
     l = jnp.asarray(l, jnp.float64)
     n = l.shape[1]
     chunk = int(min(chunk_size, n))
-    fn = lambda ll, xx, cc, ww: _gauss_helmert(
+    fn = lambda ll, xx, cc, ww, on: _gauss_helmert(
         condition, ll, xx, jnp.asarray(sigma_l, l.dtype), cc, ww, None,
-        float(tol), max_iter=max_iter, chunk_size=chunk,
+        float(tol), max_iter=max_iter, chunk_size=chunk, on=on,
     )
-    return eqx.filter_jit(jax.vmap(fn))(l, jnp.asarray(x0, l.dtype), jnp.asarray(consts, l.dtype),
-                        jnp.asarray(weights, l.dtype))
+    return eqx.filter_jit(jax.vmap(fn, in_axes=(0, 0, 0, 0, None)))(
+        l, jnp.asarray(x0, l.dtype), jnp.asarray(consts, l.dtype), jnp.asarray(weights, l.dtype),
+        jnp.ones((), bool))
 
 
 def robust_gauss_helmert(

@@ -47,7 +47,15 @@ from ..geometry._geometry import panel_cells, square_cells, zernike_columns
 from ..model._model import ZERNIKE_PREFIX
 from ..preprocess._initial import geometry_window
 from ..solver._ghm import bucket_size
-from ..solver._mixed import MixedSums, mixed_chunk, mixed_response, mixed_step, ridge_indices
+from ..solver._mixed import (
+    MixedSums,
+    contraction,
+    mixed_chunk,
+    mixed_response,
+    mixed_step,
+    remaining_error,
+    ridge_indices,
+)
 from ._distributed import worker_campaign
 from ._fit import (
     PositionFit,
@@ -291,15 +299,10 @@ def stream_fit_position(
 
 
 def _remaining(ratios: Sequence[float]) -> float:
-    """The error left in the solution after the last step, in sigmas (largest over the
-    unknowns), from the steps so far (``max |dx_j| / sigma_j`` each): the last step itself,
-    or, where the last two contract by ``c = r[-1] / r[-2] < 0.5`` (Gauss-Newton near its
-    solution), the rest of the geometric series ``r[-1] c / (1 - c)``."""
-    r = ratios[-1]
-    if len(ratios) < 2 or not ratios[-2] > 0:
-        return r
-    c = r / ratios[-2]
-    return r * c / (1.0 - c) if c < 0.5 else r
+    """The error left in the solution after the last of these steps (sigmas, largest over the
+    unknowns): :func:`.solver.remaining_error` of the last two."""
+    prev = ratios[-2] if len(ratios) > 1 else 0.0
+    return float(remaining_error(ratios[-1], contraction(prev, ratios[-1])))
 
 
 def _sigma0(omega: float, n_used: float, redundancy: float, sums: MixedSums) -> float:

@@ -336,6 +336,23 @@ def _residual_k(a, d, wm, m, dx, dU, groups):
     return -(a @ dx + du_pt + wm) / jnp.where(m > 0, m, 1.0)
 
 
+def remaining_error(step, rate):
+    """The error left in a solution after a Gauss-Newton step of ``step`` sigmas (largest
+    ``|dx_j| / sigma_j``) when the iteration contracts by ``rate`` per step (the ratio of two
+    consecutive steps with nothing else changed between them): the rest of the geometric
+    series ``step rate / (1 - rate)`` where ``rate < 0.5`` (near the solution), else the step
+    itself. The iterations stop when it is below tol: one pass fewer where the steps contract
+    fast (3.1, 0.082, then 4.5e-5 sigma on a full-resolution position: the third step only
+    confirmed the second). Floats or JAX scalars."""
+    fast = rate < 0.5
+    return jnp.where(fast, step * rate / (1.0 - jnp.where(fast, rate, 0.0)), step)
+
+
+def contraction(previous, step):
+    """``step / previous`` (1: no previous step)."""
+    return jnp.where(previous > 0, step / jnp.where(previous > 0, previous, 1.0), 1.0)
+
+
 def _settled(new, old, var0):
     """Every component changed by < 0.5 % (0.25 % in its sigma), or sits at its floor."""
     def ok(a, b, floor):
@@ -397,14 +414,18 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
         return _vce(upd, lin, var, var0, x, U, jnp.sum(weights > 0))
 
     def step(state):
-        x, U, V, var, it, _, weights, _, _ = state
+        x, U, V, var, it, _, weights, _, _, (prev, prev_bad, rate) = state
         lin = linearize(x, U, V, weights)
         var = vce(lin, var, x, U, weights)
         up = upd(lin, var, x=x, U=U, n_used=jnp.sum(weights > 0))
         kk = _point_residuals(lin, up, groups)
         V_new = s2 * lin.b * kk[:, None]
         sd = jnp.sqrt(jnp.where(jnp.diagonal(up.Qxx) > 0, jnp.diagonal(up.Qxx), 1.0))
-        step_ok = jnp.max(jnp.abs(up.dx) / sd) < tol
+        ratio = jnp.max(jnp.abs(up.dx) / sd)
+        # the contraction from the last two steps with no rejection between them (a rejection
+        # moves the solution: the step after it is a new start, not a contraction)
+        rate = jnp.where(prev_bad, rate, contraction(prev, ratio))
+        step_ok = remaining_error(ratio, rate) < tol
         # robust rejection inside the iteration: points beyond robust_k noise sigmas (judged
         # once the surface is taken out, from the second step on) leave for good
         ok = (weights > 0) & (lin.m > 0)
@@ -412,7 +433,8 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
         bad = (e > robust_k) & (weights > 0) & (it >= 1)
         weights = jnp.where(bad, 0.0, weights)
         done = step_ok & ~jnp.any(bad)
-        return (x + up.dx, U + up.dU, V_new, var, it + 1, done, weights, lin, (x, U, up))
+        return (x + up.dx, U + up.dU, V_new, var, it + 1, done, weights, lin, (x, U, up),
+                (ratio, jnp.any(bad), rate))
 
     def cond(state):
         return (state[4] < max_iter) & ~state[5]
@@ -420,8 +442,10 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
     # the last step's linearisation and solution are carried: the statistics at the solution
     # come from them (its step was below tol sigma: no further pass over the points)
     state = (x0, U0, v0, var0, jnp.array(0), jnp.array(False), weights,
-             *_blank_step(l.shape[0], x0, U0, var0))
-    x, U, V, var, it, done, weights, lin, (x_lin, U_lin, up) = lax.while_loop(cond, step, state)
+             *_blank_step(l.shape[0], x0, U0, var0),
+             (jnp.zeros((), f), jnp.array(False), jnp.ones((), f)))
+    x, U, V, var, it, done, weights, lin, (x_lin, U_lin, up), _ = lax.while_loop(
+        cond, step, state)
     kk = _point_residuals(lin, up, groups)
     ok = (weights > 0) & (lin.m > 0)
     omega_pt = jnp.where(ok, kk * kk * jnp.where(lin.m > 0, lin.m, 1.0), 0.0)
@@ -475,7 +499,7 @@ def _part_update(sums, var, var0, x, U, n_used, ridge_idx, ridge_group, n_ridge_
         var = _vce(upd, lin, var, var0, x, U, n_used)
     up = upd(lin, var, x=x, U=U, n_used=n_used)
     sd = jnp.sqrt(jnp.where(jnp.diagonal(up.Qxx) > 0, jnp.diagonal(up.Qxx), 1.0))
-    return var, up, jnp.max(jnp.abs(up.dx) / sd) < tol
+    return var, up, jnp.max(jnp.abs(up.dx) / sd)
 
 
 @eqx.filter_jit
@@ -542,10 +566,16 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
                             n_ridge_groups, estimate_variances, tol)
 
     x, U, var, it, done = x0, U0, var0, 0, False
+    prev, any_bad, rate = 0.0, False, 1.0
     while it < max_iter and not done:
         pers = per = None  # free the last linearisation's per-point terms before the next pass
         sums, pers, n_used = linearize(x, U)
-        var, up, step_ok = update(sums, var, x, U, n_used)
+        var, up, ratio = update(sums, var, x, U, n_used)
+        ratio = float(ratio)
+        # as in _solve: the contraction of the last two steps with no rejection between them
+        rate = rate if any_bad else float(contraction(prev, ratio))
+        step_ok = float(remaining_error(ratio, rate)) < tol
+        prev = ratio
         any_bad = False
         for p, per in zip(parts, pers):
             p["V"], p["W"], bad = _part_residuals(per, p["G"], p["S2"], p["W"], up.dx, up.dU,

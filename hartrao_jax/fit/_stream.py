@@ -73,9 +73,11 @@ from ..model._model import N_CONSTS, make_model, parameter_unit
 from ..preprocess._initial import InitialValues, choose_initial_values, geometry_window
 from ..solver._kernel import (
     REJECT_BELOW,
+    contraction,
     linearize_rev,
     make_pass,
     pass_threads,
+    remaining_error,
     solve_scaled,
     thread_pool,
 )
@@ -198,8 +200,9 @@ class StreamFit(Estimates):
     file by the adjustment (= iterations; the residuals of the solution come from the store);
     ``rounds``: 1 + the passes that rejected points, ``round_iterations`` the iterations
     between them; ``ratios``: the convergence measure ``max |dx_j| / sigma_j`` of each
-    iteration (converged below ``tol``); ``stalled_rounds``: always empty (kept for the
-    record's shape: the rejection inside the iteration does not stall)."""
+    iteration (converged when :func:`.solver._kernel.remaining_error` is below ``tol``);
+    ``stalled_rounds``: always empty (kept for the record's shape: the rejection inside the
+    iteration does not stall)."""
 
     id: str
     names: tuple[str, ...]
@@ -497,6 +500,7 @@ def stream_fit_scan(
         round_its: list[int] = []
         ratios: list[float] = []
         sigma0, ratio = 1.0, math.inf
+        rate = 1.0  # the steps' contraction, as in gh_one_pass
         converged = False
         N = Ninv = None
         n_used = 0
@@ -512,8 +516,10 @@ def stream_fit_scan(
                 rounds += 1
                 rejecting += 1
                 it_round = 0
-            dx, Ninv, ratio, omega = (np.asarray(o) for o in _solve_step(N, nv, wmw))
-            ratio, omega = float(ratio), float(omega)
+            dx, Ninv, r, omega = (np.asarray(o) for o in _solve_step(N, nv, wmw))
+            if total_it > 0 and not n_bad:
+                rate = float(contraction(ratio, float(r)))
+            ratio, omega = float(r), float(omega)
             it_round += 1
             total_it += 1
             ratios.append(ratio)
@@ -521,7 +527,7 @@ def stream_fit_scan(
             x = x + dx
             dx_prev = dx
             sigma0 = math.sqrt(max(omega, 0.0) / max(n_used - u, 1))
-            converged = ratio < tol and judged and not n_bad
+            converged = float(remaining_error(ratio, rate)) < tol and judged and not n_bad
             if converged or total_it >= max_iter:
                 final_sweep(dx_prev, sigma0)
                 break

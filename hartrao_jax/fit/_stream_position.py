@@ -47,13 +47,12 @@ from ..geometry._geometry import panel_cells, square_cells, zernike_columns
 from ..model._model import ZERNIKE_PREFIX
 from ..preprocess._initial import geometry_window
 from ..solver._ghm import bucket_size
+from ..solver._kernel import contraction, remaining_error
 from ..solver._mixed import (
     MixedSums,
-    contraction,
     mixed_chunk,
     mixed_response,
     mixed_step,
-    remaining_error,
     ridge_indices,
 )
 from ._distributed import worker_campaign

@@ -36,6 +36,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._kernel import (
     REJECT_BELOW,
+    contraction,
     gh_one_pass,
     linearize_rev,
     newton_step,
@@ -45,6 +46,7 @@ from ._kernel import (
     part_start,
     pass_threads,
     point_weights,
+    remaining_error,
     thread_pool,
 )
 
@@ -236,6 +238,7 @@ def _gauss_helmert_split(condition, l, x0, sigma_l, consts, weights, v0, tol, *,
         chunk=p["chunk"]))
     robust = robust_k is not None
     x, dx, it, ratio, rounds, done = x0, jnp.zeros_like(x0), 0, np.inf, 0, False
+    rate = 1.0  # the contraction of the steps (as gh_one_pass)
     while it < max_iter and not done:
         judge = robust and it >= 1 and ratio < REJECT_BELOW and rounds < max_rounds
         limit = jnp.asarray(np.inf, f)
@@ -254,10 +257,12 @@ def _gauss_helmert_split(condition, l, x0, sigma_l, consts, weights, v0, tol, *,
         rounds += n_bad > 0
         outs = None
         dx, Ninv, r = newton_step(N, nv)
+        if it > 0 and n_bad == 0:
+            rate = float(contraction(ratio, float(r)))
         ratio = float(r)
         x = x + dx
         it += 1
-        done = ratio < tol and judged and n_bad == 0
+        done = float(remaining_error(ratio, rate)) < tol and judged and n_bad == 0
     fins = each(lambda i, p: part_final(condition, p["l"], p["c"], p["s"], stores[i], x, dx, on,
                                         chunk=p["chunk"]))
     stores = None

@@ -312,6 +312,23 @@ def store_omega(residuals, store, dx):
 REJECT_BELOW = 1.0
 
 
+def remaining_error(step, rate):
+    """The error left in a solution after a Gauss-Newton step of ``step`` sigmas (largest
+    ``|dx_j| / sigma_j``) when the iteration contracts by ``rate`` per step (the ratio of two
+    consecutive steps with nothing else changed between them): the rest of the geometric
+    series ``step rate / (1 - rate)`` where ``rate < 0.5`` (near the solution), else the step
+    itself. The iterations stop when it is below tol: one pass fewer where the steps contract
+    fast (3.1, 0.082, then 4.5e-5 sigma on a full-resolution position: the third step only
+    confirmed the second). Floats or JAX scalars."""
+    fast = rate < 0.5
+    return jnp.where(fast, step * rate / (1.0 - jnp.where(fast, rate, 0.0)), step)
+
+
+def contraction(previous, step):
+    """``step / previous`` (1: no previous step)."""
+    return jnp.where(previous > 0, step / jnp.where(previous > 0, previous, 1.0), 1.0)
+
+
 @eqx.filter_jit
 def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *, lin,
                 chunk=4096, max_iter=30, store_dtype=jnp.float32, trig=True, robust_k=None,
@@ -342,7 +359,8 @@ def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *,
     rule of the repeated solves (standardized residual beyond ``robust_k`` a-posteriori
     sigmas), judged at each iterate instead of at each converged solve. At most
     ``max_rounds`` passes reject; the iteration has converged when a step is below ``tol`` and
-    its pass rejected nothing.
+    its pass rejected nothing (a step below tol: :func:`remaining_error`, the rest of the
+    steps at the contraction of the last two with no rejection in the later one's pass).
 
     Returns ``(x, N, N^-1, v (n, 3), k (n,), m (n,), F(l, x) (n,), omega, iterations,
     converged, weights)``; ``normalized = |k| sqrt(m) / sigma0``.
@@ -367,25 +385,29 @@ def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *,
         return N, nv, store, rounds + (n_bad > 0), judged & (n_bad == 0)
 
     def step(state):
-        x, dx_prev, store, it, _, _, _, ratio_prev, rounds = state
+        x, dx_prev, store, it, _, _, _, ratio_prev, rounds, rate = state
         if robust:
+            rounds_before = rounds
             N, nv, store, rounds, clean = rejecting_pass(x, dx_prev, store, it, ratio_prev,
                                                          rounds)
+            moved = rounds > rounds_before  # this pass rejected points: a new start
         else:
             N, nv, store = one_pass(x, dx_prev, store)
-            clean = True
+            clean, moved = True, False
         dx, Ninv = solve_scaled(N, -nv)
         dN = jnp.diagonal(Ninv)
         ratio = jnp.max(jnp.abs(dx) / jnp.sqrt(jnp.where(dN > 0, dN, 1.0)))
-        return x + dx, dx, store, it + 1, N, Ninv, (ratio < tol) & clean, ratio, rounds
+        rate = jnp.where(moved | (it == 0), rate, contraction(ratio_prev, ratio))
+        done = (remaining_error(ratio, rate) < tol) & clean
+        return x + dx, dx, store, it + 1, N, Ninv, done, ratio, rounds, rate
 
     def cond(state):
         return (state[3] < max_iter) & ~state[6]
 
     zu = jnp.zeros((u, u), f)
     state = (x0, jnp.zeros_like(x0), store0, jnp.array(0), zu, zu, jnp.array(False),
-             jnp.asarray(jnp.inf, f), jnp.array(0))
-    x, dx, store, it, N, Ninv, done, _, _ = lax.while_loop(cond, step, state)
+             jnp.asarray(jnp.inf, f), jnp.array(0), jnp.ones((), f))
+    x, dx, store, it, N, Ninv, done, _, _, _ = lax.while_loop(cond, step, state)
 
     omega, V, K, M, F0, weights = final_sweep(condition, l, consts, weights, store, residuals,
                                               x, dx, on, chunk=chunk, trig=trig)

@@ -57,9 +57,11 @@ from ._kernel import (
     PARALLEL_MIN_POINTS,  # noqa: F401  (re-exported: this module's name since 520202b)
     THREADS_ENV,  # noqa: F401
     _materialize,
+    contraction,
     materialize_trig,
     pass_threads,
     point_weights,
+    remaining_error,
     solve_scaled,
     thread_pool,
 )
@@ -334,23 +336,6 @@ def _residual_k(a, d, wm, m, dx, dU, groups):
     gi = jnp.where(groups >= 0, groups, 0)
     du_pt = jnp.where(groups >= 0, jnp.sum(d * dU[gi], axis=-1), 0.0)
     return -(a @ dx + du_pt + wm) / jnp.where(m > 0, m, 1.0)
-
-
-def remaining_error(step, rate):
-    """The error left in a solution after a Gauss-Newton step of ``step`` sigmas (largest
-    ``|dx_j| / sigma_j``) when the iteration contracts by ``rate`` per step (the ratio of two
-    consecutive steps with nothing else changed between them): the rest of the geometric
-    series ``step rate / (1 - rate)`` where ``rate < 0.5`` (near the solution), else the step
-    itself. The iterations stop when it is below tol: one pass fewer where the steps contract
-    fast (3.1, 0.082, then 4.5e-5 sigma on a full-resolution position: the third step only
-    confirmed the second). Floats or JAX scalars."""
-    fast = rate < 0.5
-    return jnp.where(fast, step * rate / (1.0 - jnp.where(fast, rate, 0.0)), step)
-
-
-def contraction(previous, step):
-    """``step / previous`` (1: no previous step)."""
-    return jnp.where(previous > 0, step / jnp.where(previous > 0, previous, 1.0), 1.0)
 
 
 def _settled(new, old, var0):

@@ -16,8 +16,9 @@ resolution a position has 2.6e7 points; here it is adjusted without holding them
    at ``l + v``); :func:`.solver.mixed_step` re-estimates the variance components from the
    sums and takes the Gauss-Newton step of ``x`` and the cells. Iterations stop when the
    error left in the new solution is below ``tol`` of its sigma: the last step, or, once the
-   steps contract fast (ratio ``c`` of the last two below 0.5), the rest of their geometric
-   series ``step c / (1 - c)`` (:func:`_remaining`; at full resolution the steps went 3.1,
+   steps contract fast (ratio ``c`` of the last two below 0.5) and the variance components
+   have settled, the rest of their geometric series ``step c / (1 - c)``
+   (:func:`.solver._mixed.iteration_converged`; at full resolution the steps went 3.1,
    0.082, then 4.5e-5 sigma: the third pass only confirmed the second). With a ``store``, one
    more pass writes the per-point results (without, the statistics are the last step's: one
    read of every row fewer).
@@ -50,6 +51,7 @@ from ..solver._ghm import bucket_size
 from ..solver._kernel import contraction, remaining_error
 from ..solver._mixed import (
     MixedSums,
+    iteration_converged,
     mixed_chunk,
     mixed_response,
     mixed_step,
@@ -260,10 +262,13 @@ def stream_fit_position(
                 sums, per_scan = stream_pass(x, U, var, write=False)
                 passes += 1
                 final = mixed_step(sums, var, var0, x, U, ridge_idx, ridge_group, n_groups)
+                var_prev = var
                 x, U, var = final.x, final.U, final.var
                 ratios.append(float(final.ratio))
                 prog.advance(task)
-                if _remaining(ratios) < tol:
+                prev = ratios[-2] if len(ratios) > 1 else 0.0
+                if bool(iteration_converged(ratios[-1], contraction(prev, ratios[-1]), tol, var,
+                                            var_prev, var0)):
                     converged = True
                     break
             if store is not None:  # per-point results (and the statistics) at the solution

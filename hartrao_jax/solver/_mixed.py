@@ -338,6 +338,13 @@ def _residual_k(a, d, wm, m, dx, dU, groups):
     return -(a @ dx + du_pt + wm) / jnp.where(m > 0, m, 1.0)
 
 
+def iteration_converged(step, rate, tol, var, var_prev, var0):
+    """The step is below tol, or the rest of the contracting steps is (:func:`remaining_error`)
+    while the variance components have settled (:func:`_settled`): a step that moves them
+    moves the solution again, whatever the contraction of ``x`` so far."""
+    return (step < tol) | ((remaining_error(step, rate) < tol) & _settled(var, var_prev, var0))
+
+
 def _settled(new, old, var0):
     """Every component changed by < 0.5 % (0.25 % in its sigma), or sits at its floor."""
     def ok(a, b, floor):
@@ -399,9 +406,9 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
         return _vce(upd, lin, var, var0, x, U, jnp.sum(weights > 0))
 
     def step(state):
-        x, U, V, var, it, _, weights, _, _, (prev, prev_bad, rate) = state
+        x, U, V, var_prev, it, _, weights, _, _, (prev, prev_bad, rate) = state
         lin = linearize(x, U, V, weights)
-        var = vce(lin, var, x, U, weights)
+        var = vce(lin, var_prev, x, U, weights)
         up = upd(lin, var, x=x, U=U, n_used=jnp.sum(weights > 0))
         kk = _point_residuals(lin, up, groups)
         V_new = s2 * lin.b * kk[:, None]
@@ -410,7 +417,7 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
         # the contraction from the last two steps with no rejection between them (a rejection
         # moves the solution: the step after it is a new start, not a contraction)
         rate = jnp.where(prev_bad, rate, contraction(prev, ratio))
-        step_ok = remaining_error(ratio, rate) < tol
+        step_ok = iteration_converged(ratio, rate, tol, var, var_prev, var0)
         # robust rejection inside the iteration: points beyond robust_k noise sigmas (judged
         # once the surface is taken out, from the second step on) leave for good
         ok = (weights > 0) & (lin.m > 0)
@@ -555,11 +562,12 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
     while it < max_iter and not done:
         pers = per = None  # free the last linearisation's per-point terms before the next pass
         sums, pers, n_used = linearize(x, U)
+        var_prev = var
         var, up, ratio = update(sums, var, x, U, n_used)
         ratio = float(ratio)
         # as in _solve: the contraction of the last two steps with no rejection between them
         rate = rate if any_bad else float(contraction(prev, ratio))
-        step_ok = float(remaining_error(ratio, rate)) < tol
+        step_ok = bool(iteration_converged(ratio, rate, tol, var, var_prev, var0))
         prev = ratio
         any_bad = False
         for p, per in zip(parts, pers):

@@ -73,9 +73,9 @@ from ..model._model import N_CONSTS, make_model, parameter_unit
 from ..preprocess._initial import InitialValues, choose_initial_values, geometry_window
 from ..solver._kernel import (
     REJECT_BELOW,
-    contraction,
     linearize_rev,
     make_pass,
+    next_rate,
     pass_threads,
     remaining_error,
     solve_scaled,
@@ -517,8 +517,7 @@ def stream_fit_scan(
                 rejecting += 1
                 it_round = 0
             dx, Ninv, r, omega = (np.asarray(o) for o in _solve_step(N, nv, wmw))
-            if total_it > 0 and not n_bad:
-                rate = float(contraction(ratio, float(r)))
+            rate = float(next_rate(rate, ratio, float(r), n_bad > 0))
             ratio, omega = float(r), float(omega)
             it_round += 1
             total_it += 1

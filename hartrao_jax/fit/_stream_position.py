@@ -48,7 +48,7 @@ from ..geometry._geometry import panel_cells, square_cells, zernike_columns
 from ..model._model import ZERNIKE_PREFIX
 from ..preprocess._initial import geometry_window
 from ..solver._ghm import bucket_size
-from ..solver._kernel import contraction, remaining_error
+from ..solver._kernel import next_rate, remaining_error
 from ..solver._mixed import (
     MixedSums,
     iteration_converged,
@@ -266,9 +266,8 @@ def stream_fit_position(
                 x, U, var = final.x, final.U, final.var
                 ratios.append(float(final.ratio))
                 prog.advance(task)
-                prev = ratios[-2] if len(ratios) > 1 else 0.0
-                if bool(iteration_converged(ratios[-1], contraction(prev, ratios[-1]), tol, var,
-                                            var_prev, var0)):
+                if bool(iteration_converged(ratios[-1], _rate(ratios), tol, var, var_prev,
+                                            var0)):
                     converged = True
                     break
             if store is not None:  # per-point results (and the statistics) at the solution
@@ -302,11 +301,16 @@ def stream_fit_position(
     return rec
 
 
+def _rate(ratios: Sequence[float]) -> float:
+    """The contraction of the last two of these steps (sigmas each; the streamed passes
+    reject afresh at every pass, so no step restarts the series)."""
+    return float(next_rate(1.0, ratios[-2] if len(ratios) > 1 else 0.0, ratios[-1], False))
+
+
 def _remaining(ratios: Sequence[float]) -> float:
     """The error left in the solution after the last of these steps (sigmas, largest over the
-    unknowns): :func:`.solver.remaining_error` of the last two."""
-    prev = ratios[-2] if len(ratios) > 1 else 0.0
-    return float(remaining_error(ratios[-1], contraction(prev, ratios[-1])))
+    unknowns): :func:`.solver._kernel.remaining_error` at their contraction."""
+    return float(remaining_error(ratios[-1], _rate(ratios)))
 
 
 def _sigma0(omega: float, n_used: float, redundancy: float, sums: MixedSums) -> float:

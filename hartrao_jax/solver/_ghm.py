@@ -36,10 +36,10 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._kernel import (
     REJECT_BELOW,
-    contraction,
     gh_one_pass,
     linearize_rev,
     newton_step,
+    next_rate,
     part_final,
     part_omega,
     part_pass,
@@ -257,8 +257,7 @@ def _gauss_helmert_split(condition, l, x0, sigma_l, consts, weights, v0, tol, *,
         rounds += n_bad > 0
         outs = None
         dx, Ninv, r = newton_step(N, nv)
-        if it > 0 and n_bad == 0:
-            rate = float(contraction(ratio, float(r)))
+        rate = float(next_rate(rate, ratio, float(r), n_bad > 0))
         ratio = float(r)
         x = x + dx
         it += 1

@@ -324,9 +324,13 @@ def remaining_error(step, rate):
     return jnp.where(fast, step * rate / (1.0 - jnp.where(fast, rate, 0.0)), step)
 
 
-def contraction(previous, step):
-    """``step / previous`` (1: no previous step)."""
-    return jnp.where(previous > 0, step / jnp.where(previous > 0, previous, 1.0), 1.0)
+def next_rate(rate, previous, step, restarted):
+    """The iteration's contraction after a step of ``step`` sigmas that followed one of
+    ``previous``: ``step / previous``; unchanged (``rate``) where the step restarted (a
+    rejection moved the solution between the two: not a contraction); 1 (no extrapolation)
+    where there was no previous step (``previous`` 0 or infinite). Floats or JAX scalars."""
+    has = jnp.isfinite(previous) & (previous > 0)
+    return jnp.where(restarted, rate, jnp.where(has, step / jnp.where(has, previous, 1.0), 1.0))
 
 
 @eqx.filter_jit
@@ -397,7 +401,7 @@ def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *,
         dx, Ninv = solve_scaled(N, -nv)
         dN = jnp.diagonal(Ninv)
         ratio = jnp.max(jnp.abs(dx) / jnp.sqrt(jnp.where(dN > 0, dN, 1.0)))
-        rate = jnp.where(moved | (it == 0), rate, contraction(ratio_prev, ratio))
+        rate = next_rate(rate, ratio_prev, ratio, moved)
         done = (remaining_error(ratio, rate) < tol) & clean
         return x + dx, dx, store, it + 1, N, Ninv, done, ratio, rounds, rate
 

@@ -57,8 +57,8 @@ from ._kernel import (
     PARALLEL_MIN_POINTS,  # noqa: F401  (re-exported: this module's name since 520202b)
     THREADS_ENV,  # noqa: F401
     _materialize,
-    contraction,
     materialize_trig,
+    next_rate,
     pass_threads,
     point_weights,
     remaining_error,
@@ -171,8 +171,9 @@ def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U
         [L, V, C, W, G, DM, MZ] + ([S2] if per_s2 else []), chunk)
     S2c = S2c[0] if per_s2 else jnp.zeros((Lc.shape[0], 0), S2.dtype)
     Wc = Wc.reshape(-1).at[Wc.size - pad:].set(0.0).reshape(Wc.shape) if pad else Wc
-    first = jax.vmap(jax.value_and_grad(
-        lambda ll, xx, cc: materialize_trig(condition, on)(ll, xx, cc)), in_axes=(0, None, 0))
+    if robust is not None:  # F and dF/dl at the observations
+        first = jax.vmap(jax.value_and_grad(materialize_trig(condition, on)),
+                         in_axes=(0, None, 0))
 
     def body(carry, ch):
         N, nv, S, sg, tg, wmw, *used = carry
@@ -416,7 +417,7 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
         ratio = jnp.max(jnp.abs(up.dx) / sd)
         # the contraction from the last two steps with no rejection between them (a rejection
         # moves the solution: the step after it is a new start, not a contraction)
-        rate = jnp.where(prev_bad, rate, contraction(prev, ratio))
+        rate = next_rate(rate, prev, ratio, prev_bad)
         step_ok = iteration_converged(ratio, rate, tol, var, var_prev, var0)
         # robust rejection inside the iteration: points beyond robust_k noise sigmas (judged
         # once the surface is taken out, from the second step on) leave for good
@@ -566,7 +567,7 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
         var, up, ratio = update(sums, var, x, U, n_used)
         ratio = float(ratio)
         # as in _solve: the contraction of the last two steps with no rejection between them
-        rate = rate if any_bad else float(contraction(prev, ratio))
+        rate = float(next_rate(rate, prev, ratio, any_bad))
         step_ok = bool(iteration_converged(ratio, rate, tol, var, var_prev, var0))
         prev = ratio
         any_bad = False

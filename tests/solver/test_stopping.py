@@ -4,7 +4,7 @@
 import jax.numpy as jnp
 import pytest
 
-from hartrao_jax.solver._kernel import contraction, remaining_error
+from hartrao_jax.solver._kernel import next_rate, remaining_error
 from hartrao_jax.solver._mixed import iteration_converged
 
 
@@ -12,11 +12,13 @@ def test_remaining_error_is_the_rest_of_a_geometric_series():
     """Steps 3.1, 0.082 sigma (a full-resolution position): rate 0.026, the rest after the
     second step 0.0022 sigma (the third step measured 4.5e-5); a slow contraction (rate >= 0.5)
     leaves the step itself."""
-    rate = float(contraction(3.119, 0.08194))
+    rate = float(next_rate(1.0, 3.119, 0.08194, False))
     assert rate == pytest.approx(0.02627, rel=1e-3)
     assert float(remaining_error(0.08194, rate)) == pytest.approx(0.08194 * rate / (1 - rate))
-    assert float(remaining_error(0.06, float(contraction(0.1, 0.06)))) == 0.06
-    assert float(contraction(0.0, 0.5)) == 1.0  # no previous step: no extrapolation
+    assert float(remaining_error(0.06, float(next_rate(1.0, 0.1, 0.06, False)))) == 0.06
+    assert float(next_rate(1.0, 0.0, 0.5, False)) == 1.0  # no previous step: no extrapolation
+    assert float(next_rate(1.0, float("inf"), 0.5, False)) == 1.0
+    assert float(next_rate(0.02, 0.1, 0.5, True)) == 0.02  # a restart keeps the rate
 
 
 def test_random_effect_stops_on_the_prediction_only_with_settled_variances():
@@ -25,7 +27,7 @@ def test_random_effect_stops_on_the_prediction_only_with_settled_variances():
     var0 = (jnp.asarray(1.0), jnp.ones(3), jnp.ones(0))
     var = (jnp.asarray(1.0), jnp.ones(3), jnp.ones(0))
     moved = (jnp.asarray(1.02), jnp.ones(3), jnp.ones(0))
-    rate = contraction(0.5, 0.01)  # 0.02: the rest is 2e-4 sigma
+    rate = next_rate(1.0, 0.5, 0.01, False)  # 0.02: the rest is 2e-4 sigma
     assert bool(iteration_converged(0.01, rate, 1e-3, var, var, var0))
     assert not bool(iteration_converged(0.01, rate, 1e-3, var, moved, var0))
     assert bool(iteration_converged(5e-4, rate, 1e-3, var, moved, var0))

@@ -44,6 +44,7 @@ from ..preprocess._initial import (
     choose_initial_values,
     geometry_window,
 )
+from ..preprocess._types import KeepMask
 from ..solver._ghm import (
     GHResult,
     bucket_size,
@@ -306,11 +307,20 @@ def hit_points(model: ParaboloidModel, l, x, c, sigma_l, kappa_rad) -> jax.Array
     # compiled in two stages (projection, then the point), each distinct sin/cos evaluated
     # once, the rotation written out: 0.34 -> 0.24 s per 1e6 points on one core
     return _hit_points(model, l, x, c, jnp.asarray(sigma_l, jnp.float64),
-                       jnp.asarray(kappa_rad, jnp.float64), jnp.ones((), bool))
+                       jnp.asarray(kappa_rad, jnp.float64), jnp.ones((), bool), False)
+
+
+def hit_points_and_residuals(model: ParaboloidModel, l, x, c, sigma_l, kappa_rad
+                             ) -> tuple[jax.Array, jax.Array]:
+    """:func:`hit_points` and the residuals ``v`` (n, 3; m, rad, rad) of that projection: the
+    observations' corrections onto the surface at ``x`` (a Gauss-Helmert adjustment's
+    linearisation point when it starts at ``x``)."""
+    return _hit_points(model, l, x, c, jnp.asarray(sigma_l, jnp.float64),
+                       jnp.asarray(kappa_rad, jnp.float64), jnp.ones((), bool), True)
 
 
 @eqx.filter_jit
-def _hit_points(model, l, x, c, sigma_l, kappa_rad, on):
+def _hit_points(model, l, x, c, sigma_l, kappa_rad, on, with_v: bool):
     s2 = jnp.broadcast_to(sigma_l**2, (3,))
     cond = materialize_trig(model, on)
     point = materialize_trig(model.telescope_point, on)
@@ -320,7 +330,8 @@ def _hit_points(model, l, x, c, sigma_l, kappa_rad, on):
     P = jax.vmap(lambda q, ci: point(q, x, ci))(l + v, c)
     # Rz(kappa) P, written out (an (n, 3) x (3, 3) product is slower on CPU than its terms)
     ck, sk = jnp.cos(kappa_rad), jnp.sin(kappa_rad)
-    return jnp.stack([ck * P[:, 0] - sk * P[:, 1], sk * P[:, 0] + ck * P[:, 1], P[:, 2]], axis=1)
+    X = jnp.stack([ck * P[:, 0] - sk * P[:, 1], sk * P[:, 0] + ck * P[:, 1], P[:, 2]], axis=1)
+    return (X, v) if with_v else X
 
 
 def sigma_vector(campaign: Campaign) -> np.ndarray:
@@ -560,6 +571,60 @@ def padded(data: ScanData, n_pad: int) -> ScanData:
     return data.subset(np.concatenate([np.arange(n), np.zeros(n_pad - n, np.int64)]))
 
 
+def reject_beyond(v: np.ndarray, sigma_l, used: np.ndarray, k: float, n_unknowns: int,
+                  max_rounds: int = 6) -> np.ndarray:
+    """``used`` without the points whose standardized residual ``sqrt(v^T Sigma^-1 v) /
+    sigma0`` exceeds ``k`` (residuals ``v`` (n, 3) of a solution, ``sigma_l`` (3,) the a
+    priori sigmas): the rule of :func:`..solver.robust_gauss_helmert`, judged at a given
+    solution, with ``sigma0`` from the points still used, in rounds until none is rejected."""
+    omega = np.sum(np.asarray(v) ** 2 / np.asarray(sigma_l, float) ** 2, axis=1)
+    keep = np.asarray(used, bool).copy()
+    for _ in range(max_rounds):
+        s0_sq = float(np.sum(omega[keep])) / max(int(keep.sum()) - n_unknowns, 1)
+        bad = keep & (omega > k * k * s0_sq)
+        if not bad.any():
+            break
+        keep &= ~bad
+    return keep
+
+
+#: Positions with more points than this (both faces, inside the geometry window) start from a
+#: seeded sample of :data:`SAMPLE_POINTS`: see :func:`_sample_start`.
+SAMPLE_START_POINTS = 4_000_000
+SAMPLE_POINTS = 1_000_000
+
+
+def _sample_start(campaign: Campaign, metas: Sequence[ScanMeta], model, prepared, *, fixed,
+                  robust_k, window_m, heading_hint_rad, max_iter, seed: int = 0
+                  ) -> PositionFit | None:
+    """The two-face adjustment of a seeded sample of a large position's points, as the start
+    of the adjustment of all of them (None: the sample has no surface random effect).
+
+    Why: with the surface a random effect, the sigmas of f, pose and calibration are set by
+    the surface, not by the number of points, so :data:`SAMPLE_POINTS` already give the pose,
+    the north alignment, the cells, the smooth modes the data show and the variance components
+    close to their full-data values. The adjustment of every point then starts there and
+    needs two or three passes, and the white robust adjustment of every point (which only
+    provides that start) is not made. The same start as the streamed position
+    (:mod:`._stream_position`); the sample is drawn among each face's points inside the
+    geometry window and the preprocessing's mask, in proportion to their numbers."""
+    inside = [np.flatnonzero(p[3]) for p in prepared]
+    total = sum(len(i) for i in inside)
+    rng = np.random.default_rng(seed)
+    datas, masks = [], {}
+    for m, p, idx in zip(metas, prepared, inside):
+        take = min(len(idx), int(round(SAMPLE_POINTS * len(idx) / max(total, 1))))
+        pick = np.sort(rng.choice(idx, size=take, replace=False))
+        datas.append(p[0].subset(pick))
+        mask = np.ones(take, bool).view(KeepMask)
+        mask.init = p[2]  # the full scan's initial values: no new search
+        masks[m.id] = mask
+    start = fit_position(campaign, metas, model, datas=datas, keep=lambda m, d: masks[m.id],
+                         fixed=fixed, robust_k=robust_k, window_m=window_m,
+                         heading_hint_rad=heading_hint_rad, max_iter=max_iter)
+    return start if start.mixed is not None else None
+
+
 def fit_position(
     campaign: Campaign,
     metas: Sequence[ScanMeta],
@@ -579,7 +644,10 @@ def fit_position(
     1. Initial values and the geometry window per scan; the best-fitting scan's initial values
        start the joint adjustment (both cycles share the scanner set-up).
     2. A robust Gauss-Helmert adjustment of all points (white noise) rejects outliers and gives
-       the pose for the north alignment, hence each point's panel (surface cell).
+       the pose for the north alignment, hence each point's panel (surface cell). A position
+       of more than :data:`SAMPLE_START_POINTS` points takes all of that, and the start of
+       step 3, from the two-face adjustment of a seeded sample instead (:func:`_sample_start`;
+       outliers rejected at that solution by the same rule, :func:`reject_beyond`).
     3. The adjustment with the surface as a random effect (:mod:`._mixed`): panel offsets and
        tilts (and, on a centred reflector, the smooth modes of :data:`SURFACE_MODES` where the
        data show them: :func:`_absent_modes`) with variances estimated from the data; sigmas
@@ -623,36 +691,75 @@ def fit_position(
         return make_model(free, fx, aperture_radius_m=aperture, kappa_rad=kappa,
                           check_separable=False)
 
-    # 2. white-noise robust adjustment, with identifiability on its normal matrix
-    for _ in range(4):
+    notes: list[str] = []
+    start = (_sample_start(campaign, metas, model, prepared, fixed=fixed, robust_k=robust_k,
+                           window_m=window_m, heading_hint_rad=heading_hint_rad,
+                           max_iter=max_iter)
+             if surface and n > SAMPLE_START_POINTS else None)
+    if start is not None:
+        # 2'. a large position: the white adjustment of a sample stands in for that of every
+        # point (held parameters, north alignment, cells, smooth modes carried and the random
+        # effect's start come from the sample's own two-face adjustment)
+        held.update(start.held)
         mdl = model_of(free_of())
-        x0 = _x0(mdl.free, init, fixed)
-        if robust_k is None:
-            res = gauss_helmert(mdl, l, x0, sig, c, w, v0=np.zeros_like(l), max_iter=max_iter)
-        else:
-            res = robust_gauss_helmert(mdl, l, x0, sig, c, w, k=robust_k, max_iter=max_iter)
-        cand = [n_ for n_ in mdl.free if n_ in INSTRUMENT]
-        bad = unidentifiable(np.asarray(res.cov), mdl.free, cand, typical=typical_magnitudes())
-        if not bad:
-            break
-        hold_parameters(held, fixed, bad, res.cov, mdl.free, elevation)
-    used = np.asarray(res.weights) > 0
-    fit1 = finish_scan_fit(campaign, metas[0], mdl, pdata, res, g, init, used,
-                           heading_hint_rad=heading_hint_rad)
-    kappa = fit1.alignment.kappa_rad
-    surf, mdl_final, notes, mixed = None, mdl, [], None
+        st = start.mixed
+        kappa = st.kappa_rad
+        x_white = np.array([dict(zip(st.model.free, st.x))[n_] for n_ in mdl.free])
+        used = w > 0
+        notes.append(f"started from a seeded sample of {start.n_points:,} of the {n:,} points "
+                     f"(more than {SAMPLE_START_POINTS:,}): its adjustment gave the north "
+                     "alignment, the cells and the start of the random effect")
+    else:
+        # 2. white-noise robust adjustment, with identifiability on its normal matrix
+        for _ in range(4):
+            mdl = model_of(free_of())
+            x0 = _x0(mdl.free, init, fixed)
+            if robust_k is None:
+                res = gauss_helmert(mdl, l, x0, sig, c, w, v0=np.zeros_like(l),
+                                    max_iter=max_iter)
+            else:
+                res = robust_gauss_helmert(mdl, l, x0, sig, c, w, k=robust_k, max_iter=max_iter)
+            cand = [n_ for n_ in mdl.free if n_ in INSTRUMENT]
+            bad = unidentifiable(np.asarray(res.cov), mdl.free, cand,
+                                 typical=typical_magnitudes())
+            if not bad:
+                break
+            hold_parameters(held, fixed, bad, res.cov, mdl.free, elevation)
+        used = np.asarray(res.weights) > 0
+        fit1 = finish_scan_fit(campaign, metas[0], mdl, pdata, res, g, init, used,
+                               heading_hint_rad=heading_hint_rad)
+        kappa = fit1.alignment.kappa_rad
+        x_white = np.asarray(res.x)
+    surf, mdl_final, mixed = None, mdl, None
     if surface:
         cell_m = float(tel.extra.get("panel_cell_m", 2.0)) if tel.extra else 2.0
-        X_hit = np.asarray(hit_points(mdl, l, res.x, c, sig, kappa))
+        if start is None:
+            X_hit = np.asarray(hit_points(mdl, l, x_white, c, sig, kappa))
+        else:  # and the start's residuals, where the random effect linearises first
+            X_hit, v_start = (np.asarray(a) for a in hit_points_and_residuals(
+                mdl, l, x_white, c, sig, kappa))
         keys = (None if tel.ring_edges_m is not None and tel.panels_per_ring is not None
+                else start.mixed.cell_keys if start is not None
                 else square_cells(X_hit[used], cell_m)[2])
         cell, local, n_cells, desc = panel_cells(
             X_hit, tel.ring_edges_m, tel.panels_per_ring, cell_m=cell_m, keys=keys)
         design = np.column_stack([np.ones(n_pad), local]) * (cell >= 0)[:, None]
-        groups = dict(SURFACE_MODE_GROUPS) if tel.offset_m == 0 else {}
-        mode_tests: dict[str, tuple] = {}
-        x_start = {n_: float(v_) for n_, v_ in zip(mdl.free, np.asarray(res.x))}
-        warm: dict = {"v0": np.asarray(res.v), "cell_var0": np.asarray(_CELL_VAR0)}
+        if start is None:
+            groups = dict(SURFACE_MODE_GROUPS) if tel.offset_m == 0 else {}
+            mode_tests: dict[str, tuple] = {}
+            x_start = {n_: float(v_) for n_, v_ in zip(mdl.free, x_white)}
+            warm: dict = {"v0": np.asarray(res.v), "cell_var0": np.asarray(_CELL_VAR0)}
+            ridge_var0 = np.full(len(groups), _MODE_VAR0)
+        else:  # the sample's verdicts on the modes and its random effect as the start
+            groups = {k_: SURFACE_MODE_GROUPS[k_] for k_ in (st.ridge or {})}
+            mode_tests = dict(start.surface.mode_tests)
+            x_start = {n_: float(v_) for n_, v_ in zip(st.model.free, st.x)}
+            warm = {"v0": v_start, "u0": np.asarray(st.u), "noise_var0": float(st.var[0]),
+                    "cell_var0": np.maximum(np.asarray(st.var[1]), np.asarray(_CELL_VAR0))}
+            ridge_var0 = np.maximum(np.asarray(st.var[2], float), _MODE_VAR0)
+        if start is not None and robust_k is not None:
+            # the outliers the white robust adjustment would have rejected, judged at the start
+            used = reject_beyond(v_start, sig, used, robust_k, len(mdl.free))
         w_mixed = used.astype(float)
         for _ in range(3 + len(groups)):
             modes = [j for g_ in groups.values() for j in g_]
@@ -666,7 +773,7 @@ def fit_position(
                         if modes else (mdl2, None))
             rm = gauss_helmert_mixed(
                 cond, l, x0, sig, c, w_mixed, cell, design, n_cells, robust_k=robust_k,
-                ridge=ridge, ridge_var0=_MODE_VAR0, max_iter=60, mode_design=mz, **warm)
+                ridge=ridge, ridge_var0=ridge_var0, max_iter=60, mode_design=mz, **warm)
             cand = [n_ for n_ in mdl2.free if n_ in INSTRUMENT]
             bad = unidentifiable(np.asarray(rm.cov), mdl2.free, cand, typical=typical_magnitudes())
             if bad:
@@ -675,6 +782,8 @@ def fit_position(
             absent = _absent_modes(rm, ridge, mode_tests)
             if not absent:
                 break
+            ridge_var0 = np.array([v_ for k_, v_ in zip(groups, np.asarray(rm.ridge_var))
+                                   if k_ not in absent])
             for k_ in absent:  # the data do not show them: not carried (see _absent_modes)
                 groups.pop(k_)
             # refit without them from where this one ended (same points, cells, variances)

@@ -172,3 +172,29 @@ def test_modes_the_data_cannot_determine_are_said_and_their_weight_shown(tmp_pat
         assert p[n]["sigma_white"] < 0.7 * p[n]["sigma"]
     assert p["f"]["mode_prior_share"] < 0.1
     assert max(p[n]["mode_prior_share"] for n in ("x4", "x6", "x7")) < 0.1
+
+
+def test_a_large_position_starts_from_a_sample_with_the_same_answer(tmp_path, monkeypatch):
+    """Above ``SAMPLE_START_POINTS`` the position's adjustment starts from the two-face
+    adjustment of a seeded sample (its held parameters, alignment, cells, modes and variance
+    components) instead of a white adjustment of every point; the answer is the same
+    adjustment of every point: estimates within 0.1 of their sigmas, sigmas and variance
+    components within 2 %, the same points used (rejections within 0.01 %), and it says so."""
+    import hartrao_jax.fit._fit as F
+
+    camp = load_campaign(simulate_campaign(
+        tmp_path / "c", preset="demo", effects=EFFECTS, seed=3, step_rad=0.012,
+        positions=[("r23", -35.0, -64.0)]).root)
+    full = F.fit_position(camp, list(camp.scans), "extended")
+    monkeypatch.setattr(F, "SAMPLE_START_POINTS", 20_000)
+    monkeypatch.setattr(F, "SAMPLE_POINTS", 20_000)
+    fast = F.fit_position(camp, list(camp.scans), "extended")
+    assert full.n_points > 40_000 and fast.names == full.names
+    assert any(n.startswith("started from a seeded sample of") for n in fast.notes)
+    assert not any(n.startswith("started from") for n in full.notes)
+    assert np.all(np.abs(fast.x - full.x) < 0.1 * full.sigma), (fast.x - full.x) / full.sigma
+    np.testing.assert_allclose(fast.sigma, full.sigma, rtol=0.02)
+    for k in ("noise", "offset_m2", "tilt_rad2"):
+        assert fast.surface.variances[k] == pytest.approx(full.surface.variances[k], rel=0.02)
+    assert abs(fast.n_points - full.n_points) <= 1e-4 * full.n_points + 2
+    assert fast.converged and fast.iterations <= 4

@@ -56,8 +56,12 @@ from ..solver._kernel import _materialize, materialize_trig
 from ..solver._mixed import gauss_helmert_mixed, ridge_chi2, unidentifiable
 from ._align import Alignment, mean_heading, north_alignment, scan_heading
 from ._identify import (
+    CONFOUNDING_AMPLITUDE_M,
     Held,
+    confounding_note,
+    confounding_shifts,
     hold_parameters,
+    mode_confounding,
     mode_prior,
     mode_prior_note,
     one_face_holds,
@@ -145,7 +149,8 @@ class SurfaceEffect:
     sigma m)}``; ``mode_tests``: per group of modes, the test that decided whether it is carried
     (``chi2``, ``dof``, ``p``, ``carried``). ``mode_prior`` (:func:`mode_prior`): how far the
     data determine each mode (``determined``) and how much of each other unknown's variance is
-    the modes' (``share``).
+    the modes' (``share``). ``mode_confounding`` (:func:`mode_confounding`): where the modes are
+    not carried, those the other unknowns take up (coma, by the pose) and their response.
     """
 
     cells: str
@@ -157,6 +162,7 @@ class SurfaceEffect:
     modes: dict[str, tuple[float, float]] = field(default_factory=dict)
     mode_tests: dict[str, dict] = field(default_factory=dict)
     mode_prior: dict[str, dict[str, float]] = field(default_factory=dict)
+    mode_confounding: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -747,12 +753,14 @@ def fit_position(
         if start is None:
             groups = dict(SURFACE_MODE_GROUPS) if tel.offset_m == 0 else {}
             mode_tests: dict[str, tuple] = {}
+            confounding: dict = {}
             x_start = {n_: float(v_) for n_, v_ in zip(mdl.free, x_white)}
             warm: dict = {"v0": np.asarray(res.v), "cell_var0": np.asarray(_CELL_VAR0)}
             ridge_var0 = np.full(len(groups), _MODE_VAR0)
         else:  # the sample's verdicts on the modes and its random effect as the start
             groups = {k_: SURFACE_MODE_GROUPS[k_] for k_ in (st.ridge or {})}
             mode_tests = dict(start.surface.mode_tests)
+            confounding = dict(start.surface.mode_confounding)
             x_start = {n_: float(v_) for n_, v_ in zip(st.model.free, st.x)}
             warm = {"v0": v_start, "u0": np.asarray(st.u), "noise_var0": float(st.var[0]),
                     "cell_var0": np.maximum(np.asarray(st.var[1]), np.asarray(_CELL_VAR0))}
@@ -782,6 +790,9 @@ def fit_position(
             absent = _absent_modes(rm, ridge, mode_tests)
             if not absent:
                 break
+            if not confounding:  # what the fixed effects take up once the modes are dropped
+                confounding = mode_confounding(np.asarray(rm.Qxx), mdl2.free, ridge,
+                                               np.asarray(rm.ridge_var), float(rm.noise_var))
             ridge_var0 = np.array([v_ for k_, v_ in zip(groups, np.asarray(rm.ridge_var))
                                    if k_ not in absent])
             for k_ in absent:  # the data do not show them: not carried (see _absent_modes)
@@ -796,7 +807,7 @@ def fit_position(
         if absent:
             notes.append("smooth modes not shown by the data, not carried as a random effect ("
                          + ", ".join(f"{k_} p = {mode_tests[k_]['p']:.2f}" for k_ in absent)
-                         + "): the panels' random effect covers them")
+                         + "): the panels' random effect covers those the data can determine")
         keep_idx = [i for i, n_ in enumerate(mdl2.free) if not n_.startswith(ZERNIKE_PREFIX)]
         mode_idx = [i for i, n_ in enumerate(mdl2.free) if n_.startswith(ZERNIKE_PREFIX)]
         xs = np.asarray(rm.x)
@@ -810,7 +821,8 @@ def fit_position(
             cells=desc, u=np.asarray(rm.u), u_cov=np.asarray(rm.u_cov), n=counts,
             variances=variances, redundancy=shares,
             modes={mdl2.free[i]: (float(xs[i]), float(np.sqrt(cov[i, i]))) for i in mode_idx},
-            mode_tests=mode_tests, mode_prior=mode_prior(cov, mdl2.free, ridge, rm.ridge_var))
+            mode_tests=mode_tests, mode_prior=mode_prior(cov, mdl2.free, ridge, rm.ridge_var),
+            mode_confounding=confounding if not ridge else {})
         line = mode_prior_note(surf.mode_prior, surf.modes,
                                math.sqrt(variances.get("modes_m2", 0.0)))
         if line:
@@ -833,6 +845,10 @@ def fit_position(
         response = np.asarray(rm.x_response)[:, keep_idx, :]
         sigma_white = white_sigmas(response, rm.cell_var, cov_pos,
                                    mode_variance_parts(surf, mdl2.free, keep_idx, cov_pos))
+        line = confounding_note(surf.mode_confounding, free, np.sqrt(np.diag(cov_pos)),
+                                "the smooth modes the data can determine are absent")
+        if line:
+            notes.append(line)
     else:
         free, x_pos, cov_pos = mdl.free, np.asarray(res.x), np.asarray(res.cov)
         weights = np.asarray(res.weights)
@@ -949,6 +965,17 @@ def position_record(p: PositionFit) -> dict:
                 k: {**_value_sigma(a, b, "m"),
                     **({"determined_by_data": _num(det[k])} if k in det else {})}
                 for k, (a, b) in p.surface.modes.items()}
+        conf = p.surface.mode_confounding
+        if conf:
+            shifts = confounding_shifts(conf, p.names, p.sigma)
+            row["surface_mode_confounding"] = {
+                "modes": list(conf["modes"]),
+                "multiple_correlation": {k: _num(v) for k, v in conf["correlation"].items()},
+                "amplitude_m": CONFOUNDING_AMPLITUDE_M,
+                "shift_sigma": {k: _num(v) for k, v in shifts.items()},
+                "note": "not modelled: the estimates move by shift_sigma of their sigmas "
+                        "per amplitude_m of these modes (root sum square of their "
+                        "coefficients), which the data cannot determine at one position"}
         if p.surface.mode_tests:
             row["surface_mode_tests"] = {
                 k: {"chi2": _num(t["chi2"]), "dof": t["dof"], "p": _num(t["p"]),

@@ -110,6 +110,87 @@ def mode_prior(cov: np.ndarray, names: Sequence[str], ridge: dict | None,
             "share": {names[i]: float(np.clip(v, 0.0, 1.0)) for i, v in zip(k_idx, share)}}
 
 
+#: A smooth mode is "not separable" from the other unknowns when its multiple correlation with
+#: them exceeds this (the identifiability rule of the calibration parameters).
+MODE_CONFOUNDED_CORR = 0.99
+#: The coma (or other confounded mode) amplitude the notes quote shifts for (m).
+CONFOUNDING_AMPLITUDE_M = 1e-5
+#: An estimate is "not separable" from a confounded mode when that amplitude of the mode moves
+#: it by more than this many of its sigmas (tz: 0.35, f and calibration < 0.001 at a
+#: simulated HartRAO position).
+CONFOUNDING_SHIFT_MIN = 0.2
+
+
+def mode_confounding(Qxx: np.ndarray, names: Sequence[str], ridge: dict | None, ridge_var,
+                     noise_var: float) -> dict:
+    """The smooth modes the other unknowns can take up, and by how much.
+
+    Computed from an adjustment that carried the modes as a random effect (``Qxx`` its cofactor
+    matrix, the modes' prior ``noise_var / ridge_var`` on their diagonal, which is taken out
+    again): a mode whose multiple correlation with the other unknowns exceeds
+    :data:`MODE_CONFOUNDED_CORR` cannot be told from them by the data (coma from the pose of a
+    paraboloid: a rotation about a point near 2f on its axis moves the surface as coma does).
+    Where such a mode is not modelled, the other unknowns take it up: their response to its
+    true coefficient is ``N_kk^-1 N_km`` (per m; the regression of the mode's
+    column on theirs). Returns ``{"modes": [...], "correlation":
+    {mode: R}, "response": {name: {mode: d estimate / d coefficient}}}`` (empty without
+    confounded modes)."""
+    if not ridge:
+        return {}
+    N = np.linalg.inv(np.asarray(Qxx, float))
+    m_idx = [i for g in ridge.values() for i in g]
+    prior = np.array([float(np.asarray(ridge_var)[k]) for k, g in enumerate(ridge.values())
+                      for _ in g])
+    N[m_idx, m_idx] -= float(noise_var) / np.maximum(prior, 1e-300)
+    k_idx = [i for i in range(len(names)) if i not in set(m_idx)]
+    Nkk, Nkm = N[np.ix_(k_idx, k_idx)], N[np.ix_(k_idx, m_idx)]
+    S = np.linalg.solve(Nkk, Nkm)  # (k, m): least squares without the mode takes it up
+    explained = np.einsum("km,km->m", Nkm, S)  # N_mk N_kk^-1 N_km
+    r2 = np.clip(explained / np.maximum(np.diag(N)[m_idx], 1e-300), 0.0, 1.0)
+    weak = [j for j, r in enumerate(np.sqrt(r2)) if r > MODE_CONFOUNDED_CORR]
+    if not weak:
+        return {}
+    modes = [names[m_idx[j]] for j in weak]
+    return {"modes": modes,
+            "correlation": {names[m_idx[j]]: float(np.sqrt(r2[j])) for j in weak},
+            "response": {names[i]: {names[m_idx[j]]: float(S[a, j]) for j in weak}
+                         for a, i in enumerate(k_idx)}}
+
+
+def confounding_shifts(conf: dict, names: Sequence[str], sigma: Sequence[float],
+                       amplitude_m: float = CONFOUNDING_AMPLITUDE_M) -> dict[str, float]:
+    """Per estimate, the largest shift (in its sigmas) that confounded modes of ``amplitude_m``
+    (their coefficients' root sum square) cause where they are not modelled."""
+    out = {}
+    for n, s in zip(names, sigma):
+        r = conf.get("response", {}).get(n)
+        if r and s and s > 0:
+            out[n] = float(amplitude_m * np.sqrt(sum(v * v for v in r.values())) / s)
+    return out
+
+
+def confounding_note(conf: dict, names: Sequence[str], sigma: Sequence[float],
+                     reason: str) -> str:
+    """One line: the unknowns a mode that is not modelled moves by more than
+    :data:`CONFOUNDING_SHIFT_MIN` sigma per :data:`CONFOUNDING_AMPLITUDE_M` (empty when none
+    is)."""
+    if not conf:
+        return ""
+    shifts = {n: v for n, v in confounding_shifts(conf, names, sigma).items()
+              if v > CONFOUNDING_SHIFT_MIN}
+    if not shifts:
+        return ""
+    modes = conf["modes"]
+    kinds = sorted({MODE_NAMES.get(int(k[len(ZERNIKE_PREFIX):]), k) for k in modes})
+    return (f"{', '.join(shifts)} are not separable from {' and '.join(kinds)} of the surface "
+            f"({', '.join(modes)}: multiple correlation "
+            f"{min(conf['correlation'].values()):.3f}), which one position cannot determine "
+            f"and which is not modelled here ({reason}): "
+            f"{1e6 * CONFOUNDING_AMPLITUDE_M:.0f} um of it would move them by "
+            + ", ".join(f"{v:.1f}" for v in shifts.values())
+            + " sigma; their sigmas hold for a surface without it")
+
+
 def mode_prior_note(mp: dict, modes: dict[str, tuple[float, float]], prior_sd_m: float) -> str:
     """One line naming the modes the data do not determine and the unknowns that lean on their
     prior (empty when there are none)."""

@@ -335,7 +335,8 @@ def _record(start: PositionFit, st, x, final, var, sums, per_scan, converged, pa
         cells=s.cells, u=np.asarray(final.U), u_cov=float(var[0]) * np.asarray(final.Quu),
         n=s.n, variances=variances, redundancy=shares,
         modes={names[i]: (float(xs[i]), math.sqrt(cov[i, i])) for i in modes},
-        mode_prior=mode_prior(cov, names, st.ridge, var[2]))
+        mode_prior=mode_prior(cov, names, st.ridge, var[2]),
+        mode_confounding=s.mode_confounding)
     n_used = float(sums.n_used)
     sigma0 = math.sqrt(float(sums.omega) / max(n_used - len(names), 1.0))
     pf = dataclasses.replace(

@@ -207,14 +207,16 @@ def print_fit_table(cf, title="fit") -> None:
                     row.append("held" if n in p.held else "fixed")
             ct.add_row(*row)
             notes += [f"{p.position}: {h.note}" for h in p.held.values()]
-            prior += [f"{p.position}: {t}" for t in p.notes if t.startswith("smooth modes")]
+            prior += [f"{p.position}: {t}" for t in p.notes
+                      if t.startswith("smooth modes") or " are not separable from " in t]
         _console().print(pt)
         if extra:
             _console().print(ct)
         for line in dict.fromkeys(notes):
             _console().print(f"not identifiable: {escape(line)}")
         for line in prior:  # modes the data do not determine, or modes not carried at all
-            label = "surface modes" if "not shown by the data" in line else "prior-dominated"
+            label = ("not separable" if " are not separable from " in line else
+                     "surface modes" if "not shown by the data" in line else "prior-dominated")
             _console().print(f"{label}: {escape(line)}")
         return
     if extra:

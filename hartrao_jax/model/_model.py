@@ -66,6 +66,7 @@ EXTRA_UNITS = {
 }
 
 N_CONSTS = 2  # per-point constants: time_s, known deviation (m)
+DEV_COLUMN = 1  # the column of the known normal deviation of the surface (m)
 
 
 class ModelError(ValueError):
@@ -164,7 +165,7 @@ class ParaboloidModel(eqx.Module):
 
     def deviation(self, X: Float[Array, " 3"], p: Mapping[str, Array], c) -> Array:
         """Modelled normal deviation (m) of the reflector at ``X``: known part + Zernike terms."""
-        dev = c[1]
+        dev = c[DEV_COLUMN]
         zs = [(int(n[len(ZERNIKE_PREFIX):]), v)
               for n, v in p.items() if n.startswith(ZERNIKE_PREFIX)]
         if zs:

@@ -31,7 +31,6 @@ from ..geometry._geometry import (
     zernike_columns,
 )
 from ..model._model import (
-    DEV_COLUMN,
     N_CONSTS,
     ZERNIKE_PREFIX,
     ParaboloidModel,
@@ -595,22 +594,6 @@ def reject_beyond(v: np.ndarray, sigma_l, used: np.ndarray, k: float, n_unknowns
     return keep
 
 
-def start_residuals(model: ParaboloidModel, l, c, sigma_l, kappa_rad, st: MixedState, x,
-                    cell, design, X_hit, aperture_m: float) -> np.ndarray:
-    """Residuals (n, 3) of every point from the surface of a random-effect solution ``st``:
-    the paraboloid at ``x`` plus each point's cell deviation ``design . u[cell]`` and the
-    smooth modes carried (their coefficients in ``st.x``) at its hit point ``X_hit``."""
-    dev = np.where(cell >= 0, np.einsum("nk,nk->n", design,
-                                        np.asarray(st.u)[np.maximum(cell, 0)]), 0.0)
-    if st.modes:
-        coef = dict(zip(st.model.free, np.asarray(st.x)))
-        dev = dev + zernike_columns(X_hit, st.modes, aperture_m) @ np.array(
-            [coef[f"{ZERNIKE_PREFIX}{j}"] for j in st.modes])
-    c_dev = np.array(c, float)
-    c_dev[:, DEV_COLUMN] = dev
-    return np.asarray(hit_points_and_residuals(model, l, x, c_dev, sigma_l, kappa_rad)[1])
-
-
 #: Positions with more points than this (both faces, inside the geometry window) start from a
 #: seeded sample of :data:`SAMPLE_POINTS`: see :func:`_sample_start`.
 SAMPLE_START_POINTS = 4_000_000
@@ -758,8 +741,9 @@ def fit_position(
         cell_m = float(tel.extra.get("panel_cell_m", 2.0)) if tel.extra else 2.0
         if start is None:
             X_hit = np.asarray(hit_points(mdl, l, x_white, c, sig, kappa))
-        else:
-            X_hit = np.asarray(hit_points(mdl, l, x_white, c, sig, kappa))
+        else:  # and the start's residuals, where the random effect linearises first
+            X_hit, v_start = (np.asarray(a) for a in hit_points_and_residuals(
+                mdl, l, x_white, c, sig, kappa))
         keys = (None if tel.ring_edges_m is not None and tel.panels_per_ring is not None
                 else start.mixed.cell_keys if start is not None
                 else square_cells(X_hit[used], cell_m)[2])
@@ -778,15 +762,12 @@ def fit_position(
             mode_tests = dict(start.surface.mode_tests)
             confounding = dict(start.surface.mode_confounding)
             x_start = {n_: float(v_) for n_, v_ in zip(st.model.free, st.x)}
-            # the start's residuals from its surface (cells and modes) at every point: where the
-            # random effect linearises first, and the outliers it would reject from there
-            v_start = start_residuals(mdl, l, c, sig, kappa, st, x_white, cell, design, X_hit,
-                                      aperture)
             warm = {"v0": v_start, "u0": np.asarray(st.u), "noise_var0": float(st.var[0]),
                     "cell_var0": np.maximum(np.asarray(st.var[1]), np.asarray(_CELL_VAR0))}
             ridge_var0 = np.maximum(np.asarray(st.var[2], float), _MODE_VAR0)
-            if robust_k is not None:
-                used = reject_beyond(v_start, sig, used, robust_k, len(st.x))
+        if start is not None and robust_k is not None:
+            # the outliers the white robust adjustment would have rejected, judged at the start
+            used = reject_beyond(v_start, sig, used, robust_k, len(mdl.free))
         w_mixed = used.astype(float)
         for _ in range(3 + len(groups)):
             modes = [j for g_ in groups.values() for j in g_]

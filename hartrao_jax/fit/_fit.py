@@ -57,6 +57,7 @@ from ..solver._mixed import gauss_helmert_mixed, ridge_chi2, unidentifiable
 from ._align import Alignment, mean_heading, north_alignment, scan_heading
 from ._identify import (
     CONFOUNDING_AMPLITUDE_M,
+    CONFOUNDING_SHIFT_MIN,
     Held,
     confounding_note,
     confounding_shifts,
@@ -968,6 +969,10 @@ def position_record(p: PositionFit) -> dict:
         conf = p.surface.mode_confounding
         if conf:
             shifts = confounding_shifts(conf, p.names, p.sigma)
+            for n, v in shifts.items():  # said next to each estimate it concerns
+                if v > CONFOUNDING_SHIFT_MIN:
+                    row[n]["not_separable_from"] = list(conf["modes"])
+                    row[n]["shift_sigma_per_10um"] = _num(v)
             row["surface_mode_confounding"] = {
                 "modes": list(conf["modes"]),
                 "multiple_correlation": {k: _num(v) for k, v in conf["correlation"].items()},

@@ -195,6 +195,10 @@ def test_coma_the_pose_takes_up_is_said_where_the_modes_are_not_carried(tmp_path
     assert min(c["multiple_correlation"].values()) > 0.99
     assert all(0.5 < c["shift_sigma"][n] < 3 for n in ("tx", "ty", "rx", "ry"))
     assert max(c["shift_sigma"][n] for n in ("f", "x4", "x6", "x7")) < 0.01
+    for n in ("tx", "ty", "tz", "rx", "ry"):  # said next to the estimate as well
+        assert p[n]["not_separable_from"] == ["zern_7", "zern_8"]
+        assert p[n]["shift_sigma_per_10um"] == pytest.approx(c["shift_sigma"][n])
+    assert "not_separable_from" not in p["f"]
     (note,) = [n for n in p["notes"] if "not separable from coma" in n]
     assert note.startswith("tx, ty, tz, rx, ry are not separable from coma of the surface")
     truth = json_.loads((camp.root / "truth.json").read_text())["scans"][0]

@@ -47,7 +47,16 @@ from ..geometry._geometry import pointing_gravity
 from ..model._model import parse_model
 from ..preprocess._preprocess import preprocess_keep
 from ._align import MIN_TILT_RAD, Alignment, mean_heading, scan_heading
-from ._fit import CampaignFit, ScanFit, fit_position, fit_scan, position_record, sigma_vector
+from ._fit import (
+    CampaignFit,
+    ScanFit,
+    fit_position,
+    fit_scan,
+    pooled_mode_variance,
+    position_record,
+    record_mode_variance,
+    sigma_vector,
+)
 from ._joint import (
     DEFAULT_SHARED,
     JointFit,
@@ -243,9 +252,10 @@ def task_fit_scan(root: str, scan_id: str, model, fixed: dict | None, robust_k: 
 
 def task_fit_position(root: str, scan_ids: Sequence[str], model, fixed: dict | None,
                       robust_k: float | None, preprocess: bool, heading_hint_rad: float | None,
-                      out_dir: str | None):
+                      out_dir: str | None, mode_prior_m2: float | None = None):
     """Worker: read, preprocess and adjust the scans of one position together (two faces, the
-    surface a random effect); returns the scans' summaries and the position's record."""
+    surface a random effect; ``mode_prior_m2`` as :func:`._fit.fit_position`); returns the
+    scans' summaries and the position's record."""
 
     worker_setup()
 
@@ -254,7 +264,8 @@ def task_fit_position(root: str, scan_ids: Sequence[str], model, fixed: dict | N
     camp = _campaign(root)
     metas = [camp.scan(i) for i in scan_ids]
     pf = fit_position(camp, metas, model, keep=preprocess_keep(preprocess, camp), fixed=fixed,
-                      robust_k=robust_k, heading_hint_rad=heading_hint_rad)
+                      robust_k=robust_k, heading_hint_rad=heading_hint_rad,
+                      mode_prior_m2=mode_prior_m2)
     seconds = time.perf_counter() - t0
     out = []
     for s in pf.scans:
@@ -439,12 +450,13 @@ def fit_dask(
                 groups.setdefault(m.position, []).append(m)
             records: dict[str, dict] = {}
 
-            def run_positions(names_, hint):
+            def run_positions(names_, hint, prior=None):
                 fut = client.map(task_fit_position, [root] * len(names_),
                                  [[m.id for m in groups[p]] for p in names_],
                                  [model] * len(names_), [fixed] * len(names_),
                                  [robust_k] * len(names_), [preprocess] * len(names_),
-                                 [hint] * len(names_), [outd] * len(names_), pure=False)
+                                 [hint] * len(names_), [outd] * len(names_),
+                                 [prior] * len(names_), pure=False)
                 for p, (summ, rec) in zip(names_, client.gather(fut)):
                     records[p] = rec
                     for s in summ:
@@ -458,6 +470,15 @@ def fit_dask(
             rest = [p for p in groups if p not in first]
             if rest:
                 run_positions(rest, hint)
+            # as fit_campaign: the positions whose pose takes up coma, with the modes carried
+            # at the variance of the positions that show them
+            prior = pooled_mode_variance([record_mode_variance(r) for r in records.values()])
+            redo = [p for p in groups if prior is not None
+                    and records[p].get("surface_mode_confounding")]
+            for part, h in (([p for p in redo if p in first], None),
+                            ([p for p in redo if p not in first], hint)):
+                if part:  # each with the heading hint of its first adjustment
+                    run_positions(part, h, prior)
             ordered = [summaries[m.id] for m in metas]
             pos_order = list(dict.fromkeys(m.position for m in metas))
             return _finish(client, od, out_dir, metas, ordered,

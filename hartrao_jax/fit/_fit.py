@@ -632,6 +632,36 @@ def _sample_start(campaign: Campaign, metas: Sequence[ScanMeta], model, prepared
     return start if start.mixed is not None else None
 
 
+#: The fewest positions showing the smooth modes whose variances make a campaign's prior.
+POOL_MIN_POSITIONS = 2
+
+
+def pooled_mode_variance(variances: Sequence[float]) -> float | None:
+    """The campaign's variance of the smooth modes (m^2): the median of the positions that
+    carry them (each estimated from its own data), None from fewer than
+    :data:`POOL_MIN_POSITIONS`. Why: coma trades with the pose, so one position cannot
+    estimate it; gravity changes all low-order modes together, so the positions that show
+    them (astigmatism above all) give its size."""
+    v = [float(a) for a in variances if a is not None and a > 0]
+    return float(np.median(v)) if len(v) >= POOL_MIN_POSITIONS else None
+
+
+def record_mode_variance(rec: dict) -> float | None:
+    """:func:`_carried_mode_variance` of a ``positions[]`` record (m^2)."""
+    sd = (rec.get("variance_components") or {}).get("modes_m")
+    return float(sd) ** 2 if rec.get("surface_modes") and sd else None
+
+
+def _needs_pooled_modes(p: PositionFit) -> bool:
+    return p.surface is not None and bool(p.surface.mode_confounding)
+
+
+def _carried_mode_variance(p: PositionFit) -> float | None:
+    if p.surface is None or not p.surface.modes:
+        return None
+    return p.surface.variances.get("modes_m2")
+
+
 def fit_position(
     campaign: Campaign,
     metas: Sequence[ScanMeta],
@@ -645,6 +675,7 @@ def fit_position(
     heading_hint_rad: float | None = None,
     surface: bool = True,
     max_iter: int = 30,
+    mode_prior_m2: float | None = None,
 ) -> PositionFit:
     """Adjust the scans of one position together: one pose, one f, one set of calibration.
 
@@ -662,6 +693,11 @@ def fit_position(
     4. Identifiability: two-face parameters are held on a one-face position; any calibration
        parameter the normal matrix cannot separate (``|correlation| > 0.99``, e.g. x6/x7 near
        the zenith) is held at its fixed/prior value with a note, and the position refitted.
+
+    ``mode_prior_m2``: where the data show none of the smooth modes but the other unknowns take
+    one up (coma by the pose, :func:`mode_confounding`), the modes are carried all the same with
+    this variance (m^2; the campaign's, :func:`pooled_mode_variance`), so that the sigmas of
+    the pose include coma of that size instead of assuming none.
     """
 
     metas = list(metas)
@@ -804,11 +840,37 @@ def fit_position(
                     "cell_var0": np.maximum(np.asarray(rm.cell_var), np.asarray(_CELL_VAR0)),
                     "noise_var0": float(rm.noise_var)}
             w_mixed = np.asarray(rm.weights)
+        pooled = bool(mode_prior_m2 and mode_prior_m2 > 0 and confounding and not groups
+                      and tel.offset_m == 0)
+        if pooled:
+            # carried with the campaign's variance (held: this position cannot estimate it),
+            # from where the adjustment without them ended
+            x_start = {n_: float(v_) for n_, v_ in zip(mdl2.free, np.asarray(rm.x))}
+            groups = dict(SURFACE_MODE_GROUPS)
+            modes = [j for g_ in groups.values() for j in g_]
+            mdl2 = model_of(free_of(tuple(f"{ZERNIKE_PREFIX}{j}" for j in modes)), kappa)
+            ridge = {k_: [mdl2.free.index(f"{ZERNIKE_PREFIX}{j}") for j in g_]
+                     for k_, g_ in groups.items()}
+            cond, mz = model_of(free_of(), kappa), zernike_columns(X_hit, modes, aperture)
+            rm = gauss_helmert_mixed(
+                cond, l, np.array([x_start.get(n_, 0.0) for n_ in mdl2.free]), sig, c,
+                np.asarray(rm.weights), cell, design, n_cells, robust_k=robust_k, ridge=ridge,
+                ridge_var0=float(mode_prior_m2), max_iter=60, mode_design=mz,
+                v0=np.asarray(rm.v), u0=np.asarray(rm.u), cell_var0=np.asarray(rm.cell_var),
+                noise_var0=float(rm.noise_var), estimate_variances=False)
+            confounding = {}
         absent = [k_ for k_, t in mode_tests.items() if not t["carried"]]
         if absent:
             notes.append("smooth modes not shown by the data, not carried as a random effect ("
                          + ", ".join(f"{k_} p = {mode_tests[k_]['p']:.2f}" for k_ in absent)
-                         + "): the panels' random effect covers those the data can determine")
+                         + "): the panels' random effect covers those the data can determine"
+                         if not pooled else
+                         "smooth modes not shown by the data ("
+                         + ", ".join(f"{k_} p = {mode_tests[k_]['p']:.2f}" for k_ in absent)
+                         + ") but taken up by the pose: carried with the campaign's variance "
+                         f"({1e6 * math.sqrt(mode_prior_m2):.0f} um rms per mode, from the "
+                         "positions that show them), the position's own variance components "
+                         "held")
         keep_idx = [i for i, n_ in enumerate(mdl2.free) if not n_.startswith(ZERNIKE_PREFIX)]
         mode_idx = [i for i, n_ in enumerate(mdl2.free) if n_.startswith(ZERNIKE_PREFIX)]
         xs = np.asarray(rm.x)
@@ -1037,15 +1099,29 @@ def fit_campaign(
         order = sorted(groups, key=lambda p: -tilt[groups[p][0].id])
         pfits: dict[str, PositionFit] = {}
         headings: list[float] = []
+        hints: dict[str, float | None] = {}
         with _progress(not progress) as prog:
             task = prog.add_task("fitting positions", total=len(order))
             for pos in order:
                 prog.update(task, description=f"fitting {pos}")
+                hints[pos] = mean_heading(headings)
                 pf = fit_position(campaign, groups[pos], model, keep=keep, fixed=fixed,
-                                  robust_k=robust_k, heading_hint_rad=mean_heading(headings),
+                                  robust_k=robust_k, heading_hint_rad=hints[pos],
                                   surface=surface)
                 headings.append(scan_heading(pf.scans[0]))
                 pfits[pos] = pf
+                release_compiled_programs()
+                prog.advance(task)
+            # positions whose pose takes up a coma they cannot determine: again, with the
+            # smooth modes carried at the variance of the positions that show them
+            prior = pooled_mode_variance([_carried_mode_variance(p) for p in pfits.values()])
+            redo = [p for p in order if prior is not None and _needs_pooled_modes(pfits[p])]
+            if redo:
+                task = prog.add_task("coma prior from the campaign", total=len(redo))
+            for pos in redo:
+                pfits[pos] = fit_position(campaign, groups[pos], model, keep=keep, fixed=fixed,
+                                          robust_k=robust_k, heading_hint_rad=hints[pos],
+                                          surface=surface, mode_prior_m2=prior)
                 release_compiled_programs()
                 prog.advance(task)
         by_id = {s.meta.id: s for pf in pfits.values() for s in pf.scans}

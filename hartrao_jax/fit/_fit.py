@@ -194,6 +194,8 @@ class MixedState:
     condition: ParaboloidModel
     modes: tuple[int, ...] = ()
     aperture_m: float = 1.0
+    #: the variances were held (the modes carried at a campaign's variance), not estimated
+    variances_held: bool = False
 
 
 @dataclass
@@ -893,7 +895,7 @@ def fit_position(
         mixed = MixedState(mdl2, xs, np.asarray(rm.u), (float(rm.noise_var), np.asarray(
             rm.cell_var), np.asarray(rm.ridge_var)), (1.0, np.asarray(_CELL_VAR0), np.full(
                 len(ridge or ()), _MODE_VAR0)), ridge, kappa, cell_m, keys,
-            [p[2] for p in prepared], cond, tuple(modes), aperture)
+            [p[2] for p in prepared], cond, tuple(modes), aperture, variances_held=pooled)
         free = tuple(mdl2.free[i] for i in keep_idx)
         x_pos, cov_pos = xs[keep_idx], cov[np.ix_(keep_idx, keep_idx)]
         mdl_final = model_of(free, kappa)

@@ -64,7 +64,9 @@ from ._fit import (
     fit_position,
     hit_points,
     mode_variance_parts,
+    pooled_mode_variance,
     position_record,
+    record_mode_variance,
     scan_arrays,
     sigma_vector,
     surface_components,
@@ -177,6 +179,7 @@ def stream_fit_position(
     tol: float = 1e-2,
     seed: int = 0,
     progress: bool = False,
+    mode_prior_m2: float | None = None,
 ) -> dict:
     """Adjust the scans of one position (both faces, or one) streaming them from disk.
 
@@ -203,7 +206,7 @@ def stream_fit_position(
     timings["sample_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     start = fit_position(campaign, metas, model, datas=samples, fixed=fixed, robust_k=robust_k,
-                         window_m=window_m)
+                         window_m=window_m, mode_prior_m2=mode_prior_m2)
     timings["start_fit_s"] = time.perf_counter() - t0
     st = start.mixed
     if st is None:
@@ -261,7 +264,8 @@ def stream_fit_position(
             for _ in range(max_iter):
                 sums, per_scan = stream_pass(x, U, var, write=False)
                 passes += 1
-                final = mixed_step(sums, var, var0, x, U, ridge_idx, ridge_group, n_groups)
+                final = mixed_step(sums, var, var0, x, U, ridge_idx, ridge_group, n_groups,
+                                   estimate_variances=not st.variances_held)
                 var_prev = var
                 x, U, var = final.x, final.U, final.var
                 ratios.append(float(final.ratio))
@@ -353,12 +357,13 @@ def _record(start: PositionFit, st, x, final, var, sums, per_scan, converged, pa
 
 
 def _position_task(root: str, scan_ids: list[str], model, store: str | None,
-                   rows_per_chunk: int, robust_k: float | None) -> dict:
+                   rows_per_chunk: int, robust_k: float | None,
+                   mode_prior_m2: float | None = None) -> dict:
     """One position streamed where this runs (in-process or on a Dask worker); the per-point
     results stay in ``store`` (None: not written)."""
     camp = worker_campaign(root)  # on a Dask worker: float64, the compilation cache
     return stream_fit_position(camp, scan_ids, model, rows_per_chunk=rows_per_chunk,
-                               store=store, robust_k=robust_k)
+                               store=store, robust_k=robust_k, mode_prior_m2=mode_prior_m2)
 
 
 def stream_fit_positions(
@@ -387,18 +392,31 @@ def stream_fit_positions(
         groups.setdefault(m.position, []).append(m.id)
     root = str(campaign.root)
     st = None if store is None else str(store)
-    if client is None:
-        recs = []
-        with _progress(not progress) as prog:
-            task = prog.add_task("streaming positions", total=len(groups))
-            for pos, sids in groups.items():
-                prog.update(task, description=f"streaming {pos}")
-                recs.append(_position_task(root, sids, model, st, rows_per_chunk, robust_k))
-                prog.advance(task)
-    else:
+
+    def run(todo: dict[str, list[str]], prior=None, tag="") -> dict[str, dict]:
+        if client is None:
+            out = {}
+            with _progress(not progress) as prog:
+                task = prog.add_task("streaming positions" + tag, total=len(todo))
+                for pos, sids in todo.items():
+                    prog.update(task, description=f"streaming {pos}{tag}")
+                    out[pos] = _position_task(root, sids, model, st, rows_per_chunk, robust_k,
+                                              prior)
+                    prog.advance(task)
+            return out
         futs = [client.submit(_position_task, root, sids, model, st, rows_per_chunk, robust_k,
-                              key=f"stream-{pos}", pure=False) for pos, sids in groups.items()]
-        recs = client.gather(futs)
+                              prior, key=f"stream-{pos}{tag.replace(' ', '-')}", pure=False)
+                for pos, sids in todo.items()]
+        return dict(zip(todo, client.gather(futs)))
+
+    done = run(groups)
+    # as fit: the positions whose pose takes up coma, again with the campaign's mode variance
+    prior = pooled_mode_variance([record_mode_variance(r) for r in done.values()])
+    redo = {p: groups[p] for p in groups
+            if prior is not None and done[p].get("surface_mode_confounding")}
+    if redo:
+        done.update(run(redo, prior, " (coma prior)"))
+    recs = [done[p] for p in groups]
     return {"schema": "hartrao-stream-campaign/1", "campaign": root, "positions": recs,
             "scans": [s for r in recs for s in r["scans"]],
             "seconds": time.perf_counter() - t0, "rows_per_chunk": rows_per_chunk,

@@ -49,10 +49,17 @@ CASES = {
     # is shown, none is carried, and the pose takes up the coma (reported, scored apart)
     "gravity-coma": ([("r23", -35.0, -64.0)],
                      {**PANELS, "panel_offset": 1.5e-4, "gravity_deformation": 1.0}, 0.012),
+    # the same position in a campaign whose other positions show the modes: it borrows their
+    # variance (fit._fit.pooled_mode_variance)
+    "gravity-coma-campaign": ([("r23", -35.0, -64.0), ("g1", -60.0, -30.0),
+                               ("g2", 40.0, -70.0)],
+                              {**PANELS, "panel_offset": 1.5e-4, "gravity_deformation": 1.0},
+                              0.012),
 }
 #: Simulator seed offset per case: independent panel patterns across cases.
 SEED_OFFSET = {"gravity": 0, "demo": 10_000, "panels-0.1mm": 20_000, "panels-0.3mm": 30_000,
-               "zenith": 40_000, "dense": 50_000, "gravity-coma": 60_000}
+               "zenith": 40_000, "dense": 50_000, "gravity-coma": 60_000,
+               "gravity-coma-campaign": 70_000}
 PARAMS = ("tx", "ty", "tz", "rx", "ry", "f", "x4", "x6", "x7")
 ANGLES = ("rx", "ry")
 

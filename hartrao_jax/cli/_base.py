@@ -229,13 +229,16 @@ def print_fit_table(cf, title="fit") -> None:
             row = [s.meta.id]
             for n in extra:
                 sc, _, dg = _scale_unit(parameter_unit(n))
-                if n in s.names:
+                if n in s.undetermined:
+                    row.append("not determined")
+                elif n in s.names:
                     v, sg = s.estimates[n]
                     row.append(_pm(v * sc, sg * sc, dg))
                 else:
                     row.append("held" if n in s.held else "fixed")
             ct.add_row(*row)
             notes += [f"{s.meta.id}: {h.note}" for h in s.held.values()]
+            notes += [f"{s.meta.id}: {t}" for t in dict.fromkeys(s.undetermined.values())]
         _console().print(ct)
         for line in notes:
             _console().print(f"not identifiable: {escape(line)}")

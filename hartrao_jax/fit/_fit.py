@@ -67,6 +67,7 @@ from ._identify import (
     mode_prior_note,
     one_face_holds,
     typical_magnitudes,
+    undetermined_parameters,
 )
 
 log = logging.getLogger("hartrao_jax")
@@ -119,6 +120,9 @@ class ScanFit(Estimates):
     #: parameters of the model the scan cannot determine (two-face ones on a one-face scan),
     #: held at their fixed/prior value instead of estimated
     held: dict[str, Held] = field(default_factory=dict)
+    #: parameters a per-cycle fit estimated freely but cannot determine (x6/x7 near the
+    #: zenith), with their notes: reported as not identifiable, not as estimates
+    undetermined: dict[str, str] = field(default_factory=dict)
 
     def value(self, name: str) -> float:
         """Estimated or fixed value of a parameter (0 for a parameter not in the model)."""
@@ -420,6 +424,7 @@ def fit_scan(
     fit = finish_scan_fit(campaign, meta, mdl, pdata, res, g, init, wpad,
                           heading_hint_rad=heading_hint_rad)
     fit.held = held
+    fit.undetermined = undetermined_parameters(fit.cov, fit.names, fit.elevation_deg)
     if n_pad == n:
         return fit
     # back to the scan's own rows (the padding rows are unused and outside the window)
@@ -1206,6 +1211,7 @@ def _fit_batch(campaign, metas, model, *, fixed, robust_k, keep, progress) -> di
         fit = finish_scan_fit(campaign, m, mdl, data, rb, g, init, window,
                               heading_hint_rad=mean_heading(headings))
         fit.held = held
+        fit.undetermined = undetermined_parameters(fit.cov, fit.names, fit.elevation_deg)
         headings.append(scan_heading(fit))
         out[m.id] = fit
     return out

@@ -12,6 +12,7 @@ import numpy as np
 
 from ..model._model import ZERNIKE_PREFIX
 from ..physics._catalog import INSTRUMENT, two_face_parameters
+from ..solver._mixed import unidentifiable
 
 
 @dataclass
@@ -53,6 +54,26 @@ def hold_parameters(held: dict[str, Held], fixed: dict[str, float], bad, cov, na
         note = hold_note(group, partners, corr, reason, sig, elevation)
         for n_ in group:
             held[n_] = Held(fixed.get(n_, 0.0), note, partners, corr)
+
+
+def undetermined_parameters(cov, names: Sequence[str], elevation_deg: float | None
+                            ) -> dict[str, str]:
+    """The calibration parameters a fit estimated freely but its data cannot determine
+    (:func:`..solver.unidentifiable`: x6/x7 near the zenith), each with its note: a per-cycle
+    fit reports them as not identifiable instead of as estimates (its other sigmas include
+    their freedom, so they stay right)."""
+    names = list(names)
+    cand = [n for n in names if n in INSTRUMENT]
+    bad = unidentifiable(np.asarray(cov), names, cand, typical=typical_magnitudes())
+    sig = dict(zip(names, np.sqrt(np.maximum(np.diag(np.asarray(cov)), 0.0))))
+    out = {}
+    for group, partners, corr, reason in bad:
+        note = hold_note(group, partners, corr, reason, sig, elevation_deg,
+                         then="not reported: this per-cycle fit estimates it freely (the "
+                              "other sigmas include that freedom)")
+        for n in group:
+            out[n] = note
+    return out
 
 
 def one_face_holds(names: Iterable[str], fixed: dict[str, float]) -> dict[str, Held]:

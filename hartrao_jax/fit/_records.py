@@ -37,7 +37,10 @@ def scan_record(s: ScanFit, held: dict[str, Held] | None = None) -> dict:
         "position": s.meta.position,
         "cycle": s.meta.cycle,
         "estimates": {
-            **{n: {"value": v, "sigma": sg, "unit": parameter_unit(n)}
+            **{n: ({"value": v, "sigma": sg, "unit": parameter_unit(n)}
+                   if n not in s.undetermined else  # not an estimate: what the fit used
+                   {"value": None, "sigma": None, "identifiable": False,
+                    "note": s.undetermined[n], "value_in_fit": v, "unit": parameter_unit(n)})
                for n, (v, sg) in s.estimates.items()},
             **{n: {"value": h.value, "sigma": None, "identifiable": False, "note": h.note,
                    "unit": parameter_unit(n)} for n, h in {**s.held, **(held or {})}.items()},

@@ -325,7 +325,8 @@ def _response_from_table(t, used, X, rec: dict, names: Sequence[str], shared: di
     v = np.column_stack([col("v_range_m"), col("v_phi_rad"), col("v_theta_rad")])
     c = np.zeros((len(obs), N_CONSTS))
     c[:, 0] = col("time_s")
-    x = np.array([est[n]["value"] for n in model.free])
+    x = np.array([est[n]["value"] if est[n]["value"] is not None else est[n]["value_in_fit"]
+                  for n in model.free])
     return mode_response(model, obs, v, c, used, x, sigma_l, X, aperture_radius_m, modes)
 
 

@@ -265,3 +265,25 @@ def test_a_large_position_starts_from_a_sample_with_the_same_answer(tmp_path, mo
         assert fast.surface.variances[k] == pytest.approx(full.surface.variances[k], rel=0.02)
     assert abs(fast.n_points - full.n_points) <= 1e-4 * full.n_points + 2
     assert fast.converged and fast.iterations <= 4
+
+
+def test_per_cycle_fits_mark_what_they_cannot_determine(tmp_path):
+    """``--per-cycle`` at the zenith: each cycle alone estimates x6/x7 freely, with sigmas far
+    above their typical size; fit.json reports them as not identifiable (value and sigma null,
+    a note, the fit's own value kept as value_in_fit for tools that rebuild its model), never
+    as estimates, while a tilted position's calibration stays reported."""
+    camp = load_campaign(simulate_campaign(
+        tmp_path / "z", preset="demo", effects=EFFECTS, seed=3, step_rad=STEP,
+        positions=[("z0", 0.0, -25.9), ("r23", -35.0, -64.0)]).root)
+    cf = fit_campaign(camp, "extended", progress=False, per_cycle=True)
+    doc = json.loads(json.dumps(fit_json(cf), allow_nan=False))
+    for s in doc["scans"]:
+        est = s["estimates"]
+        if s["position"] == "z0":
+            for n in ("x6", "x7"):
+                assert est[n]["value"] is None and est[n]["sigma"] is None, (s["id"], n)
+                assert est[n]["identifiable"] is False and "near zenith" in est[n]["note"]
+                assert isinstance(est[n]["value_in_fit"], float)
+            assert est["f"]["sigma"] > 0 and est["x4"]["sigma"] > 0
+        else:
+            assert all(est[n]["sigma"] > 0 for n in ("x4", "x6", "x7")), s["id"]

@@ -52,8 +52,8 @@ from ._fit import (
     ScanFit,
     fit_position,
     fit_scan,
-    pooled_mode_variance,
     position_record,
+    positions_for_campaign_prior,
     record_mode_variance,
     sigma_vector,
 )
@@ -472,9 +472,9 @@ def fit_dask(
                 run_positions(rest, hint)
             # as fit_campaign: the positions whose pose takes up coma, with the modes carried
             # at the variance of the positions that show them
-            prior = pooled_mode_variance([record_mode_variance(r) for r in records.values()])
-            redo = [p for p in groups if prior is not None
-                    and records[p].get("surface_mode_confounding")]
+            prior, redo = positions_for_campaign_prior(
+                {p: record_mode_variance(records[p]) for p in groups},
+                {p: bool(records[p].get("surface_mode_confounding")) for p in groups})
             for part, h in (([p for p in redo if p in first], None),
                             ([p for p in redo if p not in first], hint)):
                 if part:  # each with the heading hint of its first adjustment

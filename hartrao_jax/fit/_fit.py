@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import equinox as eqx
@@ -653,6 +653,17 @@ def pooled_mode_variance(variances: Sequence[float]) -> float | None:
     return float(np.median(v)) if len(v) >= POOL_MIN_POSITIONS else None
 
 
+def positions_for_campaign_prior(variances: Mapping[str, float | None],
+                                 confounded: Mapping[str, bool]
+                                 ) -> tuple[float | None, list[str]]:
+    """The campaign's mode variance (:func:`pooled_mode_variance` of the positions'
+    ``variances``, None where they do not carry the modes) and the positions to adjust again
+    with it: those whose pose takes up a mode they cannot determine (``confounded``; none
+    without a campaign variance). One rule for ``fit``, ``fit-dask`` and ``fit-stream``."""
+    prior = pooled_mode_variance(list(variances.values()))
+    return prior, [p for p, c in confounded.items() if c and prior is not None]
+
+
 def record_mode_variance(rec: dict) -> float | None:
     """:func:`_carried_mode_variance` of a ``positions[]`` record (m^2)."""
     sd = (rec.get("variance_components") or {}).get("modes_m")
@@ -813,19 +824,31 @@ def fit_position(
             # the outliers the white robust adjustment would have rejected, judged at the start
             used = reject_beyond(v_start, sig, used, robust_k, len(mdl.free))
         w_mixed = used.astype(float)
-        for _ in range(3 + len(groups)):
+
+        def adjust(groups, x_start, w_, ridge_var0, warm, estimate_variances=True):
+            """The random-effect adjustment carrying the smooth modes of ``groups`` (the
+            parameters held so far held), from ``x_start`` (by name) and ``warm``."""
             modes = [j for g_ in groups.values() for j in g_]
-            extra = tuple(f"{ZERNIKE_PREFIX}{j}" for j in modes)
-            mdl2 = model_of(free_of(extra), kappa)
-            x0 = np.array([x_start.get(n_, 0.0) for n_ in mdl2.free])
+            mdl2 = model_of(free_of(tuple(f"{ZERNIKE_PREFIX}{j}" for j in modes)), kappa)
             ridge = {k_: [mdl2.free.index(f"{ZERNIKE_PREFIX}{j}") for j in g_]
                      for k_, g_ in groups.items()} or None
             # the modes (last in mdl2.free) enter through their columns at the hit points
             cond, mz = ((model_of(free_of(), kappa), zernike_columns(X_hit, modes, aperture))
                         if modes else (mdl2, None))
             rm = gauss_helmert_mixed(
-                cond, l, x0, sig, c, w_mixed, cell, design, n_cells, robust_k=robust_k,
-                ridge=ridge, ridge_var0=ridge_var0, max_iter=60, mode_design=mz, **warm)
+                cond, l, np.array([x_start.get(n_, 0.0) for n_ in mdl2.free]), sig, c, w_,
+                cell, design, n_cells, robust_k=robust_k, ridge=ridge, ridge_var0=ridge_var0,
+                max_iter=60, mode_design=mz, estimate_variances=estimate_variances, **warm)
+            return modes, mdl2, ridge, cond, mz, rm
+
+        def resumed(rm):
+            """Where ``rm`` ended, by name, and its state as the next adjustment's start."""
+            return ({n_: float(v_) for n_, v_ in zip(mdl2.free, np.asarray(rm.x))},
+                    {"v0": np.asarray(rm.v), "u0": np.asarray(rm.u),
+                     "cell_var0": np.asarray(rm.cell_var), "noise_var0": float(rm.noise_var)})
+
+        for _ in range(3 + len(groups)):
+            modes, mdl2, ridge, cond, mz, rm = adjust(groups, x_start, w_mixed, ridge_var0, warm)
             cand = [n_ for n_ in mdl2.free if n_ in INSTRUMENT]
             bad = unidentifiable(np.asarray(rm.cov), mdl2.free, cand, typical=typical_magnitudes())
             if bad:
@@ -842,29 +865,19 @@ def fit_position(
             for k_ in absent:  # the data do not show them: not carried (see _absent_modes)
                 groups.pop(k_)
             # refit without them from where this one ended (same points, cells, variances)
-            x_start = {n_: float(v_) for n_, v_ in zip(mdl2.free, np.asarray(rm.x))}
-            warm = {"v0": np.asarray(rm.v), "u0": np.asarray(rm.u),
-                    "cell_var0": np.maximum(np.asarray(rm.cell_var), np.asarray(_CELL_VAR0)),
-                    "noise_var0": float(rm.noise_var)}
+            x_start, warm = resumed(rm)
+            warm["cell_var0"] = np.maximum(warm["cell_var0"], np.asarray(_CELL_VAR0))
             w_mixed = np.asarray(rm.weights)
         pooled = bool(mode_prior_m2 and mode_prior_m2 > 0 and confounding and not groups
                       and tel.offset_m == 0)
         if pooled:
             # carried with the campaign's variance (held: this position cannot estimate it),
-            # from where the adjustment without them ended
-            x_start = {n_: float(v_) for n_, v_ in zip(mdl2.free, np.asarray(rm.x))}
+            # from where the adjustment without them ended, its own variances held as well
+            x_start, warm = resumed(rm)
             groups = dict(SURFACE_MODE_GROUPS)
-            modes = [j for g_ in groups.values() for j in g_]
-            mdl2 = model_of(free_of(tuple(f"{ZERNIKE_PREFIX}{j}" for j in modes)), kappa)
-            ridge = {k_: [mdl2.free.index(f"{ZERNIKE_PREFIX}{j}") for j in g_]
-                     for k_, g_ in groups.items()}
-            cond, mz = model_of(free_of(), kappa), zernike_columns(X_hit, modes, aperture)
-            rm = gauss_helmert_mixed(
-                cond, l, np.array([x_start.get(n_, 0.0) for n_ in mdl2.free]), sig, c,
-                np.asarray(rm.weights), cell, design, n_cells, robust_k=robust_k, ridge=ridge,
-                ridge_var0=float(mode_prior_m2), max_iter=60, mode_design=mz,
-                v0=np.asarray(rm.v), u0=np.asarray(rm.u), cell_var0=np.asarray(rm.cell_var),
-                noise_var0=float(rm.noise_var), estimate_variances=False)
+            modes, mdl2, ridge, cond, mz, rm = adjust(
+                groups, x_start, np.asarray(rm.weights), float(mode_prior_m2), warm,
+                estimate_variances=False)
             confounding = {}
         absent = [k_ for k_, t in mode_tests.items() if not t["carried"]]
         if absent:
@@ -1121,8 +1134,9 @@ def fit_campaign(
                 prog.advance(task)
             # positions whose pose takes up a coma they cannot determine: again, with the
             # smooth modes carried at the variance of the positions that show them
-            prior = pooled_mode_variance([_carried_mode_variance(p) for p in pfits.values()])
-            redo = [p for p in order if prior is not None and _needs_pooled_modes(pfits[p])]
+            prior, redo = positions_for_campaign_prior(
+                {p: _carried_mode_variance(pfits[p]) for p in order},
+                {p: _needs_pooled_modes(pfits[p]) for p in order})
             if redo:
                 task = prog.add_task("coma prior from the campaign", total=len(redo))
             for pos in redo:

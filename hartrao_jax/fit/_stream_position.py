@@ -64,8 +64,8 @@ from ._fit import (
     fit_position,
     hit_points,
     mode_variance_parts,
-    pooled_mode_variance,
     position_record,
+    positions_for_campaign_prior,
     record_mode_variance,
     scan_arrays,
     sigma_vector,
@@ -411,11 +411,11 @@ def stream_fit_positions(
 
     done = run(groups)
     # as fit: the positions whose pose takes up coma, again with the campaign's mode variance
-    prior = pooled_mode_variance([record_mode_variance(r) for r in done.values()])
-    redo = {p: groups[p] for p in groups
-            if prior is not None and done[p].get("surface_mode_confounding")}
+    prior, redo = positions_for_campaign_prior(
+        {p: record_mode_variance(done[p]) for p in groups},
+        {p: bool(done[p].get("surface_mode_confounding")) for p in groups})
     if redo:
-        done.update(run(redo, prior, " (coma prior)"))
+        done.update(run({p: groups[p] for p in redo}, prior, " (coma prior)"))
     recs = [done[p] for p in groups]
     return {"schema": "hartrao-stream-campaign/1", "campaign": root, "positions": recs,
             "scans": [s for r in recs for s in r["scans"]],

@@ -32,10 +32,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ..fit._identify import hold_note, typical_magnitudes
+from ..fit._identify import undetermined_parameters
 from ..geometry._geometry import pointing_elevation_deg
-from ..physics._catalog import INSTRUMENT
-from ..solver._mixed import unidentifiable
 from ._explain import _Joint, _scaled_pinv, _SurfaceNull, eliminate_cells
 from ._state import ZERNIKE_TESTED, _Context, _num, _Scan, _Spec
 
@@ -99,16 +97,9 @@ def _same_turn(x: np.ndarray, P: np.ndarray, labels: list[str]) -> np.ndarray:
 
 def _identifiability(cov: np.ndarray, names: list[str], elevation_deg: float) -> dict[str, str]:
     """Per calibration parameter the data cannot determine: the note saying why (as ``fit``
-    says it, :func:`..fit.hold_note`)."""
-    cand = [n for n in names if n in INSTRUMENT]
-    sig = dict(zip(names, np.sqrt(np.maximum(np.diag(cov), 0.0))))
-    out = {}
-    for group, partners, corr, reason in unidentifiable(cov, names, cand,
-                                                        typical=typical_magnitudes()):
-        note = hold_note(group, partners, corr, reason, sig, elevation_deg,
-                         then="the diagnosis's value is not an estimate")
-        out.update(dict.fromkeys(group, note))
-    return out
+    says it, :func:`..fit._identify.undetermined_parameters`)."""
+    return undetermined_parameters(cov, names, elevation_deg,
+                                   then="the diagnosis's value is not an estimate")
 
 
 #: Gauss-Newton steps of the random-effect system at most, and the step (in sigmas of each

@@ -38,7 +38,6 @@ from ..model._model import (
     parameter_unit,
     parse_model,
 )
-from ..physics._catalog import INSTRUMENT
 from ..preprocess._initial import (
     InitialValues,
     choose_initial_values,
@@ -53,11 +52,12 @@ from ..solver._ghm import (
     robust_gauss_helmert,
 )
 from ..solver._kernel import _materialize, materialize_trig
-from ..solver._mixed import gauss_helmert_mixed, ridge_chi2, unidentifiable
+from ..solver._mixed import gauss_helmert_mixed, ridge_chi2
 from ._align import Alignment, mean_heading, north_alignment, scan_heading
 from ._identify import (
     CONFOUNDING_AMPLITUDE_M,
     CONFOUNDING_SHIFT_MIN,
+    PER_CYCLE_UNDETERMINED,
     Held,
     confounding_note,
     confounding_shifts,
@@ -66,8 +66,8 @@ from ._identify import (
     mode_prior,
     mode_prior_note,
     one_face_holds,
-    typical_magnitudes,
     undetermined_parameters,
+    unidentifiable_calibration,
 )
 
 log = logging.getLogger("hartrao_jax")
@@ -424,7 +424,8 @@ def fit_scan(
     fit = finish_scan_fit(campaign, meta, mdl, pdata, res, g, init, wpad,
                           heading_hint_rad=heading_hint_rad)
     fit.held = held
-    fit.undetermined = undetermined_parameters(fit.cov, fit.names, fit.elevation_deg)
+    fit.undetermined = undetermined_parameters(fit.cov, fit.names, fit.elevation_deg,
+                                             then=PER_CYCLE_UNDETERMINED)
     if n_pad == n:
         return fit
     # back to the scan's own rows (the padding rows are unused and outside the window)
@@ -780,9 +781,7 @@ def fit_position(
                                     max_iter=max_iter)
             else:
                 res = robust_gauss_helmert(mdl, l, x0, sig, c, w, k=robust_k, max_iter=max_iter)
-            cand = [n_ for n_ in mdl.free if n_ in INSTRUMENT]
-            bad = unidentifiable(np.asarray(res.cov), mdl.free, cand,
-                                 typical=typical_magnitudes())
+            bad = unidentifiable_calibration(res.cov, mdl.free)
             if not bad:
                 break
             hold_parameters(held, fixed, bad, res.cov, mdl.free, elevation)
@@ -849,8 +848,7 @@ def fit_position(
 
         for _ in range(3 + len(groups)):
             modes, mdl2, ridge, cond, mz, rm = adjust(groups, x_start, w_mixed, ridge_var0, warm)
-            cand = [n_ for n_ in mdl2.free if n_ in INSTRUMENT]
-            bad = unidentifiable(np.asarray(rm.cov), mdl2.free, cand, typical=typical_magnitudes())
+            bad = unidentifiable_calibration(rm.cov, mdl2.free)
             if bad:
                 hold_parameters(held, fixed, bad, rm.cov, mdl2.free, elevation)
                 continue
@@ -1225,7 +1223,8 @@ def _fit_batch(campaign, metas, model, *, fixed, robust_k, keep, progress) -> di
         fit = finish_scan_fit(campaign, m, mdl, data, rb, g, init, window,
                               heading_hint_rad=mean_heading(headings))
         fit.held = held
-        fit.undetermined = undetermined_parameters(fit.cov, fit.names, fit.elevation_deg)
+        fit.undetermined = undetermined_parameters(fit.cov, fit.names, fit.elevation_deg,
+                                                   then=PER_CYCLE_UNDETERMINED)
         headings.append(scan_heading(fit))
         out[m.id] = fit
     return out

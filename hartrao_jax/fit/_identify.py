@@ -56,23 +56,32 @@ def hold_parameters(held: dict[str, Held], fixed: dict[str, float], bad, cov, na
             held[n_] = Held(fixed.get(n_, 0.0), note, partners, corr)
 
 
-def undetermined_parameters(cov, names: Sequence[str], elevation_deg: float | None
-                            ) -> dict[str, str]:
-    """The calibration parameters a fit estimated freely but its data cannot determine
-    (:func:`..solver.unidentifiable`: x6/x7 near the zenith), each with its note: a per-cycle
-    fit reports them as not identifiable instead of as estimates (its other sigmas include
-    their freedom, so they stay right)."""
+def unidentifiable_calibration(cov, names: Sequence[str]) -> list:
+    """:func:`..solver.unidentifiable` over the calibration parameters among ``names`` (object
+    parameters are never held), each judged against its typical magnitude."""
     names = list(names)
-    cand = [n for n in names if n in INSTRUMENT]
-    bad = unidentifiable(np.asarray(cov), names, cand, typical=typical_magnitudes())
+    return unidentifiable(np.asarray(cov), names, [n for n in names if n in INSTRUMENT],
+                          typical=typical_magnitudes())
+
+
+#: What a per-cycle fit does with a parameter it cannot determine (:func:`undetermined_parameters`).
+PER_CYCLE_UNDETERMINED = ("not reported: this per-cycle fit estimates it freely (the other "
+                          "sigmas include that freedom)")
+
+
+def undetermined_parameters(cov, names: Sequence[str], elevation_deg: float | None, *,
+                            then: str) -> dict[str, str]:
+    """The calibration parameters an adjustment estimated freely but its data cannot determine
+    (:func:`unidentifiable_calibration`: x6/x7 near the zenith), each with its note ending in
+    ``then`` (what is done about it): a per-cycle fit and the diagnosis report them as not
+    identifiable instead of as estimates (their other sigmas include that freedom, so they
+    stay right)."""
+    names = list(names)
     sig = dict(zip(names, np.sqrt(np.maximum(np.diag(np.asarray(cov)), 0.0))))
     out = {}
-    for group, partners, corr, reason in bad:
-        note = hold_note(group, partners, corr, reason, sig, elevation_deg,
-                         then="not reported: this per-cycle fit estimates it freely (the "
-                              "other sigmas include that freedom)")
-        for n in group:
-            out[n] = note
+    for group, partners, corr, reason in unidentifiable_calibration(cov, names):
+        out.update(dict.fromkeys(group, hold_note(group, partners, corr, reason, sig,
+                                                  elevation_deg, then=then)))
     return out
 
 

@@ -47,16 +47,7 @@ from ..geometry._geometry import pointing_gravity
 from ..model._model import parse_model
 from ..preprocess._preprocess import preprocess_keep
 from ._align import MIN_TILT_RAD, Alignment, mean_heading, scan_heading
-from ._fit import (
-    CampaignFit,
-    ScanFit,
-    fit_position,
-    fit_scan,
-    position_record,
-    positions_for_campaign_prior,
-    record_mode_variance,
-    sigma_vector,
-)
+from ._fit import CampaignFit, ScanFit, fit_position, fit_scan, sigma_vector
 from ._joint import (
     DEFAULT_SHARED,
     JointFit,
@@ -68,7 +59,9 @@ from ._joint import (
     joint_scan_fit,
     schur_iterate,
 )
+from ._position_record import position_record
 from ._records import FIT_SCHEMA, scan_record, write_residuals
+from ._surface_effect import positions_for_campaign_prior, record_mode_variance
 
 log = logging.getLogger("hartrao_jax")
 

@@ -2,7 +2,8 @@
 
 Everything here is bookkeeping (NumPy) around the differentiable core (:mod:`._ghm`,
 :mod:`._model`). Results are plain dataclasses of NumPy arrays; a position's ``positions[]``
-record is :func:`position_record`, the files (``fit.json``, schema ``hartrao-fit/1``,
+record is :func:`._position_record.position_record`, the surface random effect's modes and
+variances are in :mod:`._surface_effect`, the files (``fit.json``, schema ``hartrao-fit/1``,
 ``shared/spec/outputs.md``, and the per-scan residual tables) are written by :mod:`._records`.
 """
 
@@ -10,7 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
 import equinox as eqx
@@ -35,7 +36,6 @@ from ..model._model import (
     ZERNIKE_PREFIX,
     ParaboloidModel,
     make_model,
-    parameter_unit,
     parse_model,
 )
 from ..preprocess._initial import (
@@ -51,16 +51,12 @@ from ..solver._ghm import (
     gauss_helmert_batch,
     robust_gauss_helmert,
 )
-from ..solver._kernel import _materialize, materialize_trig
-from ..solver._mixed import gauss_helmert_mixed, ridge_chi2
+from ..solver._mixed import gauss_helmert_mixed
 from ._align import Alignment, mean_heading, north_alignment, scan_heading
 from ._identify import (
-    CONFOUNDING_AMPLITUDE_M,
-    CONFOUNDING_SHIFT_MIN,
     PER_CYCLE_UNDETERMINED,
     Held,
     confounding_note,
-    confounding_shifts,
     hold_parameters,
     mode_confounding,
     mode_prior,
@@ -68,6 +64,18 @@ from ._identify import (
     one_face_holds,
     undetermined_parameters,
     unidentifiable_calibration,
+)
+from ._position_record import position_record
+from ._projection import hit_points, hit_points_and_residuals, reject_beyond
+from ._surface_effect import (
+    _CELL_VAR0,
+    _MODE_VAR0,
+    SURFACE_MODE_GROUPS,
+    _absent_modes,
+    mode_variance_parts,
+    positions_for_campaign_prior,
+    surface_components,
+    white_sigmas,
 )
 
 log = logging.getLogger("hartrao_jax")
@@ -305,48 +313,6 @@ def scan_arrays(data: ScanData) -> tuple[np.ndarray, np.ndarray]:
     return l, c
 
 
-def hit_points(model: ParaboloidModel, l, x, c, sigma_l, kappa_rad) -> jax.Array:
-    """Where each beam met the reflector: north-aligned telescope-frame points (m, (n, 3)).
-
-    The raw point is off the surface by its noise, and on an oblique ray the range noise
-    (0.8 mm) moves it *across* the surface too: cells assigned from raw points give the
-    points near a panel edge to the neighbour panel together with the noise that carried them
-    there, an edge pattern of one sign that the panels' random effect turns into a bias of f
-    and the pose (f -0.18 mm, 2.2 of its sigmas on average at the paper's 3 mrad resolution).
-    Here each observation first moves onto the fitted surface ``model(l, x, c) = 0`` along its
-    weighted least-squares direction (one Gauss-Helmert projection,
-    ``v = -Sigma b^T F / (b Sigma b^T)``), then into the telescope frame (``Rz(kappa)``).
-    """
-    # compiled in two stages (projection, then the point), each distinct sin/cos evaluated
-    # once, the rotation written out: 0.34 -> 0.24 s per 1e6 points on one core
-    return _hit_points(model, l, x, c, jnp.asarray(sigma_l, jnp.float64),
-                       jnp.asarray(kappa_rad, jnp.float64), jnp.ones((), bool), False)
-
-
-def hit_points_and_residuals(model: ParaboloidModel, l, x, c, sigma_l, kappa_rad
-                             ) -> tuple[jax.Array, jax.Array]:
-    """:func:`hit_points` and the residuals ``v`` (n, 3; m, rad, rad) of that projection: the
-    observations' corrections onto the surface at ``x`` (a Gauss-Helmert adjustment's
-    linearisation point when it starts at ``x``)."""
-    return _hit_points(model, l, x, c, jnp.asarray(sigma_l, jnp.float64),
-                       jnp.asarray(kappa_rad, jnp.float64), jnp.ones((), bool), True)
-
-
-@eqx.filter_jit
-def _hit_points(model, l, x, c, sigma_l, kappa_rad, on, with_v: bool):
-    s2 = jnp.broadcast_to(sigma_l**2, (3,))
-    cond = materialize_trig(model, on)
-    point = materialize_trig(model.telescope_point, on)
-    F, b = jax.vmap(jax.value_and_grad(lambda q, ci: cond(q, x, ci)))(l, c)
-    m = jnp.sum(b * b * s2, axis=-1)
-    v = _materialize(on, -s2 * b * (F / jnp.where(m > 0, m, 1.0))[:, None])
-    P = jax.vmap(lambda q, ci: point(q, x, ci))(l + v, c)
-    # Rz(kappa) P, written out (an (n, 3) x (3, 3) product is slower on CPU than its terms)
-    ck, sk = jnp.cos(kappa_rad), jnp.sin(kappa_rad)
-    X = jnp.stack([ck * P[:, 0] - sk * P[:, 1], sk * P[:, 0] + ck * P[:, 1], P[:, 2]], axis=1)
-    return (X, v) if with_v else X
-
-
 def sigma_vector(campaign: Campaign) -> np.ndarray:
     s = campaign.scanner
     return np.array([s.sigma_range_m, s.sigma_angle_rad, s.sigma_angle_rad])
@@ -494,85 +460,6 @@ def finish_scan_fit(
 # Two-face position adjustment with the surface as a random effect
 # --------------------------------------------------------------------------------------------
 
-#: Smooth surface modes (Noll indices) carried as random effects on a centred reflector, one
-#: variance per group: astigmatism, coma, trefoil, spherical -- what gravity produces. Piston,
-#: tilt and defocus are the pose and f themselves.
-SURFACE_MODE_GROUPS: dict[str, tuple[int, ...]] = {"modes": (5, 6, 7, 8, 9, 10, 11)}
-SURFACE_MODES: tuple[int, ...] = tuple(j for g in SURFACE_MODE_GROUPS.values() for j in g)
-#: Start values of the variance components: offsets (m^2), tilts (rad^2), modes (m^2).
-_CELL_VAR0 = (1e-8, 1e-8, 1e-8)
-_MODE_VAR0 = 1e-8
-
-
-#: Level of the test that keeps a group of smooth modes in the random effect (None: keep all).
-MODE_TEST_ALPHA: float | None = 0.01
-
-
-def _absent_modes(rm, ridge: dict | None, tests: dict) -> list[str]:
-    """Groups of smooth modes the data do not show: their coefficients, estimated as fixed
-    effects with the cells still random, are consistent with zero (chi-square test at
-    :data:`MODE_TEST_ALPHA`, :func:`ridge_chi2`). Why: a variance estimated from a handful of
-    coefficients that are noise is itself noise, and one of a few times 1e-4 m on coma (nearly a
-    pose change) inflates the sigmas of the pose several-fold; modes the data do show (gravity's
-    astigmatism) keep their variance. The tests are recorded in ``tests`` (first verdict)."""
-    if MODE_TEST_ALPHA is None or not ridge:
-        return []
-    out = []
-    for k, (t, dof, p) in ridge_chi2(rm, ridge).items():
-        tests.setdefault(k, {"chi2": t, "dof": dof, "p": p, "carried": p <= MODE_TEST_ALPHA})
-        if p > MODE_TEST_ALPHA:
-            out.append(k)
-    return out
-
-
-def white_sigmas(response: np.ndarray, cell_var, cov: np.ndarray,
-                 mode_part: np.ndarray | None = None) -> np.ndarray:
-    """The noise's part of each sigma: ``sqrt(diag(cov) - sum_g R_g diag(cell_var) R_g^T -
-    mode_part)`` with ``R_g`` (g, u, k) the estimates' response to each cell (the surface's
-    part) and ``mode_part`` the smooth modes' part of each variance (:func:`mode_prior`)."""
-    surf = np.einsum("gik,k,gik->i", response, np.asarray(cell_var), response)
-    if mode_part is not None:
-        surf = surf + mode_part
-    return np.sqrt(np.maximum(np.diag(cov) - surf, 0.0))
-
-
-def mode_variance_parts(surf: SurfaceEffect, names: Sequence[str], keep: Sequence[int],
-                cov_keep: np.ndarray) -> np.ndarray | None:
-    """The smooth modes' part of the variance of each kept unknown (m^2, rad^2, ...)."""
-    share = surf.mode_prior.get("share")
-    if not share:
-        return None
-    return np.array([share.get(names[i], 0.0) for i in keep]) * np.diag(cov_keep)
-
-
-def _mode_variances(ridge: dict | None, ridge_var) -> dict[str, float]:
-    """The smooth modes' variance components: ``modes_m2`` the mean variance per mode (m^2)
-    and, with several groups, ``mode_groups_m2`` each group's."""
-    if not ridge:
-        return {}
-    rv = np.asarray(ridge_var, float)
-    sizes = np.array([len(v) for v in ridge.values()], float)
-    out: dict = {"modes_m2": float(np.sum(rv * sizes) / np.sum(sizes))}
-    if len(ridge) > 1:
-        out["mode_groups_m2"] = {k: float(v) for k, v in zip(ridge, rv)}
-    return out
-
-
-def surface_components(var: tuple, redundancy: tuple, ridge: dict | None) -> tuple[dict, dict]:
-    """``SurfaceEffect.variances`` and ``.redundancy`` from a mixed adjustment's variance
-    components ``var = (noise factor, cell variances (k,), ridge variances (r,))`` and their
-    redundancy shares in the same order (in-memory and streamed adjustments alike)."""
-    noise, cells, modes = var
-    r_noise, r_cells, r_modes = redundancy
-    cells, r_cells = np.asarray(cells, float), np.asarray(r_cells, float)
-    variances = {"noise": float(noise), "offset_m2": float(cells[0]),
-                 "tilt_rad2": float(np.mean(cells[1:])), **_mode_variances(ridge, modes)}
-    shares = {"noise": float(r_noise), "offset": float(r_cells[0]),
-              "tilt": float(np.sum(r_cells[1:])),
-              **({"modes": float(np.sum(np.asarray(r_modes)))} if ridge else {})}
-    return variances, shares
-
-
 def _faces(metas: Sequence[ScanMeta]) -> int:
     return 2 if {1, 2} <= {m.cycle for m in metas} else 1
 
@@ -584,23 +471,6 @@ def padded(data: ScanData, n_pad: int) -> ScanData:
     if n_pad <= n:
         return data
     return data.subset(np.concatenate([np.arange(n), np.zeros(n_pad - n, np.int64)]))
-
-
-def reject_beyond(v: np.ndarray, sigma_l, used: np.ndarray, k: float, n_unknowns: int,
-                  max_rounds: int = 6) -> np.ndarray:
-    """``used`` without the points whose standardized residual ``sqrt(v^T Sigma^-1 v) /
-    sigma0`` exceeds ``k`` (residuals ``v`` (n, 3) of a solution, ``sigma_l`` (3,) the a
-    priori sigmas): the rule of :func:`..solver.robust_gauss_helmert`, judged at a given
-    solution, with ``sigma0`` from the points still used, in rounds until none is rejected."""
-    omega = np.sum(np.asarray(v) ** 2 / np.asarray(sigma_l, float) ** 2, axis=1)
-    keep = np.asarray(used, bool).copy()
-    for _ in range(max_rounds):
-        s0_sq = float(np.sum(omega[keep])) / max(int(keep.sum()) - n_unknowns, 1)
-        bad = keep & (omega > k * k * s0_sq)
-        if not bad.any():
-            break
-        keep &= ~bad
-    return keep
 
 
 #: Positions with more points than this (both faces, inside the geometry window) start from a
@@ -638,37 +508,6 @@ def _sample_start(campaign: Campaign, metas: Sequence[ScanMeta], model, prepared
                          fixed=fixed, robust_k=robust_k, window_m=window_m,
                          heading_hint_rad=heading_hint_rad, max_iter=max_iter)
     return start if start.mixed is not None else None
-
-
-#: The fewest positions showing the smooth modes whose variances make a campaign's prior.
-POOL_MIN_POSITIONS = 2
-
-
-def pooled_mode_variance(variances: Sequence[float]) -> float | None:
-    """The campaign's variance of the smooth modes (m^2): the median of the positions that
-    carry them (each estimated from its own data), None from fewer than
-    :data:`POOL_MIN_POSITIONS`. Why: coma trades with the pose, so one position cannot
-    estimate it; gravity changes all low-order modes together, so the positions that show
-    them (astigmatism above all) give its size."""
-    v = [float(a) for a in variances if a is not None and a > 0]
-    return float(np.median(v)) if len(v) >= POOL_MIN_POSITIONS else None
-
-
-def positions_for_campaign_prior(variances: Mapping[str, float | None],
-                                 confounded: Mapping[str, bool]
-                                 ) -> tuple[float | None, list[str]]:
-    """The campaign's mode variance (:func:`pooled_mode_variance` of the positions'
-    ``variances``, None where they do not carry the modes) and the positions to adjust again
-    with it: those whose pose takes up a mode they cannot determine (``confounded``; none
-    without a campaign variance). One rule for ``fit``, ``fit-dask`` and ``fit-stream``."""
-    prior = pooled_mode_variance(list(variances.values()))
-    return prior, [p for p, c in confounded.items() if c and prior is not None]
-
-
-def record_mode_variance(rec: dict) -> float | None:
-    """:func:`_carried_mode_variance` of a ``positions[]`` record (m^2)."""
-    sd = (rec.get("variance_components") or {}).get("modes_m")
-    return float(sd) ** 2 if rec.get("surface_modes") and sd else None
 
 
 def _needs_pooled_modes(p: PositionFit) -> bool:
@@ -924,8 +763,8 @@ def fit_position(
             notes.append(f"surface random effect: not converged after {iterations} iterations")
         normalized = np.asarray(rm.normalized)
         response = np.asarray(rm.x_response)[:, keep_idx, :]
-        sigma_white = white_sigmas(response, rm.cell_var, cov_pos,
-                                   mode_variance_parts(surf, mdl2.free, keep_idx, cov_pos))
+        sigma_white = white_sigmas(response, rm.cell_var, cov_pos, mode_variance_parts(
+            surf.mode_prior, mdl2.free, keep_idx, cov_pos))
         line = confounding_note(surf.mode_confounding, free, np.sqrt(np.diag(cov_pos)),
                                 "the smooth modes the data can determine are absent")
         if line:
@@ -970,109 +809,6 @@ def fit_position(
         held=held, faces=faces, sigma0=sigma0, surface=surf, iterations=iterations,
         converged=converged, n_points=n_used, notes=notes, mixed=mixed, sigma_white=sigma_white,
         response=response)
-
-
-def _value_sigma(v: float, s: float | None, unit: str) -> dict:
-    return {"value": _num(v), "sigma": None if s is None else _num(s), "unit": unit}
-
-
-def panel_predictions(p: PositionFit) -> list[dict]:
-    """The surface random effect's predictions (BLUPs) per cell with points, with their sigmas.
-
-    Offsets in m (positive towards the focus), tilts in rad (``tilt_radial_rad``: outer edge up,
-    ``tilt_tangential_rad``: counter-clockwise edge up; for square cells ``tilt_x_rad``,
-    ``tilt_y_rad``), from every point of both faces. Deviations are from the fitted paraboloid
-    plus the smooth modes (``surface_modes``). ``f_response``: ``d f_hat / d (offset, tilt,
-    tilt)`` of the cell (1, m/rad): how the cell's true deviation moved f.
-    """
-    if p.surface is None:
-        return []
-    sf = p.surface
-    names = (("tilt_radial_rad", "tilt_tangential_rad") if sf.cells.startswith("panels")
-             else ("tilt_x_rad", "tilt_y_rad"))
-    i_f = (list(p.names).index("f") if p.response is not None and "f" in p.names else None)
-    out = []
-    for g in np.flatnonzero(sf.n > 0):
-        sd = np.sqrt(np.clip(np.diag(sf.u_cov[g]), 0.0, None))
-        out.append({"panel" if sf.cells.startswith("panels") else "cell": int(g),
-                    "offset_m": _num(sf.u[g, 0]), "offset_sigma_m": _num(sd[0]),
-                    names[0]: _num(sf.u[g, 1]), names[0][:-4] + "_sigma_rad": _num(sd[1]),
-                    names[1]: _num(sf.u[g, 2]), names[1][:-4] + "_sigma_rad": _num(sd[2]),
-                    "n": int(sf.n[g]),
-                    **({"f_response": [_num(a) for a in p.response[g, i_f]]}
-                       if i_f is not None else {})})
-    return out
-
-
-def position_record(p: PositionFit) -> dict:
-    """The ``positions[]`` entry of ``fit.json`` for a position adjustment."""
-    m = p.scans[0].meta
-    s0 = p.scans[0]
-    row: dict = {"position": p.position}
-    if m.ha_deg is not None:
-        row.update(ha_deg=m.ha_deg, dec_deg=m.dec_deg)
-    if m.azimuth_deg is not None:
-        row.update(azimuth_deg=m.azimuth_deg)
-    row.update(elevation_deg=s0.elevation_deg, faces=p.faces,
-               kind="two-face adjustment" if p.faces == 2 else "one face",
-               scans=[s.meta.id for s in p.scans])
-    share = p.surface.mode_prior.get("share", {}) if p.surface is not None else {}
-    for i, n in enumerate(p.names):
-        row[n] = _value_sigma(p.x[i], p.sigma[i], parameter_unit(n))
-        if p.sigma_white is not None:
-            row[n]["sigma_white"] = _num(p.sigma_white[i])
-        if n in share:
-            row[n]["mode_prior_share"] = _num(share[n])
-    for n, h in p.held.items():
-        row[n] = {"value": _num(h.value), "sigma": None, "identifiable": False, "note": h.note,
-                  "unit": parameter_unit(n)}
-    row["sigma0"] = _num(p.sigma0)
-    row["n_points"] = p.n_points
-    row["iterations"] = p.iterations
-    row["converged"] = p.converged
-    if p.surface is not None:
-        v = p.surface.variances
-        row["variance_components"] = {
-            "noise": _num(v["noise"]), "surface_m": _num(math.sqrt(v["offset_m2"])),
-            "tilt_rad": _num(math.sqrt(v["tilt_rad2"])),
-            **({"modes_m": _num(math.sqrt(v["modes_m2"]))} if "modes_m2" in v else {}),
-            **({"mode_groups_m": {k: _num(math.sqrt(x)) for k, x in v["mode_groups_m2"].items()}}
-               if "mode_groups_m2" in v else {}),
-            "redundancy": {k: _num(x) for k, x in p.surface.redundancy.items()},
-            "cells": p.surface.cells}
-        if p.surface.modes:
-            det = p.surface.mode_prior.get("determined", {})
-            row["surface_modes"] = {
-                k: {**_value_sigma(a, b, "m"),
-                    **({"determined_by_data": _num(det[k])} if k in det else {})}
-                for k, (a, b) in p.surface.modes.items()}
-        conf = p.surface.mode_confounding
-        if conf:
-            shifts = confounding_shifts(conf, p.names, p.sigma)
-            for n, v in shifts.items():  # said next to each estimate it concerns
-                if v > CONFOUNDING_SHIFT_MIN:
-                    row[n]["not_separable_from"] = list(conf["modes"])
-                    row[n]["shift_sigma_per_10um"] = _num(v)
-            row["surface_mode_confounding"] = {
-                "modes": list(conf["modes"]),
-                "multiple_correlation": {k: _num(v) for k, v in conf["correlation"].items()},
-                "amplitude_m": CONFOUNDING_AMPLITUDE_M,
-                "shift_sigma": {k: _num(v) for k, v in shifts.items()},
-                "note": "not modelled: the estimates move by shift_sigma of their sigmas "
-                        "per amplitude_m of these modes (root sum square of their "
-                        "coefficients), which the data cannot determine at one position"}
-        if p.surface.mode_tests:
-            row["surface_mode_tests"] = {
-                k: {"chi2": _num(t["chi2"]), "dof": t["dof"], "p": _num(t["p"]),
-                    "carried": bool(t["carried"])} for k, t in p.surface.mode_tests.items()}
-        row["panels"] = panel_predictions(p)
-    row["gravity"] = [float(a) for a in s0.gravity]
-    row["notes"] = list(p.notes)
-    return row
-
-
-def _num(v: float) -> float | None:
-    return float(v) if np.isfinite(v) else None
 
 
 def _progress(disable: bool):

@@ -2,7 +2,7 @@
 
 ``fit.json`` (schema ``hartrao-fit/1``): ``scans[]`` per scan (:func:`scan_record`) and
 ``positions[]`` per position (:meth:`._fit.CampaignFit.positions`, the two-face records by
-:func:`._fit.position_record`); ``residuals/<scan>.parquet`` per scan
+:func:`._position_record.position_record`); ``residuals/<scan>.parquet`` per scan
 (:func:`write_residuals`). Every directory is written as one transaction
 (:class:`..campaign._safeio.OutputDir`). Units: SI (m, rad), as named in each field.
 """

@@ -62,18 +62,20 @@ from ._fit import (
     PositionFit,
     SurfaceEffect,
     fit_position,
-    hit_points,
-    mode_variance_parts,
-    position_record,
-    positions_for_campaign_prior,
-    record_mode_variance,
     scan_arrays,
     sigma_vector,
+)
+from ._identify import mode_prior
+from ._position_record import position_record
+from ._projection import hit_points
+from ._stream import _count_rows, _NpyRows, _progress, _SlotFile, peak_rss_gib
+from ._surface_effect import (
+    mode_variance_parts,
+    positions_for_campaign_prior,
+    record_mode_variance,
     surface_components,
     white_sigmas,
 )
-from ._identify import mode_prior
-from ._stream import _count_rows, _NpyRows, _progress, _SlotFile, peak_rss_gib
 
 
 def _sample_rows(campaign: Campaign, meta: ScanMeta, rows_per_chunk: int, n_sample: int,
@@ -184,8 +186,8 @@ def stream_fit_position(
     """Adjust the scans of one position (both faces, or one) streaming them from disk.
 
     Returns the position's record (as ``fit.json``'s ``positions[]``, see
-    :func:`._fit.position_record`) with the streaming figures added (``n_rows``, ``passes``,
-    ``seconds``, ``peak_rss_gib``, ``start``: the sample adjustment's f and sigma0) and
+    :func:`._position_record.position_record`) with the streaming figures added (``n_rows``,
+    ``passes``, ``seconds``, ``peak_rss_gib``, ``start``: the sample adjustment's f and sigma0) and
     ``scans[]``: per scan its rows, points, rejections, sigma0 and the ``store`` of its
     per-point results (``store`` None: none are written, and the final pass that writes them
     is saved).
@@ -348,7 +350,7 @@ def _record(start: PositionFit, st, x, final, var, sums, per_scan, converged, pa
         sigma0=sigma0, surface=surf, iterations=passes, converged=converged,
         n_points=int(n_used), mixed=None, response=response,
         sigma_white=white_sigmas(response, var[1], cov_keep,
-                                 mode_variance_parts(surf, names, keep, cov_keep)),
+                                 mode_variance_parts(surf.mode_prior, names, keep, cov_keep)),
         notes=[*start.notes, "streamed: started from a sample of each face, refined from "
                "every row"])
     rec = position_record(pf)

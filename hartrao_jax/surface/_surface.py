@@ -50,7 +50,8 @@ import numpy as np
 from ..campaign._campaign import load_campaign
 from ..campaign._safeio import OutputDir, verify_result_dir
 from ..fit._align import mean_heading, scan_heading
-from ..fit._fit import fit_campaign, fit_scan, panel_predictions
+from ..fit._fit import fit_campaign, fit_scan
+from ..fit._position_record import panel_predictions
 from ..fit._records import read_residuals, write_fit
 from ..geometry._geometry import face_of, panel_geometry, panel_ids
 from ..preprocess._preprocess import preprocess_keep

@@ -91,7 +91,7 @@ def test_cells_come_from_where_the_beam_met_the_surface():
     together with the noise that put them there (a bias of f at high point density)."""
     import jax
 
-    from hartrao_jax.fit._fit import hit_points
+    from hartrao_jax.fit._projection import hit_points
     from hartrao_jax.geometry._geometry import panel_cells
     from hartrao_jax.model._model import make_model
     from tests.helpers import F_TRUE, POSE, SIGMA, paraboloid_points, synthetic_scan

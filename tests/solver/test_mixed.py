@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from helpers import F_TRUE, POSE, SIGMA, paraboloid_points
 
-from hartrao_jax.fit._fit import hit_points
+from hartrao_jax.fit._projection import hit_points
 from hartrao_jax.geometry._geometry import (
     cartesian_to_raw,
     panel_cells,

@@ -275,7 +275,10 @@ def stage_stream_dask(a) -> None:
            "workers": doc["workers"], "rows": sum(r["n_rows"] for r in recs),
            "per_position": [{k: r[k] for k in ("position", "n_rows", "n_points", "passes",
                                                  "seconds", "peak_rss_gib", "sigma0")}
-                            | {"f": r["f"], "converged": r["converged"]} for r in recs]})
+                            | {"f": r["f"], "converged": r["converged"],
+                               "campaign_prior": any("campaign's variance" in n
+                                                     for n in r.get("notes", []))}
+                            for r in recs]})
 
 
 # --------------------------------------------------------------------------------------------

@@ -61,7 +61,11 @@ from ._joint import (
 )
 from ._position_record import position_record
 from ._records import FIT_SCHEMA, scan_record, write_residuals
-from ._surface_effect import positions_for_campaign_prior, record_mode_variance
+from ._surface_effect import (
+    positions_for_campaign_prior,
+    record_mode_variance,
+    takes_campaign_prior,
+)
 
 log = logging.getLogger("hartrao_jax")
 
@@ -467,7 +471,8 @@ def fit_dask(
             # at the variance of the positions that show them
             prior, redo = positions_for_campaign_prior(
                 {p: record_mode_variance(records[p]) for p in groups},
-                {p: bool(records[p].get("surface_mode_confounding")) for p in groups})
+                {p: takes_campaign_prior(records[p].get("surface_mode_confounding"),
+                                         records[p].get("surface_modes")) for p in groups})
             for part, h in (([p for p in redo if p in first], None),
                             ([p for p in redo if p not in first], hint)):
                 if part:  # each with the heading hint of its first adjustment

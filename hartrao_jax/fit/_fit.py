@@ -75,6 +75,7 @@ from ._surface_effect import (
     mode_variance_parts,
     positions_for_campaign_prior,
     surface_components,
+    takes_campaign_prior,
     white_sigmas,
 )
 
@@ -511,7 +512,8 @@ def _sample_start(campaign: Campaign, metas: Sequence[ScanMeta], model, prepared
 
 
 def _needs_pooled_modes(p: PositionFit) -> bool:
-    return p.surface is not None and bool(p.surface.mode_confounding)
+    return p.surface is not None and takes_campaign_prior(p.surface.mode_confounding,
+                                                          p.surface.modes)
 
 
 def _carried_mode_variance(p: PositionFit) -> float | None:

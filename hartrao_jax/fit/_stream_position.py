@@ -71,9 +71,10 @@ from ._projection import hit_points
 from ._stream import _count_rows, _NpyRows, _progress, _SlotFile, peak_rss_gib
 from ._surface_effect import (
     mode_variance_parts,
-    positions_for_campaign_prior,
+    pooled_mode_variance,
     record_mode_variance,
     surface_components,
+    takes_campaign_prior,
     white_sigmas,
 )
 
@@ -182,6 +183,7 @@ def stream_fit_position(
     seed: int = 0,
     progress: bool = False,
     mode_prior_m2: float | None = None,
+    defer_campaign_prior: bool = False,
 ) -> dict:
     """Adjust the scans of one position (both faces, or one) streaming them from disk.
 
@@ -191,6 +193,11 @@ def stream_fit_position(
     ``scans[]``: per scan its rows, points, rejections, sigma0 and the ``store`` of its
     per-point results (``store`` None: none are written, and the final pass that writes them
     is saved).
+
+    ``defer_campaign_prior``: when the start shows that the position would take a campaign's
+    mode variance (:func:`._surface_effect.takes_campaign_prior`), stop there and return only
+    ``{"position", "deferred": True, "surface_mode_confounding", "seconds"}``: a campaign
+    streams such a position once, with the variance, after the others instead of twice.
     """
     t_start = time.perf_counter()
     metas = [campaign.scan(s) if isinstance(s, str) else s for s in scans]
@@ -210,6 +217,11 @@ def stream_fit_position(
     start = fit_position(campaign, metas, model, datas=samples, fixed=fixed, robust_k=robust_k,
                          window_m=window_m, mode_prior_m2=mode_prior_m2)
     timings["start_fit_s"] = time.perf_counter() - t0
+    if defer_campaign_prior and start.surface is not None and takes_campaign_prior(
+            start.surface.mode_confounding, start.surface.modes):
+        return {"position": metas[0].position, "deferred": True,
+                "surface_mode_confounding": start.surface.mode_confounding,
+                "seconds": time.perf_counter() - t_start, "timings": timings}
     st = start.mixed
     if st is None:
         raise ValueError(f"position {metas[0].position}: the start adjustment has no surface "
@@ -360,12 +372,14 @@ def _record(start: PositionFit, st, x, final, var, sums, per_scan, converged, pa
 
 def _position_task(root: str, scan_ids: list[str], model, store: str | None,
                    rows_per_chunk: int, robust_k: float | None,
-                   mode_prior_m2: float | None = None) -> dict:
+                   mode_prior_m2: float | None = None, defer: bool = False) -> dict:
     """One position streamed where this runs (in-process or on a Dask worker); the per-point
-    results stay in ``store`` (None: not written)."""
+    results stay in ``store`` (None: not written); ``defer``: as
+    :func:`stream_fit_position`'s ``defer_campaign_prior``."""
     camp = worker_campaign(root)  # on a Dask worker: float64, the compilation cache
     return stream_fit_position(camp, scan_ids, model, rows_per_chunk=rows_per_chunk,
-                               store=store, robust_k=robust_k, mode_prior_m2=mode_prior_m2)
+                               store=store, robust_k=robust_k, mode_prior_m2=mode_prior_m2,
+                               defer_campaign_prior=defer)
 
 
 def stream_fit_positions(
@@ -395,7 +409,7 @@ def stream_fit_positions(
     root = str(campaign.root)
     st = None if store is None else str(store)
 
-    def run(todo: dict[str, list[str]], prior=None, tag="") -> dict[str, dict]:
+    def run(todo: dict[str, list[str]], prior=None, tag="", defer=False) -> dict[str, dict]:
         if client is None:
             out = {}
             with _progress(not progress) as prog:
@@ -403,21 +417,24 @@ def stream_fit_positions(
                 for pos, sids in todo.items():
                     prog.update(task, description=f"streaming {pos}{tag}")
                     out[pos] = _position_task(root, sids, model, st, rows_per_chunk, robust_k,
-                                              prior)
+                                              prior, defer)
                     prog.advance(task)
             return out
         futs = [client.submit(_position_task, root, sids, model, st, rows_per_chunk, robust_k,
-                              prior, key=f"stream-{pos}{tag.replace(' ', '-')}", pure=False)
+                              prior, defer, key=f"stream-{pos}{tag.replace(' ', '-')}",
+                              pure=False)
                 for pos, sids in todo.items()]
         return dict(zip(todo, client.gather(futs)))
 
-    done = run(groups)
-    # as fit: the positions whose pose takes up coma, again with the campaign's mode variance
-    prior, redo = positions_for_campaign_prior(
-        {p: record_mode_variance(done[p]) for p in groups},
-        {p: bool(done[p].get("surface_mode_confounding")) for p in groups})
-    if redo:
-        done.update(run({p: groups[p] for p in redo}, prior, " (coma prior)"))
+    # as fit, the positions whose pose takes up coma are adjusted with the campaign's mode
+    # variance; their starts (from the sample) show it, so they are streamed once, after the
+    # others have given the variance, instead of streamed twice
+    done = run(groups, defer=True)
+    deferred = [p for p in groups if done[p].get("deferred")]
+    prior = pooled_mode_variance([record_mode_variance(done[p]) for p in groups])
+    if deferred:
+        done.update(run({p: groups[p] for p in deferred}, prior,
+                        " (coma prior)" if prior is not None else " (deferred)"))
     recs = [done[p] for p in groups]
     return {"schema": "hartrao-stream-campaign/1", "campaign": root, "positions": recs,
             "scans": [s for r in recs for s in r["scans"]],

@@ -121,6 +121,15 @@ def positions_for_campaign_prior(variances: Mapping[str, float | None],
     return prior, [p for p, c in confounded.items() if c and prior is not None]
 
 
+def takes_campaign_prior(confounding: Mapping | None, modes: Mapping | None) -> bool:
+    """Whether a position's adjustment changes with the campaign's mode variance: its pose
+    takes up smooth modes it cannot determine (``confounding``, as
+    ``SurfaceEffect.mode_confounding`` or a record's ``surface_mode_confounding``) and it
+    carries none of them (``modes``): a position carrying some keeps its own variance, and
+    adjusting it again would repeat the same adjustment."""
+    return bool(confounding) and not modes
+
+
 def record_mode_variance(rec: dict) -> float | None:
     """:func:`_carried_mode_variance` of a ``positions[]`` record (m^2)."""
     sd = (rec.get("variance_components") or {}).get("modes_m")

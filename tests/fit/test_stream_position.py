@@ -105,3 +105,38 @@ def test_remaining_error_from_contracting_steps():
     assert _remaining([3.119, 0.08194]) == pytest.approx(0.08194 * 0.02627 / 0.97373, rel=1e-3)
     assert _remaining([0.1, 0.06]) == 0.06  # contracting slowly: the step itself
     assert _remaining([0.0, 0.0]) == 0.0
+
+
+def test_a_streamed_campaign_streams_a_position_taking_the_campaign_prior_once(tmp_path,
+                                                                               monkeypatch):
+    """r23 under gravity shows no smooth mode but its pose takes up coma: its start (the
+    sample's adjustment) says so, so the campaign defers it and streams it once, after g1 and
+    g2 gave their mode variance, with the modes carried at the median of theirs; g1 and g2
+    are streamed once each, as without a deferral."""
+    import hartrao_jax.fit._stream_position as SP
+
+    camp = load_campaign(simulate_campaign(
+        tmp_path / "g", preset="demo", seed=0, step_rad=0.012,
+        effects={**EFFECTS, "gravity_deformation": 1.0},
+        positions=[("r23", -35.0, -64.0), ("g1", -60.0, -30.0), ("g2", 40.0, -70.0)]).root)
+    calls, inner = [], SP.stream_fit_position
+
+    def counted(*a, **k):
+        rec = inner(*a, **k)
+        calls.append((rec["position"], bool(rec.get("deferred")), k.get("mode_prior_m2")))
+        return rec
+
+    monkeypatch.setattr(SP, "stream_fit_position", counted)
+    doc = stream_fit_positions(camp, None, "extended", rows_per_chunk=50_000)
+    by = {p["position"]: p for p in doc["positions"]}
+    others = [by[q]["variance_components"]["modes_m"] for q in ("g1", "g2")]
+    prior = float(np.median(np.square(others)))
+    assert sorted(calls) == sorted([("r23", True, None), ("g1", False, None),
+                                    ("g2", False, None), ("r23", False, prior)])
+    p = by["r23"]
+    assert "deferred" not in p and "zern_7" in p["surface_modes"]
+    assert any("carried with the campaign's variance" in n for n in p["notes"])
+    assert p["variance_components"]["modes_m"] == pytest.approx(np.sqrt(prior), rel=1e-6)
+    for n in ("tx", "ty", "rx", "ry"):
+        assert p[n]["mode_prior_share"] > 0.5
+    assert [s["scan"] for s in doc["scans"]] == [m.id for m in camp.scans]

@@ -3,9 +3,10 @@ streamed, Dask; north alignment; fit.json and the residual tables."""
 
 from ._align import Alignment, north_alignment
 from ._distributed import fit_dask
-from ._fit import CampaignFit, ScanFit, fit_campaign, fit_scan
+from ._fit import fit_campaign, fit_scan
 from ._joint import JointFit, fit_joint, write_joint_fit
 from ._records import fit_json, read_residuals, write_fit
+from ._results import CampaignFit, ScanFit
 from ._stream import stream_fit_campaign, stream_fit_scan
 
 __all__ = [

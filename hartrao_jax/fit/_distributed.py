@@ -47,7 +47,7 @@ from ..geometry._geometry import pointing_gravity
 from ..model._model import parse_model
 from ..preprocess._preprocess import preprocess_keep
 from ._align import MIN_TILT_RAD, Alignment, mean_heading, scan_heading
-from ._fit import CampaignFit, ScanFit, fit_position, fit_scan, sigma_vector
+from ._fit import fit_position, fit_scan, sigma_vector
 from ._joint import (
     DEFAULT_SHARED,
     JointFit,
@@ -61,6 +61,7 @@ from ._joint import (
 )
 from ._position_record import position_record
 from ._records import FIT_SCHEMA, scan_record, write_residuals
+from ._results import CampaignFit, ScanFit
 from ._surface_effect import (
     positions_for_campaign_prior,
     record_mode_variance,

@@ -12,7 +12,6 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
 
 import equinox as eqx
 import jax
@@ -52,7 +51,7 @@ from ..solver._ghm import (
     robust_gauss_helmert,
 )
 from ..solver._mixed import gauss_helmert_mixed
-from ._align import Alignment, mean_heading, north_alignment, scan_heading
+from ._align import mean_heading, north_alignment, scan_heading
 from ._identify import (
     PER_CYCLE_UNDETERMINED,
     Held,
@@ -65,8 +64,15 @@ from ._identify import (
     undetermined_parameters,
     unidentifiable_calibration,
 )
-from ._position_record import position_record
 from ._projection import hit_points, hit_points_and_residuals, reject_beyond
+from ._results import (
+    CampaignFit,
+    MixedState,
+    PositionFit,
+    ScanFit,
+    SurfaceEffect,
+    _faces,
+)
 from ._surface_effect import (
     _CELL_VAR0,
     _MODE_VAR0,
@@ -81,226 +87,6 @@ from ._surface_effect import (
 
 log = logging.getLogger("hartrao_jax")
 
-
-
-class Estimates:
-    """``sigma`` and ``estimates`` of a fit with ``names``, ``x`` and ``cov`` (scan, stream)."""
-
-    @property
-    def sigma(self) -> np.ndarray:
-        return np.sqrt(np.diag(self.cov))
-
-    @property
-    def estimates(self) -> dict[str, tuple[float, float]]:
-        return {n: (float(self.x[i]), float(self.sigma[i])) for i, n in enumerate(self.names)}
-
-
-@dataclass
-class ScanFit(Estimates):
-    """The adjustment of one scan (NumPy; SI units).
-
-    ``used`` marks the points of ``data`` that entered the final adjustment; ``deviation_m`` is
-    the signed normal distance of every point of ``data`` from the fitted paraboloid (positive
-    towards the focus), ``X_tel`` its north-aligned telescope-frame coordinates (m).
-    """
-
-    meta: ScanMeta
-    model: ParaboloidModel
-    names: tuple[str, ...]
-    x: np.ndarray
-    cov: np.ndarray
-    sigma0: float
-    iterations: int
-    converged: bool
-    n_points: int
-    n_rejected: int
-    n_window: int
-    alignment: Alignment
-    init: InitialValues
-    data: ScanData
-    used: np.ndarray
-    v: np.ndarray
-    normalized: np.ndarray
-    deviation_m: np.ndarray
-    X_tel: np.ndarray
-    gravity: np.ndarray
-    elevation_deg: float
-    notes: list[str] = field(default_factory=list)
-    #: parameters of the model the scan cannot determine (two-face ones on a one-face scan),
-    #: held at their fixed/prior value instead of estimated
-    held: dict[str, Held] = field(default_factory=dict)
-    #: parameters a per-cycle fit estimated freely but cannot determine (x6/x7 near the
-    #: zenith), with their notes: reported as not identifiable, not as estimates
-    undetermined: dict[str, str] = field(default_factory=dict)
-
-    def value(self, name: str) -> float:
-        """Estimated or fixed value of a parameter (0 for a parameter not in the model)."""
-        if name in self.names:
-            return float(self.x[self.names.index(name)])
-        fixed = dict(zip(self.model.fixed_names, np.asarray(self.model.fixed_values)))
-        return float(fixed.get(name, 0.0))
-
-    def sigma_of(self, name: str) -> float:
-        """Standard deviation of an estimate (0 for a fixed parameter)."""
-        return float(self.sigma[self.names.index(name)]) if name in self.names else 0.0
-
-    @property
-    def correlation(self) -> np.ndarray:
-        s = self.sigma
-        return self.cov / np.outer(s, s)
-
-
-@dataclass
-class SurfaceEffect:
-    """The surface random effect of a position adjustment (``shared/spec/physics.md``).
-
-    ``cells``: description of the cells (panels, or square cells where the telescope has no
-    panel layout); ``u`` (g, 3) the cells' predicted offset (m, positive towards the focus) and
-    tilts (rad: radial/tangential, or x/y for square cells) with prediction-error covariances
-    ``u_cov`` (g, 3, 3); ``n`` points per cell. ``variances``: the estimated components
-    (``noise``: factor on the a priori variances; ``offset_m2``, ``tilt_rad2``, ``modes_m2``)
-    and their redundancy shares. ``modes``: the smooth modes carried, ``{name: (value m,
-    sigma m)}``; ``mode_tests``: per group of modes, the test that decided whether it is carried
-    (``chi2``, ``dof``, ``p``, ``carried``). ``mode_prior`` (:func:`mode_prior`): how far the
-    data determine each mode (``determined``) and how much of each other unknown's variance is
-    the modes' (``share``). ``mode_confounding`` (:func:`mode_confounding`): where the modes are
-    not carried, those the other unknowns take up (coma, by the pose) and their response.
-    """
-
-    cells: str
-    u: np.ndarray
-    u_cov: np.ndarray
-    n: np.ndarray
-    variances: dict[str, float]
-    redundancy: dict[str, float]
-    modes: dict[str, tuple[float, float]] = field(default_factory=dict)
-    mode_tests: dict[str, dict] = field(default_factory=dict)
-    mode_prior: dict[str, dict[str, float]] = field(default_factory=dict)
-    mode_confounding: dict = field(default_factory=dict)
-
-
-@dataclass
-class MixedState:
-    """Where a position's random-effect adjustment ended, to refine it from more points (the
-    streamed full-resolution refinement of :mod:`._stream_position`).
-
-    ``model``: the condition with the surface modes; ``x``: all its unknowns (modes included);
-    ``u`` (g, 3): the cells' predictions; ``var``: ``(noise factor, cell variances (3,), mode
-    variances (r,))`` and ``var0`` their start values; ``ridge``: the modes' indices in ``x``;
-    ``kappa_rad``: the north alignment; ``cell_m`` and ``cell_keys``: the square cells (no
-    panel layout; None with one); ``inits``: each scan's initial values (its geometry window).
-    ``condition``: ``model`` without the modes, which enter through their Zernike columns
-    (Noll ``modes``, aperture radius ``aperture_m``) at the points' hit positions, as
-    ``mode_design`` of :func:`..solver.gauss_helmert_mixed` (``model`` itself when none).
-    """
-
-    model: ParaboloidModel
-    x: np.ndarray
-    u: np.ndarray
-    var: tuple
-    var0: tuple
-    ridge: dict | None
-    kappa_rad: float
-    cell_m: float
-    cell_keys: np.ndarray | None
-    inits: list[InitialValues]
-    condition: ParaboloidModel
-    modes: tuple[int, ...] = ()
-    aperture_m: float = 1.0
-    #: the variances were held (the modes carried at a campaign's variance), not estimated
-    variances_held: bool = False
-
-
-@dataclass
-class PositionFit:
-    """One telescope position adjusted from both faces at once (or from its one usable face).
-
-    One pose, one f and one set of calibration parameters (``names``, ``x``, ``cov``) for all
-    of ``scans``; ``cov`` includes the surface random effect. ``held``: parameters not
-    identifiable from these data, held at their fixed/prior value. ``faces``: 2 when both
-    cycles entered the adjustment, 1 otherwise (never called a cycle average).
-    ``response`` (g, len(names), 3): ``d estimate / d (offset, tilt, tilt)`` of each surface
-    cell (the solver's ``x_response``): the surface's share of ``cov`` is ``sum_g R_g
-    diag(surface variances) R_g^T``; positions that see the same panels share those errors
-    (``gravity`` uses it). ``sigma_white``: the rest of each sigma, the noise's (what more
-    points shrink). Both None without the surface effect.
-    """
-
-    position: str
-    scans: list[ScanFit]
-    names: tuple[str, ...]
-    x: np.ndarray
-    cov: np.ndarray
-    held: dict[str, Held]
-    faces: int
-    sigma0: float
-    surface: SurfaceEffect | None
-    iterations: int
-    converged: bool
-    n_points: int
-    notes: list[str] = field(default_factory=list)
-    mixed: MixedState | None = None
-    sigma_white: np.ndarray | None = None
-    response: np.ndarray | None = None
-
-    @property
-    def sigma(self) -> np.ndarray:
-        return np.sqrt(np.diag(self.cov))
-
-    def estimate(self, name: str) -> tuple[float, float]:
-        i = self.names.index(name)
-        return float(self.x[i]), float(self.sigma[i])
-
-
-@dataclass
-class CampaignFit:
-    """The fitted scans of a campaign. ``shared``: parameters estimated jointly by all scans of
-    a group (a joint adjustment's calibration; empty for scan-by-scan fits). ``position_fits``:
-    the two-face adjustments the scans come from (empty for per-cycle fits)."""
-
-    campaign: Campaign
-    model_names: tuple[str, ...]
-    scans: list[ScanFit]
-    shared: tuple[str, ...] = ()
-    position_fits: list[PositionFit] = field(default_factory=list)
-
-    def positions(self) -> list[dict]:
-        """Per position: its adjustment's estimates (two-face fits), or the inverse-variance mean
-        focal length of its scans (per-cycle fits)."""
-        if self.position_fits:
-            return [position_record(p) for p in self.position_fits]
-        out: dict[str, list[ScanFit]] = {}
-        for s in self.scans:
-            out.setdefault(s.meta.position, []).append(s)
-        rows = []
-        for pos, fits in out.items():
-            v = np.array([s.value("f") for s in fits])
-            sg = np.array([s.sigma_of("f") for s in fits])
-            if np.all(sg > 0):
-                w = 1.0 / sg**2
-                mean = float(np.sum(w * v) / np.sum(w))
-                sig = float(1.0 / math.sqrt(np.sum(w)))
-            else:  # focal length held fixed
-                w = np.ones_like(v)
-                mean, sig = float(np.mean(v)), 0.0
-            m = fits[0].meta
-            row = {"position": pos}
-            if m.ha_deg is not None:
-                row.update(ha_deg=m.ha_deg, dec_deg=m.dec_deg)
-            if m.azimuth_deg is not None or m.elevation_deg is not None:
-                row.update(azimuth_deg=m.azimuth_deg)
-            faces = _faces([s.meta for s in fits])
-            row.update(elevation_deg=fits[0].elevation_deg, faces=faces,
-                       kind=("inverse-variance mean of per-cycle fits" if len(fits) > 1
-                             else "one cycle" if faces == 2 or fits[0].meta.cycle else "one face"),
-                       f={"value": mean, "sigma": sig},
-                       gravity=[float(a) for a in fits[0].gravity],
-                       scans=[s.meta.id for s in fits])
-            if len(fits) > 1 and sig > 0:
-                chi2 = float(np.sum(w * (v - mean) ** 2))
-                row["f_consistency_chi2"] = chi2
-            rows.append(row)
-        return rows
 
 
 # --------------------------------------------------------------------------------------------
@@ -461,10 +247,6 @@ def finish_scan_fit(
 # Two-face position adjustment with the surface as a random effect
 # --------------------------------------------------------------------------------------------
 
-def _faces(metas: Sequence[ScanMeta]) -> int:
-    return 2 if {1, 2} <= {m.cycle for m in metas} else 1
-
-
 def padded(data: ScanData, n_pad: int) -> ScanData:
     """``data`` padded to ``n_pad`` rows with copies of its first row (the caller gives them
     weight 0 and zero constants): scans of one size bucket share one compiled program."""
@@ -476,6 +258,10 @@ def padded(data: ScanData, n_pad: int) -> ScanData:
 
 #: Positions with more points than this (both faces, inside the geometry window) start from a
 #: seeded sample of :data:`SAMPLE_POINTS`: see :func:`_sample_start`.
+#: The most points of positions a campaign keeps in memory for their adjustment with its mode
+#: variance (``fit_position(keep_resume=True)``; 0.25 kB of arrays per point, measured on a
+#: position of 3.6e5 points); beyond, such a position is adjusted again from its points.
+RESUME_POINTS = 4_000_000
 SAMPLE_START_POINTS = 4_000_000
 SAMPLE_POINTS = 1_000_000
 
@@ -536,6 +322,7 @@ def fit_position(
     surface: bool = True,
     max_iter: int = 30,
     mode_prior_m2: float | None = None,
+    keep_resume: bool = False,
 ) -> PositionFit:
     """Adjust the scans of one position together: one pose, one f, one set of calibration.
 
@@ -557,7 +344,10 @@ def fit_position(
     ``mode_prior_m2``: where the data show none of the smooth modes but the other unknowns take
     one up (coma by the pose, :func:`mode_confounding`), the modes are carried all the same with
     this variance (m^2; the campaign's, :func:`pooled_mode_variance`), so that the sigmas of
-    the pose include coma of that size instead of assuming none.
+    the pose include coma of that size instead of assuming none. ``keep_resume``: a position
+    that would take such a variance (none given) keeps ``resume(mode_prior_m2)``, the same
+    adjustment with it from where this one ended (its arrays held until then), so that a
+    campaign does not adjust it from its points twice.
     """
 
     metas = list(metas)
@@ -594,6 +384,40 @@ def fit_position(
         return make_model(free, fx, aperture_radius_m=aperture, kappa_rad=kappa,
                           check_separable=False)
 
+    def assemble(notes, *, free, x_pos, cov_pos, weights, v, omega_pt, r_e, sigma0,
+                 iterations, converged, normalized, mdl_final, surf, mixed, sigma_white,
+                 response) -> PositionFit:
+        """4. The position's result and its per-scan views: the shared estimates, each scan's
+        own residuals and statistics."""
+        n_used = int(np.sum(weights > 0))
+        scans, start = [], 0
+        for (data, gg, init_s, window), m, size in zip(prepared, metas, sizes):
+            sl = slice(start, start + size)
+            start += size
+            ws = weights[sl]
+            n_s = int(np.sum(ws > 0))
+            r_s = max(r_e * n_s / max(n_used, 1), 1.0)
+            s0 = math.sqrt(float(np.sum(np.where(ws > 0, omega_pt[sl], 0.0))) / r_s)
+            gh = GHResult(x=jnp.asarray(x_pos), cov=jnp.asarray(cov_pos),
+                          N=jnp.asarray(np.linalg.pinv(cov_pos)), sigma0=jnp.asarray(s0),
+                          v=jnp.asarray(v[sl]), misclosure=jnp.zeros(size),
+                          normalized=jnp.asarray(normalized[sl]), weights=jnp.asarray(ws),
+                          redundancy=jnp.asarray(n_s), iterations=jnp.asarray(iterations),
+                          converged=jnp.asarray(converged))
+            sf = finish_scan_fit(campaign, m, mdl_final, data, gh, gg, init_s, window,
+                                 heading_hint_rad=heading_hint_rad)
+            sf.notes.append("two-face position adjustment" if faces == 2 else
+                            "one usable face: adjusted alone")
+            scans.append(sf)
+        notes = list(notes)
+        for h in held.values():
+            if h.note not in notes:
+                notes.append(h.note)
+        return PositionFit(
+            position=metas[0].position, scans=scans, names=tuple(free), x=x_pos, cov=cov_pos,
+            held=held, faces=faces, sigma0=sigma0, surface=surf, iterations=iterations,
+            converged=converged, n_points=n_used, notes=notes, mixed=mixed,
+            sigma_white=sigma_white, response=response)
     notes: list[str] = []
     start = (_sample_start(campaign, metas, model, prepared, fixed=fixed, robust_k=robust_k,
                            window_m=window_m, heading_hint_rad=heading_hint_rad,
@@ -631,7 +455,6 @@ def fit_position(
                                heading_hint_rad=heading_hint_rad)
         kappa = fit1.alignment.kappa_rad
         x_white = np.asarray(res.x)
-    surf, mdl_final, mixed = None, mdl, None
     if surface:
         cell_m = float(tel.extra.get("panel_cell_m", 2.0)) if tel.extra else 2.0
         if start is None:
@@ -707,110 +530,96 @@ def fit_position(
             x_start, warm = resumed(rm)
             warm["cell_var0"] = np.maximum(warm["cell_var0"], np.asarray(_CELL_VAR0))
             w_mixed = np.asarray(rm.weights)
-        pooled = bool(mode_prior_m2 and mode_prior_m2 > 0 and confounding and not groups
-                      and tel.offset_m == 0)
-        if pooled:
-            # carried with the campaign's variance (held: this position cannot estimate it),
-            # from where the adjustment without them ended, its own variances held as well
-            x_start, warm = resumed(rm)
-            groups = dict(SURFACE_MODE_GROUPS)
-            modes, mdl2, ridge, cond, mz, rm = adjust(
-                groups, x_start, np.asarray(rm.weights), float(mode_prior_m2), warm,
-                estimate_variances=False)
-            confounding = {}
-        absent = [k_ for k_, t in mode_tests.items() if not t["carried"]]
-        if absent:
-            notes.append("smooth modes not shown by the data, not carried as a random effect ("
-                         + ", ".join(f"{k_} p = {mode_tests[k_]['p']:.2f}" for k_ in absent)
-                         + "): the panels' random effect covers those the data can determine"
-                         if not pooled else
-                         "smooth modes not shown by the data ("
-                         + ", ".join(f"{k_} p = {mode_tests[k_]['p']:.2f}" for k_ in absent)
-                         + ") but taken up by the pose: carried with the campaign's variance "
-                         f"({1e6 * math.sqrt(mode_prior_m2):.0f} um rms per mode, from the "
-                         "positions that show them), the position's own variance components "
-                         "held")
-        keep_idx = [i for i, n_ in enumerate(mdl2.free) if not n_.startswith(ZERNIKE_PREFIX)]
-        mode_idx = [i for i, n_ in enumerate(mdl2.free) if n_.startswith(ZERNIKE_PREFIX)]
-        xs = np.asarray(rm.x)
-        cov = np.asarray(rm.cov)
-        counts = np.bincount(cell[(cell >= 0) & (np.asarray(rm.weights) > 0)],
-                             minlength=n_cells)
-        variances, shares = surface_components(
-            (rm.noise_var, rm.cell_var, rm.ridge_var),
-            (rm.redundancy_noise, rm.redundancy_cells, rm.redundancy_ridge), ridge)
-        surf = SurfaceEffect(
-            cells=desc, u=np.asarray(rm.u), u_cov=np.asarray(rm.u_cov), n=counts,
-            variances=variances, redundancy=shares,
-            modes={mdl2.free[i]: (float(xs[i]), float(np.sqrt(cov[i, i]))) for i in mode_idx},
-            mode_tests=mode_tests, mode_prior=mode_prior(cov, mdl2.free, ridge, rm.ridge_var),
-            mode_confounding=confounding if not ridge else {})
-        line = mode_prior_note(surf.mode_prior, surf.modes,
-                               math.sqrt(variances.get("modes_m2", 0.0)))
-        if line:
-            notes.append(line)
-        mixed = MixedState(mdl2, xs, np.asarray(rm.u), (float(rm.noise_var), np.asarray(
-            rm.cell_var), np.asarray(rm.ridge_var)), (1.0, np.asarray(_CELL_VAR0), np.full(
-                len(ridge or ()), _MODE_VAR0)), ridge, kappa, cell_m, keys,
-            [p[2] for p in prepared], cond, tuple(modes), aperture, variances_held=pooled)
-        free = tuple(mdl2.free[i] for i in keep_idx)
-        x_pos, cov_pos = xs[keep_idx], cov[np.ix_(keep_idx, keep_idx)]
-        mdl_final = model_of(free, kappa)
-        weights = np.asarray(rm.weights)
-        v, omega_pt = np.asarray(rm.v), np.asarray(rm.omega_point)
-        r_e = float(rm.redundancy_noise)
-        sigma0 = float(rm.sigma0)
-        iterations, converged = int(rm.iterations), bool(rm.converged)
-        if not converged:
-            notes.append(f"surface random effect: not converged after {iterations} iterations")
-        normalized = np.asarray(rm.normalized)
-        response = np.asarray(rm.x_response)[:, keep_idx, :]
-        sigma_white = white_sigmas(response, rm.cell_var, cov_pos, mode_variance_parts(
-            surf.mode_prior, mdl2.free, keep_idx, cov_pos))
-        line = confounding_note(surf.mode_confounding, free, np.sqrt(np.diag(cov_pos)),
-                                "the smooth modes the data can determine are absent")
-        if line:
-            notes.append(line)
-    else:
-        free, x_pos, cov_pos = mdl.free, np.asarray(res.x), np.asarray(res.cov)
-        weights = np.asarray(res.weights)
-        v = np.asarray(res.v)
-        k_ = np.asarray(res.normalized) * float(res.sigma0)
-        omega_pt = k_ * k_
-        r_e = float(res.redundancy)
-        sigma0 = float(res.sigma0)
-        iterations, converged = int(res.iterations), bool(res.converged)
-        normalized = np.asarray(res.normalized)
-        sigma_white = response = None  # no surface effect: every sigma is the noise's
-    n_used = int(np.sum(weights > 0))
-    # 4. per-scan views: the shared estimates, each scan's own residuals and statistics
-    scans, start = [], 0
-    for (data, gg, init_s, window), m, size in zip(prepared, metas, sizes):
-        sl = slice(start, start + size)
-        start += size
-        ws = weights[sl]
-        n_s = int(np.sum(ws > 0))
-        r_s = max(r_e * n_s / max(n_used, 1), 1.0)
-        s0 = math.sqrt(float(np.sum(np.where(ws > 0, omega_pt[sl], 0.0))) / r_s)
-        gh = GHResult(x=jnp.asarray(x_pos), cov=jnp.asarray(cov_pos),
-                      N=jnp.asarray(np.linalg.pinv(cov_pos)), sigma0=jnp.asarray(s0),
-                      v=jnp.asarray(v[sl]), misclosure=jnp.zeros(size),
-                      normalized=jnp.asarray(normalized[sl]), weights=jnp.asarray(ws),
-                      redundancy=jnp.asarray(n_s), iterations=jnp.asarray(iterations),
-                      converged=jnp.asarray(converged))
-        sf = finish_scan_fit(campaign, m, mdl_final, data, gh, gg, init_s, window,
-                             heading_hint_rad=heading_hint_rad)
-        sf.notes.append("two-face position adjustment" if faces == 2 else
-                        "one usable face: adjusted alone")
-        scans.append(sf)
-    for h in held.values():
-        if h.note not in notes:
-            notes.append(h.note)
-    return PositionFit(
-        position=metas[0].position, scans=scans, names=tuple(free), x=x_pos, cov=cov_pos,
-        held=held, faces=faces, sigma0=sigma0, surface=surf, iterations=iterations,
-        converged=converged, n_points=n_used, notes=notes, mixed=mixed, sigma_white=sigma_white,
-        response=response)
+
+        def finish(mode_prior_m2, notes, rm, groups, modes, mdl2, ridge, cond, mz,
+                   confounding) -> PositionFit:
+            """The position's result from where the loop over the modes ended (its adjustment
+            ``rm`` and what it carried); with ``mode_prior_m2``, a position whose pose takes
+            up modes it does not carry adjusted once more with them at that variance."""
+            notes = list(notes)
+            pooled = bool(mode_prior_m2 and mode_prior_m2 > 0 and confounding and not groups
+                          and tel.offset_m == 0)
+            if pooled:
+                # carried with the campaign's variance (held: this position cannot estimate it),
+                # from where the adjustment without them ended, its own variances held as well
+                x_start, warm = resumed(rm)
+                groups = dict(SURFACE_MODE_GROUPS)
+                modes, mdl2, ridge, cond, mz, rm = adjust(
+                    groups, x_start, np.asarray(rm.weights), float(mode_prior_m2), warm,
+                    estimate_variances=False)
+                confounding = {}
+            absent = [k_ for k_, t in mode_tests.items() if not t["carried"]]
+            if absent:
+                notes.append("smooth modes not shown by the data, not carried as a random effect ("
+                             + ", ".join(f"{k_} p = {mode_tests[k_]['p']:.2f}" for k_ in absent)
+                             + "): the panels' random effect covers those the data can determine"
+                             if not pooled else
+                             "smooth modes not shown by the data ("
+                             + ", ".join(f"{k_} p = {mode_tests[k_]['p']:.2f}" for k_ in absent)
+                             + ") but taken up by the pose: carried with the campaign's variance "
+                             f"({1e6 * math.sqrt(mode_prior_m2):.0f} um rms per mode, from the "
+                             "positions that show them), the position's own variance components "
+                             "held")
+            keep_idx = [i for i, n_ in enumerate(mdl2.free) if not n_.startswith(ZERNIKE_PREFIX)]
+            mode_idx = [i for i, n_ in enumerate(mdl2.free) if n_.startswith(ZERNIKE_PREFIX)]
+            xs = np.asarray(rm.x)
+            cov = np.asarray(rm.cov)
+            counts = np.bincount(cell[(cell >= 0) & (np.asarray(rm.weights) > 0)],
+                                 minlength=n_cells)
+            variances, shares = surface_components(
+                (rm.noise_var, rm.cell_var, rm.ridge_var),
+                (rm.redundancy_noise, rm.redundancy_cells, rm.redundancy_ridge), ridge)
+            surf = SurfaceEffect(
+                cells=desc, u=np.asarray(rm.u), u_cov=np.asarray(rm.u_cov), n=counts,
+                variances=variances, redundancy=shares,
+                modes={mdl2.free[i]: (float(xs[i]), float(np.sqrt(cov[i, i]))) for i in mode_idx},
+                mode_tests=mode_tests, mode_prior=mode_prior(cov, mdl2.free, ridge, rm.ridge_var),
+                mode_confounding=confounding if not ridge else {})
+            line = mode_prior_note(surf.mode_prior, surf.modes,
+                                   math.sqrt(variances.get("modes_m2", 0.0)))
+            if line:
+                notes.append(line)
+            mixed = MixedState(mdl2, xs, np.asarray(rm.u), (float(rm.noise_var), np.asarray(
+                rm.cell_var), np.asarray(rm.ridge_var)), (1.0, np.asarray(_CELL_VAR0), np.full(
+                    len(ridge or ()), _MODE_VAR0)), ridge, kappa, cell_m, keys,
+                [p[2] for p in prepared], cond, tuple(modes), aperture, variances_held=pooled)
+            free = tuple(mdl2.free[i] for i in keep_idx)
+            x_pos, cov_pos = xs[keep_idx], cov[np.ix_(keep_idx, keep_idx)]
+            iterations, converged = int(rm.iterations), bool(rm.converged)
+            if not converged:
+                notes.append(f"surface random effect: not converged after {iterations} "
+                             "iterations")
+            response = np.asarray(rm.x_response)[:, keep_idx, :]
+            sigma_white = white_sigmas(response, rm.cell_var, cov_pos, mode_variance_parts(
+                surf.mode_prior, mdl2.free, keep_idx, cov_pos))
+            line = confounding_note(surf.mode_confounding, free, np.sqrt(np.diag(cov_pos)),
+                                    "the smooth modes the data can determine are absent")
+            if line:
+                notes.append(line)
+            return assemble(
+                notes, free=free, x_pos=x_pos, cov_pos=cov_pos, weights=np.asarray(rm.weights),
+                v=np.asarray(rm.v), omega_pt=np.asarray(rm.omega_point),
+                r_e=float(rm.redundancy_noise), sigma0=float(rm.sigma0), iterations=iterations,
+                converged=converged, normalized=np.asarray(rm.normalized),
+                mdl_final=model_of(free, kappa), surf=surf, mixed=mixed,
+                sigma_white=sigma_white, response=response)
+
+        result = finish(mode_prior_m2, notes, rm, groups, modes, mdl2, ridge, cond, mz,
+                        confounding)
+        if (mode_prior_m2 is None and keep_resume and result.surface is not None
+                and takes_campaign_prior(result.surface.mode_confounding, result.surface.modes)):
+            # what fit_campaign needs to adjust it again with the campaign's mode variance
+            # from here (not from its points again); holds this position's arrays until then
+            loop_end = (notes, rm, groups, modes, mdl2, ridge, cond, mz, confounding)
+            result.resume = lambda prior: finish(prior, *loop_end)
+        return result
+    k_ = np.asarray(res.normalized) * float(res.sigma0)
+    return assemble(
+        notes, free=mdl.free, x_pos=np.asarray(res.x), cov_pos=np.asarray(res.cov),
+        weights=np.asarray(res.weights), v=np.asarray(res.v), omega_pt=k_ * k_,
+        r_e=float(res.redundancy), sigma0=float(res.sigma0), iterations=int(res.iterations),
+        converged=bool(res.converged), normalized=np.asarray(res.normalized), mdl_final=mdl,
+        surf=None, mixed=None, sigma_white=None, response=None)  # white: every sigma the noise's
 
 
 def _progress(disable: bool):
@@ -854,6 +663,7 @@ def fit_campaign(
             groups.setdefault(m.position, []).append(m)
         order = sorted(groups, key=lambda p: -tilt[groups[p][0].id])
         pfits: dict[str, PositionFit] = {}
+        held_points = 0
         headings: list[float] = []
         hints: dict[str, float | None] = {}
         with _progress(not progress) as prog:
@@ -863,7 +673,11 @@ def fit_campaign(
                 hints[pos] = mean_heading(headings)
                 pf = fit_position(campaign, groups[pos], model, keep=keep, fixed=fixed,
                                   robust_k=robust_k, heading_hint_rad=hints[pos],
-                                  surface=surface)
+                                  surface=surface, keep_resume=True)
+                if pf.resume is not None:  # its arrays held for the campaign's prior
+                    held_points += pf.n_points
+                    if held_points > RESUME_POINTS:
+                        pf.resume = None  # adjusted again from its points instead
                 headings.append(scan_heading(pf.scans[0]))
                 pfits[pos] = pf
                 release_compiled_programs()
@@ -876,11 +690,14 @@ def fit_campaign(
             if redo:
                 task = prog.add_task("coma prior from the campaign", total=len(redo))
             for pos in redo:
-                pfits[pos] = fit_position(campaign, groups[pos], model, keep=keep, fixed=fixed,
-                                          robust_k=robust_k, heading_hint_rad=hints[pos],
-                                          surface=surface, mode_prior_m2=prior)
+                again = pfits[pos].resume
+                pfits[pos] = (again(prior) if again is not None else fit_position(
+                    campaign, groups[pos], model, keep=keep, fixed=fixed, robust_k=robust_k,
+                    heading_hint_rad=hints[pos], surface=surface, mode_prior_m2=prior))
                 release_compiled_programs()
                 prog.advance(task)
+            for pf in pfits.values():
+                pf.resume = None  # the held arrays go
         by_id = {s.meta.id: s for pf in pfits.values() for s in pf.scans}
         plist = [pfits[p] for p in groups]
         return CampaignFit(campaign, names, [by_id[m.id] for m in metas], position_fits=plist)

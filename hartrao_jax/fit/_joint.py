@@ -54,16 +54,10 @@ from ..solver._ghm import (
     normal_equations,
 )
 from ._align import mean_heading, scan_heading
-from ._fit import (
-    CampaignFit,
-    ScanFit,
-    finish_scan_fit,
-    fit_campaign,
-    scan_arrays,
-    sigma_vector,
-)
+from ._fit import finish_scan_fit, fit_campaign, scan_arrays, sigma_vector
 from ._identify import Held
 from ._records import fit_json, write_fit_dir
+from ._results import CampaignFit, ScanFit
 
 log = logging.getLogger("hartrao_jax")
 

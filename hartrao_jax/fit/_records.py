@@ -17,8 +17,8 @@ import numpy as np
 from ..campaign._safeio import OutputDir, write_file_atomic, write_table
 from ..geometry._geometry import face_of
 from ..model._model import parameter_unit
-from ._fit import CampaignFit, ScanFit
 from ._identify import Held
+from ._results import CampaignFit, ScanFit
 
 FIT_SCHEMA = "hartrao-fit/1"
 

@@ -82,8 +82,9 @@ from ..solver._kernel import (
     thread_pool,
 )
 from ._distributed import worker_campaign
-from ._fit import Estimates, _progress, _x0, parse_names, sigma_vector
+from ._fit import _progress, _x0, parse_names, sigma_vector
 from ._identify import one_face_holds
+from ._results import Estimates
 
 log = logging.getLogger("hartrao_jax")
 

@@ -58,16 +58,11 @@ from ..solver._mixed import (
     ridge_indices,
 )
 from ._distributed import worker_campaign
-from ._fit import (
-    PositionFit,
-    SurfaceEffect,
-    fit_position,
-    scan_arrays,
-    sigma_vector,
-)
+from ._fit import fit_position, scan_arrays, sigma_vector
 from ._identify import mode_prior
 from ._position_record import position_record
 from ._projection import hit_points
+from ._results import PositionFit, SurfaceEffect
 from ._stream import _count_rows, _NpyRows, _progress, _SlotFile, peak_rss_gib
 from ._surface_effect import (
     mode_variance_parts,

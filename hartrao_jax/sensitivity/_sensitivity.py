@@ -56,9 +56,10 @@ import numpy as np
 from jax import lax
 
 from ..campaign._safeio import write_file_atomic, write_json_atomic
-from ..fit._fit import CampaignFit, ScanFit, scan_arrays, sigma_vector
+from ..fit._fit import scan_arrays, sigma_vector
 from ..fit._joint import ScanProblem, bucket_size, chunk_for, condition_number
 from ..fit._projection import hit_points
+from ..fit._results import CampaignFit, ScanFit
 from ..geometry._geometry import face_of, panel_cells, panel_ids, paraboloid_deviation
 from ..model._model import make_model, parameter_unit
 from ..physics._catalog import CALIBRATION, INSTRUMENT

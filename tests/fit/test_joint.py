@@ -10,7 +10,7 @@ import pytest
 import hartrao_jax  # noqa: F401  (float64)
 from hartrao_jax._config import enable_compilation_cache
 from hartrao_jax.campaign._schedule import find_position
-from hartrao_jax.fit._fit import CampaignFit, fit_campaign
+from hartrao_jax.fit._fit import fit_campaign
 from hartrao_jax.fit._joint import (
     LocalBackend,
     ScanProblem,
@@ -23,6 +23,7 @@ from hartrao_jax.fit._joint import (
     schur_iterate,
     write_joint_fit,
 )
+from hartrao_jax.fit._results import CampaignFit
 from hartrao_jax.simulate._simulate import simulate_campaign
 
 enable_compilation_cache()

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hartrao_jax.campaign._campaign import load_campaign
-from hartrao_jax.fit._fit import fit_campaign
+from hartrao_jax.fit._fit import fit_campaign, fit_position
 from hartrao_jax.fit._records import fit_json
 from hartrao_jax.simulate._simulate import simulate_campaign
 
@@ -235,6 +235,14 @@ def test_a_campaign_lends_its_mode_variance_to_a_position_whose_pose_takes_up_co
         np.sqrt(np.median(np.square(others))), rel=1e-6)
     for n in ("tx", "ty", "rx", "ry"):
         assert p[n]["mode_prior_share"] > 0.5
+    # adjusted again from where its first adjustment ended (held in memory), not from its
+    # points: the same adjustment as from its points with the campaign's variance
+    fresh = fit_position(camp, [m for m in camp.scans if m.position == "r23"], "extended",
+                         mode_prior_m2=p["variance_components"]["modes_m"] ** 2)
+    pf = next(q for q in cf.position_fits if q.position == "r23")
+    assert pf.resume is None and fresh.resume is None
+    assert np.max(np.abs(pf.x - fresh.x) / fresh.sigma) < 1e-3
+    assert np.allclose(pf.sigma, fresh.sigma, rtol=1e-4)
     truth = {s["position"]: {**s, **s["model_parameters"]} for s in json_.loads(
         (camp.root / "truth.json").read_text())["scans"]}["r23"]
     for n in ("tx", "ty", "tz", "f", "x4", "x6", "x7"):

@@ -276,7 +276,8 @@ class _Joint:
             mot = spec.motion.get(sc.id, {})
             model = _scan_model(sc, spec, ctx.aperture, extra=extra,
                                 window_s=None if mot.get("window_s") else sc.window_s,
-                                period_s=None if mot.get("period_s") else sc.period_s)
+                                period_s=None if mot.get("period_s") else sc.period_s,
+                                canonical=True)
             fixed = _fixed(sc, spec)
             prev = dict(zip(sc.names, sc.x))
             x = np.array([prev.get(k, fixed.get(k, 0.0)) for k in model.free])

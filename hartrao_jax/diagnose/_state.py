@@ -181,13 +181,19 @@ def _fixed(sc: _Scan, spec: _Spec) -> dict[str, float]:
 
 
 def _scan_model(sc: _Scan, spec: _Spec, aperture: float, extra: Sequence[str] = (),
-                window_s=None, period_s=None):
+                window_s=None, period_s=None, canonical: bool = False):
+    """The scan's model: the start parameters, its motions and bumps, then ``extra``.
+    ``canonical``: the parameters after the start's in name order, so that the same set
+    gives the same model (and the same compiled programs) whatever the order they joined in
+    (the joint systems of successive steps)."""
     mot = spec.motion.get(sc.id, {})
     names = list(spec.start) + [n for n in mot.get("names", ()) if n not in spec.start]
     for b in spec.bumps:  # free where they are seen; "free": the subset the fit may move
         if sc.id in b["scans"]:
             names += [n for n in b["names"] if n in b.get("free", b["names"])]
     names += [n for n in extra if n not in names]
+    if canonical:
+        names = list(spec.start) + sorted(n for n in names if n not in spec.start)
     window = mot.get("window_s") or window_s or (0.0, 0.0)
     period = mot.get("period_s") or period_s or 1.0
     fixed = {k: v for k, v in _fixed(sc, spec).items() if k not in names}  # free wins here

@@ -197,6 +197,9 @@ def main(argv=None) -> int:
                     help="skip the plain NumPy Gauss-Helmert peer on the same scans")
     ap.add_argument("--camp", type=Path, default=None,
                     help="an existing campaign (with truth.json) instead of simulating one")
+    ap.add_argument("--no-keep-memory", dest="keep_memory", action="store_false",
+                    help="return freed memory to the kernel (the CLI keeps it for reuse: "
+                         "hartrao_jax._config.keep_freed_memory)")
     ap.add_argument("--runs", type=int, default=2,
                     help="fits in the process (the first compiles, the later ones are warm)")
     ap.add_argument("--out", type=Path, default=OUT / "profile",
@@ -204,7 +207,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     import hartrao_jax  # noqa: F401  (float64)
-    from hartrao_jax._config import enable_compilation_cache
+    from hartrao_jax._config import enable_compilation_cache, keep_freed_memory
     from hartrao_jax.campaign import _campaign
     from hartrao_jax.campaign._campaign import load_campaign
     from hartrao_jax.fit import _fit, _records
@@ -212,6 +215,8 @@ def main(argv=None) -> int:
     from hartrao_jax.simulate._simulate import simulate_campaign
 
     enable_compilation_cache()
+    if args.keep_memory:  # as the CLI
+        keep_freed_memory()
     tmp = Path(tempfile.mkdtemp(prefix="profile-"))
     t0 = time.perf_counter()
     camp_dir = args.camp or tmp / "camp"

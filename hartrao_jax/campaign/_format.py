@@ -180,7 +180,20 @@ class ScanData:
 
     def subset(self, mask_or_index) -> ScanData:
         """The rows selected by a boolean mask or an index array (keeps `row`)."""
-        return ScanData(*(getattr(self, c)[mask_or_index] for c in (*COLUMNS, "row")),
+        sel = np.asarray(mask_or_index)
+        pick = ((lambda a: a[sel]) if sel.dtype == bool  # np.take: 2-3x fancy indexing's speed
+                else (lambda a: np.take(a, sel, axis=0)))
+        return ScanData(*(pick(getattr(self, c)) for c in (*COLUMNS, "row")),
+                        n_dropped_nonfinite=self.n_dropped_nonfinite, dropped=dict(self.dropped))
+
+    def padded(self, n_pad: int) -> ScanData:
+        """These rows followed by copies of the first up to ``n_pad`` rows (none if ``n_pad``
+        is not more): the padding of a size bucket (the caller gives the copies weight 0)."""
+        extra = n_pad - len(self)
+        if extra <= 0:
+            return self
+        return ScanData(*(np.concatenate([a, np.repeat(a[:1], extra, axis=0)])
+                          for a in (getattr(self, c) for c in (*COLUMNS, "row"))),
                         n_dropped_nonfinite=self.n_dropped_nonfinite, dropped=dict(self.dropped))
 
 

@@ -13,7 +13,7 @@ import sys
 
 import click
 
-from .._config import enable_compilation_cache, enable_x64
+from .._config import enable_compilation_cache, enable_x64, keep_freed_memory
 from ..campaign._campaign import CampaignError
 from ..model._model import ModelError, parameter_unit
 from ..simulate._simulate import EffectError
@@ -39,6 +39,7 @@ def command(fn):
         debug = ctx.obj.get("debug", False) if ctx.obj else False
         enable_x64()
         enable_compilation_cache()
+        keep_freed_memory()
         try:
             validate_command(ctx, kwargs)  # options, paths, inputs: before any work
             return fn(*args, **kwargs)

@@ -250,10 +250,7 @@ def finish_scan_fit(
 def padded(data: ScanData, n_pad: int) -> ScanData:
     """``data`` padded to ``n_pad`` rows with copies of its first row (the caller gives them
     weight 0 and zero constants): scans of one size bucket share one compiled program."""
-    n = len(data)
-    if n_pad <= n:
-        return data
-    return data.subset(np.concatenate([np.arange(n), np.zeros(n_pad - n, np.int64)]))
+    return data.padded(n_pad)
 
 
 #: Positions with more points than this (both faces, inside the geometry window) start from a

@@ -66,10 +66,12 @@ def reject_beyond(v: np.ndarray, sigma_l, used: np.ndarray, k: float, n_unknowns
     sigma0`` exceeds ``k`` (residuals ``v`` (n, 3) of a solution, ``sigma_l`` (3,) the a
     priori sigmas): the rule of :func:`..solver.robust_gauss_helmert`, judged at a given
     solution, with ``sigma0`` from the points still used, in rounds until none is rejected."""
-    omega = np.sum(np.asarray(v) ** 2 / np.asarray(sigma_l, float) ** 2, axis=1)
+    v = np.asarray(v)
+    s2 = np.asarray(sigma_l, float) ** 2
+    omega = v[:, 0] ** 2 / s2[0] + v[:, 1] ** 2 / s2[1] + v[:, 2] ** 2 / s2[2]
     keep = np.asarray(used, bool).copy()
     for _ in range(max_rounds):
-        s0_sq = float(np.sum(omega[keep])) / max(int(keep.sum()) - n_unknowns, 1)
+        s0_sq = float(np.sum(omega, where=keep)) / max(int(np.count_nonzero(keep)) - n_unknowns, 1)
         bad = keep & (omega > k * k * s0_sq)
         if not bad.any():
             break

@@ -535,11 +535,13 @@ def _part_stats(sums, var, x, U, Qxx, ridge_idx, n_ridge_groups):
 
 
 def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_group,
-                 n_ridge_groups, tol, max_iter, chunk, n_cells, estimate_variances, robust_k):
+                 n_ridge_groups, tol, max_iter, chunk, n_cells, estimate_variances, robust_k,
+                 back):
     """:func:`_solve` with every pass split into ``parts`` (dicts of equal-length point
     arrays ``L, C, S2, G, DM, W, V``), each part's pass in its own thread; the normal-equation
     sums of the parts are added, the step and the variance components computed from them as
-    before. Same iteration, same arithmetic up to the order of the sums' additions."""
+    before. Same iteration, same arithmetic up to the order of the sums' additions.
+    ``back``: the parts' per-point arrays (a list) -> one array in the caller's order."""
     on = jnp.ones((), bool)
     pool = thread_pool(len(parts))
 
@@ -590,13 +592,13 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
                                                           ridge_idx, n_ridge_groups)
 
     def cat(i):
-        return jnp.concatenate([fp[i] for fp in fin])
+        return back([fp[i] for fp in fin])
 
     return MixedResult(
         x=x, cov=se2 * up.Qxx, Qxx=up.Qxx, u=U, u_cov=se2 * up.Quu, noise_var=se2,
         cell_var=var[1], ridge_var=var[2], redundancy_noise=up.r_e, redundancy_cells=up.r_cells,
         redundancy_ridge=up.r_ridge, sigma0=sigma0, v=cat(0), normalized=cat(1), dev=cat(2),
-        omega_point=cat(3), weights=jnp.concatenate([p["W"] for p in parts]),
+        omega_point=cat(3), weights=back([p["W"] for p in parts]),
         n_used=n_used, iterations=jnp.asarray(it), converged=jnp.asarray(done),
         x_response=response, ridge_fixed=ridge_fixed, ridge_fixed_cov=ridge_fixed_cov)
 
@@ -610,14 +612,15 @@ def _solve_split(condition, dev_column, threads, order, L, x0, S2, C, W, G, DM, 
     per-point results in the caller's order. ``S2``: (n, 3) or (3,)."""
     n = L.shape[0]
     m = -(-n // (threads * chunk)) * chunk
-    parts = []
-    for i in range(threads):
-        idx = order[i * m:(i + 1) * m]
+    pieces = [order[i * m:(i + 1) * m] for i in range(threads)]
+
+    def part(idx):
         pad = m - idx.shape[0]
 
-        def take(a, dtype, value=None, idx=idx, pad=pad):
-            # gathered on the host: no device copy of the caller's whole arrays
-            a = np.asarray(a)[idx].astype(dtype, copy=False)
+        def take(a, dtype, value=None):
+            # gathered on the host (np.take: 2-3x fancy indexing), no device copy of the
+            # caller's whole arrays; each part in its own thread
+            a = np.take(np.asarray(a), idx, axis=0).astype(dtype, copy=False)
             if pad:
                 tail = (np.broadcast_to(a[-1:], (pad,) + a.shape[1:]) if value is None
                         else np.full((pad,) + a.shape[1:], value, dtype))
@@ -625,20 +628,29 @@ def _solve_split(condition, dev_column, threads, order, L, x0, S2, C, W, G, DM, 
             return jnp.asarray(a)
 
         f = np.float64
-        parts.append({"L": take(L, f), "C": take(C, f), "G": take(G, np.int32, -1),
-                      "DM": take(DM, f), "W": take(W, f, 0.0), "MZ": take(MZ, f),
-                      "V": jnp.zeros((m, 3), f) if V0 is None else take(V0, f),
-                      "S2": take(S2, f) if S2.ndim == 2 else S2})
-    res = _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_group,
-                       n_ridge_groups, tol, max_iter, chunk, n_cells, estimate_variances,
-                       robust_k)
-    # back to the caller's order in one gather (the padding rows are never picked)
-    inv = np.empty_like(order)
-    inv[order] = np.arange(n)
-    back = jnp.asarray(inv)
-    return eqx.tree_at(lambda r: (r.v, r.normalized, r.dev, r.omega_point, r.weights), res,
-                       (res.v[back], res.normalized[back], res.dev[back],
-                        res.omega_point[back], res.weights[back]))
+        return {"L": take(L, f), "C": take(C, f), "G": take(G, np.int32, -1),
+                "DM": take(DM, f), "W": take(W, f, 0.0), "MZ": take(MZ, f),
+                "V": jnp.zeros((m, 3), f) if V0 is None else take(V0, f),
+                "S2": take(S2, f) if S2.ndim == 2 else S2}
+
+    pool = thread_pool(threads)
+    parts = list(pool.map(part, pieces))
+
+    def back(arrays):
+        """The parts' rows scattered to where they came from in the caller's order (the
+        padding rows are never written), on the host, each part in its thread."""
+        arrays = [np.asarray(a) for a in arrays]
+        out = np.empty((n,) + arrays[0].shape[1:], arrays[0].dtype)
+
+        def one(i):
+            out[pieces[i]] = arrays[i][:len(pieces[i])]
+
+        list(pool.map(one, range(threads)))
+        return out
+
+    return _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_group,
+                        n_ridge_groups, tol, max_iter, chunk, n_cells, estimate_variances,
+                        robust_k, back)
 
 
 def gauss_helmert_mixed(

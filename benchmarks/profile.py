@@ -31,6 +31,7 @@ import os
 import resource
 import sys
 import tempfile
+import threading
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -54,7 +55,10 @@ def _cpu() -> float:
 
 
 class Stages:
-    """Wall and CPU seconds per stage; nested stages are charged to the innermost one."""
+    """Wall and CPU seconds per stage; nested stages are charged to the innermost one (per
+    thread: the faces of a position are read and preprocessed in two threads, so those stages'
+    seconds are summed over the threads, and the process CPU seconds of each include the other
+    thread's; their sum can exceed the wall time they took, and "other" is then too small)."""
 
     def __init__(self):
         self.wall = defaultdict(float)
@@ -63,7 +67,13 @@ class Stages:
         self.iterations = defaultdict(list)  # per adjustment: its passes over the points
         self.peak = defaultdict(float)  # the process's peak resident GiB after the stage's calls
         self.grew = defaultdict(float)  # GiB the peak grew by during the stage's calls
-        self._stack: list[list] = []
+        self._local = threading.local()
+
+    @property
+    def _stack(self) -> list[list]:
+        if not hasattr(self._local, "stack"):
+            self._local.stack = []
+        return self._local.stack
 
     def wrap(self, module, name: str, stage: str):
         fn = getattr(module, name)

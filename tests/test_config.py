@@ -20,3 +20,23 @@ def test_compiled_programs_are_dropped_near_the_memory_map_limit():
     assert f._cache_size() == 1
     assert release_compiled_programs(fraction=0.0)
     assert f._cache_size() == 0
+
+
+def test_freed_memory_is_kept_unless_switched_off(monkeypatch):
+    """The CLI keeps freed memory for reuse (glibc mallopt, Linux); the environment switch
+    turns it off before anything is changed."""
+    import sys
+
+    from hartrao_jax._config import KEEP_FREED_MEMORY_ENV, keep_freed_memory
+
+    monkeypatch.setenv(KEEP_FREED_MEMORY_ENV, "0")
+    assert keep_freed_memory() is False
+    monkeypatch.delenv(KEEP_FREED_MEMORY_ENV)
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6")
+        glibc = sys.platform.startswith("linux")
+    except OSError:
+        glibc = False
+    assert keep_freed_memory() is glibc

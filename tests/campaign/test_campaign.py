@@ -595,3 +595,24 @@ def test_angle_out_of_range_in_e57_write(tmp_path):
     assert_parts(error_of(write_scan_e57, tmp_path / "s.e57", scan, 1), "s.e57", "phi_rad",
                  "expected values in [0, pi) rad for cycle 1", "first at row 5: 4.0")
     assert not (tmp_path / "s.e57").exists()
+
+
+def test_scan_data_subset_and_padding_keep_every_column():
+    """A subset by index array or mask picks the same rows of every column (``row`` too);
+    padding appends copies of the first row up to the bucket size and never shortens."""
+    rng = np.random.default_rng(3)
+    n = 50
+    d = ScanData(rng.uniform(5, 15, n), rng.uniform(0, 6, n), rng.uniform(0, 1, n),
+                 rng.uniform(0, 1, n).astype(np.float32), np.arange(n, dtype=float),
+                 np.arange(n, dtype=np.int64) + 100)
+    idx = np.array([4, 0, 49, 4])
+    by_index, by_mask = d.subset(idx), d.subset(np.isin(np.arange(n), idx))
+    for c in COLS:
+        assert np.array_equal(getattr(by_index, c), getattr(d, c)[idx])
+        assert np.array_equal(getattr(by_mask, c), getattr(d, c)[[0, 4, 49]])
+    p = d.padded(64)
+    assert len(p) == 64 and d.padded(50) is d and d.padded(10) is d
+    for c in COLS:
+        a, b = getattr(p, c), getattr(d, c)
+        assert a.dtype == b.dtype
+        assert np.array_equal(a[:n], b) and np.all(a[n:] == b[0])

@@ -295,3 +295,16 @@ def test_per_cycle_fits_mark_what_they_cannot_determine(tmp_path):
             assert est["f"]["sigma"] > 0 and est["x4"]["sigma"] > 0
         else:
             assert all(est[n]["sigma"] > 0 for n in ("x4", "x6", "x7")), s["id"]
+
+
+def test_only_a_position_carrying_no_mode_takes_the_campaign_prior():
+    """The campaign's mode variance is for a position whose pose takes up modes and that
+    carries none: one carrying some keeps its own variance (adjusted again, it would repeat
+    its adjustment), one without confounding needs none."""
+    from hartrao_jax.fit._surface_effect import takes_campaign_prior
+
+    coma = {"modes": ["zern_7", "zern_8"], "shift_sigma": {"ty": 1.0}}
+    assert takes_campaign_prior(coma, {}) is True
+    assert takes_campaign_prior(coma, {"zern_5": (1e-5, 2e-6)}) is False
+    assert takes_campaign_prior({}, {}) is False
+    assert takes_campaign_prior(None, None) is False

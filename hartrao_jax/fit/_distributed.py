@@ -47,7 +47,7 @@ from ..geometry._geometry import pointing_gravity
 from ..model._model import parse_model
 from ..preprocess._preprocess import preprocess_keep
 from ._align import MIN_TILT_RAD, Alignment, mean_heading, scan_heading
-from ._fit import fit_position, fit_scan, sigma_vector
+from ._fit import RESUME_POINTS, fit_position, fit_scan, sigma_vector
 from ._joint import (
     DEFAULT_SHARED,
     JointFit,
@@ -248,12 +248,36 @@ def task_fit_scan(root: str, scan_id: str, model, fixed: dict | None, robust_k: 
     return fit
 
 
+#: Continuations of positions that take the campaign's mode variance, kept by the worker
+#: that adjusted them (``fit_position(keep_resume=True)``), by (campaign root, position).
+_RESUMES: dict[tuple[str, str], tuple] = {}
+
+
+def held_resume_points() -> int:
+    """Points whose arrays this process holds for :func:`task_fit_position`'s continuations."""
+    return sum(n for _, n in _RESUMES.values())
+
+
+def drop_resumes() -> int:
+    """Worker: forget every held continuation (after a campaign's second round); returns how
+    many there were."""
+    n = len(_RESUMES)
+    _RESUMES.clear()
+    return n
+
+
 def task_fit_position(root: str, scan_ids: Sequence[str], model, fixed: dict | None,
                       robust_k: float | None, preprocess: bool, heading_hint_rad: float | None,
-                      out_dir: str | None, mode_prior_m2: float | None = None):
+                      out_dir: str | None, mode_prior_m2: float | None = None,
+                      resume: bool = False):
     """Worker: read, preprocess and adjust the scans of one position together (two faces, the
     surface a random effect; ``mode_prior_m2`` as :func:`._fit.fit_position`); returns the
-    scans' summaries and the position's record."""
+    scans' summaries and the position's record.
+
+    A position that would take the campaign's mode variance keeps its continuation here
+    (up to :data:`._fit.RESUME_POINTS` points per worker), and ``resume=True`` (with
+    ``mode_prior_m2``) adjusts it from there instead of from its points; where this worker
+    holds none (another worker ran it, or it restarted), from its points."""
 
     worker_setup()
 
@@ -261,9 +285,16 @@ def task_fit_position(root: str, scan_ids: Sequence[str], model, fixed: dict | N
     t0 = time.perf_counter()
     camp = _campaign(root)
     metas = [camp.scan(i) for i in scan_ids]
-    pf = fit_position(camp, metas, model, keep=preprocess_keep(preprocess, camp), fixed=fixed,
-                      robust_k=robust_k, heading_hint_rad=heading_hint_rad,
-                      mode_prior_m2=mode_prior_m2)
+    held = _RESUMES.pop((root, metas[0].position), None) if resume else None
+    if held is not None:
+        pf = held[0](mode_prior_m2)
+    else:
+        pf = fit_position(camp, metas, model, keep=preprocess_keep(preprocess, camp),
+                          fixed=fixed, robust_k=robust_k, heading_hint_rad=heading_hint_rad,
+                          mode_prior_m2=mode_prior_m2, keep_resume=mode_prior_m2 is None)
+        if pf.resume is not None and held_resume_points() + pf.n_points <= RESUME_POINTS:
+            _RESUMES[(root, metas[0].position)] = (pf.resume, pf.n_points)
+        pf.resume = None
     seconds = time.perf_counter() - t0
     out = []
     for s in pf.scans:
@@ -449,12 +480,13 @@ def fit_dask(
             records: dict[str, dict] = {}
 
             def run_positions(names_, hint, prior=None):
-                fut = client.map(task_fit_position, [root] * len(names_),
-                                 [[m.id for m in groups[p]] for p in names_],
-                                 [model] * len(names_), [fixed] * len(names_),
-                                 [robust_k] * len(names_), [preprocess] * len(names_),
-                                 [hint] * len(names_), [outd] * len(names_),
-                                 [prior] * len(names_), pure=False)
+                # with the prior: on the worker that holds the position's continuation
+                fut = [client.submit(
+                    task_fit_position, root, [m.id for m in groups[p]], model, fixed,
+                    robust_k, preprocess, hint, outd, prior, prior is not None, pure=False,
+                    **({"workers": [summaries[groups[p][0].id].worker],
+                        "allow_other_workers": True} if prior is not None else {}))
+                    for p in names_]
                 for p, (summ, rec) in zip(names_, client.gather(fut)):
                     records[p] = rec
                     for s in summ:
@@ -478,6 +510,7 @@ def fit_dask(
                             ([p for p in redo if p not in first], hint)):
                 if part:  # each with the heading hint of its first adjustment
                     run_positions(part, h, prior)
+            client.run(drop_resumes)  # the continuations not needed
             ordered = [summaries[m.id] for m in metas]
             pos_order = list(dict.fromkeys(m.position for m in metas))
             return _finish(client, od, out_dir, metas, ordered,

@@ -266,6 +266,8 @@ SAMPLE_START_POINTS = 4_000_000
 #: in parallel threads (about 4e6 rows of Parquet): the 12-scan profile campaign 10.2 -> 9.1 s;
 #: a position of 1.26e7 rows gained nothing (31.0 vs 31.9 s) and peaked 0.6 GiB higher.
 PARALLEL_FACES_BYTES = 128 * 2**20
+RESUMED_NOTE = ("adjusted with the campaign's mode variance from where its first adjustment "
+                "ended (the same points, cells and variances), not from its points again")
 SAMPLE_POINTS = 1_000_000
 
 
@@ -624,7 +626,13 @@ def fit_position(
             # what fit_campaign needs to adjust it again with the campaign's mode variance
             # from here (not from its points again); holds this position's arrays until then
             loop_end = (notes, rm, groups, modes, mdl2, ridge, cond, mz, confounding)
-            result.resume = lambda prior: finish(prior, *loop_end)
+
+            def resume(prior: float) -> PositionFit:
+                again = finish(prior, *loop_end)
+                again.notes.append(RESUMED_NOTE)
+                return again
+
+            result.resume = resume
         return result
     k_ = np.asarray(res.normalized) * float(res.sigma0)
     return assemble(

@@ -9,9 +9,9 @@ import pytest
 
 import hartrao_jax  # noqa: F401  (float64)
 from hartrao_jax._config import enable_compilation_cache
-from hartrao_jax.campaign._campaign import read_scan
+from hartrao_jax.campaign._campaign import load_campaign, read_scan
 from hartrao_jax.campaign._schedule import find_position
-from hartrao_jax.fit._fit import fit_campaign, fit_scan, prepare_scan
+from hartrao_jax.fit._fit import RESUMED_NOTE, fit_campaign, fit_scan, prepare_scan
 from hartrao_jax.fit._records import fit_json
 from hartrao_jax.fit._stream import peak_rss_gib, stream_fit_scan
 from hartrao_jax.simulate._simulate import simulate_campaign
@@ -336,3 +336,39 @@ def test_cli_fit_stream_every_scan(scatter_campaign, tmp_path, monkeypatch):
     assert list(tmp.iterdir()) == []
     r = CliRunner().invoke(main, ["fit-stream", str(scatter_campaign.root), "--scan", "nope"])
     assert r.exit_code == 2 and "nope" in r.output
+
+
+def test_dask_campaign_prior_resumes_on_the_worker_that_holds_it(tmp_path):
+    """fit-dask with a position whose pose takes up coma (r23 under gravity, with g1 and g2
+    showing the modes): its adjustment with the campaign's variance runs on the worker that
+    kept its continuation, and every position equals the in-process fit; nothing stays held
+    on the workers afterwards."""
+    pytest.importorskip("distributed")
+    from hartrao_jax.fit._distributed import (
+        close_client,
+        fit_dask,
+        held_resume_points,
+        start_client,
+    )
+
+    camp = load_campaign(simulate_campaign(
+        tmp_path / "g", preset="demo", seed=0, step_rad=0.012,
+        effects={"x4": 1.5e-4, "x6": 3e-5, "x7": -4e-5, "panel_offset": 1.5e-4,
+                 "gravity_deformation": 1.0},
+        positions=[("r23", -35.0, -64.0), ("g1", -60.0, -30.0), ("g2", 40.0, -70.0)]).root)
+    ref = {p["position"]: p for p in fit_json(fit_campaign(camp, "extended",
+                                                           progress=False))["positions"]}
+    client, cluster = start_client(n_workers=2)
+    try:
+        fit_dask(camp, "extended", client=client, preprocess=False, out_dir=tmp_path / "out")
+        assert set(client.run(held_resume_points).values()) == {0}
+    finally:
+        close_client(client, cluster)
+    got = {p["position"]: p for p in json.loads(
+        (tmp_path / "out" / "fit.json").read_text())["positions"]}
+    assert any("carried with the campaign's variance" in n for n in got["r23"]["notes"])
+    assert RESUMED_NOTE in got["r23"]["notes"] and RESUMED_NOTE in ref["r23"]["notes"]
+    for pos, p in ref.items():
+        for n in ("tx", "ty", "tz", "rx", "ry", "f", "x4", "x6", "x7"):
+            assert got[pos][n]["value"] == pytest.approx(p[n]["value"], abs=1e-6 * p[n]["sigma"])
+            assert got[pos][n]["sigma"] == pytest.approx(p[n]["sigma"], rel=1e-6)

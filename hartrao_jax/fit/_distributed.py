@@ -47,7 +47,7 @@ from ..geometry._geometry import pointing_gravity
 from ..model._model import parse_model
 from ..preprocess._preprocess import preprocess_keep
 from ._align import MIN_TILT_RAD, Alignment, mean_heading, scan_heading
-from ._fit import RESUME_POINTS, fit_position, fit_scan, sigma_vector
+from ._fit import fit_position, fit_scan, fits_resume_budget, sigma_vector
 from ._joint import (
     DEFAULT_SHARED,
     JointFit,
@@ -275,7 +275,7 @@ def task_fit_position(root: str, scan_ids: Sequence[str], model, fixed: dict | N
     scans' summaries and the position's record.
 
     A position that would take the campaign's mode variance keeps its continuation here
-    (up to :data:`._fit.RESUME_POINTS` points per worker), and ``resume=True`` (with
+    (:func:`._fit.fits_resume_budget`, per worker), and ``resume=True`` (with
     ``mode_prior_m2``) adjusts it from there instead of from its points; where this worker
     holds none (another worker ran it, or it restarted), from its points."""
 
@@ -292,7 +292,7 @@ def task_fit_position(root: str, scan_ids: Sequence[str], model, fixed: dict | N
         pf = fit_position(camp, metas, model, keep=preprocess_keep(preprocess, camp),
                           fixed=fixed, robust_k=robust_k, heading_hint_rad=heading_hint_rad,
                           mode_prior_m2=mode_prior_m2, keep_resume=mode_prior_m2 is None)
-        if pf.resume is not None and held_resume_points() + pf.n_points <= RESUME_POINTS:
+        if fits_resume_budget(held_resume_points(), pf):
             _RESUMES[(root, metas[0].position)] = (pf.resume, pf.n_points)
         pf.resume = None
     seconds = time.perf_counter() - t0

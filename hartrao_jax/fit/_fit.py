@@ -83,7 +83,6 @@ from ._surface_effect import (
     mode_variance_parts,
     positions_for_campaign_prior,
     surface_components,
-    takes_campaign_prior,
     white_sigmas,
 )
 
@@ -164,7 +163,7 @@ def fit_scan(
     mdl = make_model(model, fixed, aperture_radius_m=campaign.telescope.diameter_m / 2)
     n = len(data)
     n_pad = bucket_size(n) if pad else n
-    pdata = padded(data, n_pad)
+    pdata = data.padded(n_pad)  # one size bucket, one compiled program
     l, c = scan_arrays(pdata)
     c[n:] = 0.0
     wpad = np.zeros(n_pad, bool)
@@ -249,26 +248,28 @@ def finish_scan_fit(
 # Two-face position adjustment with the surface as a random effect
 # --------------------------------------------------------------------------------------------
 
-def padded(data: ScanData, n_pad: int) -> ScanData:
-    """``data`` padded to ``n_pad`` rows with copies of its first row (the caller gives them
-    weight 0 and zero constants): scans of one size bucket share one compiled program."""
-    return data.padded(n_pad)
-
-
 #: Positions with more points than this (both faces, inside the geometry window) start from a
 #: seeded sample of :data:`SAMPLE_POINTS`: see :func:`_sample_start`.
-#: The most points of positions a campaign keeps in memory for their adjustment with its mode
-#: variance (``fit_position(keep_resume=True)``; 0.25 kB of arrays per point, measured on a
-#: position of 3.6e5 points); beyond, such a position is adjusted again from its points.
-RESUME_POINTS = 4_000_000
 SAMPLE_START_POINTS = 4_000_000
+SAMPLE_POINTS = 1_000_000
+#: The most points of positions a process keeps in memory for their adjustment with a
+#: campaign's mode variance (``fit_position(keep_resume=True)``; 0.25 kB of arrays per point,
+#: measured on a position of 3.6e5 points); beyond, such a position is adjusted again from its
+#: points. See :func:`fits_resume_budget`.
+RESUME_POINTS = 4_000_000
+#: The note of a position adjusted from its continuation (``PositionFit.resume``).
+RESUMED_NOTE = ("adjusted with the campaign's mode variance from where its first adjustment "
+                "ended (the same points, cells and variances), not from its points again")
 #: Scan files of a position (bytes, all faces) up to which its faces are read and preprocessed
 #: in parallel threads (about 4e6 rows of Parquet): the 12-scan profile campaign 10.2 -> 9.1 s;
 #: a position of 1.26e7 rows gained nothing (31.0 vs 31.9 s) and peaked 0.6 GiB higher.
 PARALLEL_FACES_BYTES = 128 * 2**20
-RESUMED_NOTE = ("adjusted with the campaign's mode variance from where its first adjustment "
-                "ended (the same points, cells and variances), not from its points again")
-SAMPLE_POINTS = 1_000_000
+
+
+def fits_resume_budget(held_points: int, pf: PositionFit) -> bool:
+    """Whether ``pf``'s continuation may be kept with ``held_points`` points already held
+    (:data:`RESUME_POINTS`): the one rule of ``fit`` and of a ``fit-dask`` worker."""
+    return pf.resume is not None and held_points + pf.n_points <= RESUME_POINTS
 
 
 def _sample_start(campaign: Campaign, metas: Sequence[ScanMeta], model, prepared, *, fixed,
@@ -300,11 +301,6 @@ def _sample_start(campaign: Campaign, metas: Sequence[ScanMeta], model, prepared
                          fixed=fixed, robust_k=robust_k, window_m=window_m,
                          heading_hint_rad=heading_hint_rad, max_iter=max_iter)
     return start if start.mixed is not None else None
-
-
-def _needs_pooled_modes(p: PositionFit) -> bool:
-    return p.surface is not None and takes_campaign_prior(p.surface.mode_confounding,
-                                                          p.surface.modes)
 
 
 def _carried_mode_variance(p: PositionFit) -> float | None:
@@ -363,6 +359,7 @@ def fit_position(
     held: dict[str, Held] = {}
     if faces == 1:
         held.update(one_face_holds(names, fixed))
+
     def prepare(i):
         m = metas[i]
         data = datas[i] if datas is not None else read_scan(campaign, m)
@@ -375,7 +372,8 @@ def fit_position(
         size = sum((campaign.root / m.file).stat().st_size for m in metas) if datas is None else 0
     except OSError:  # read_scan says what is wrong with the file
         size = PARALLEL_FACES_BYTES + 1
-    workers = min(len(metas), pass_threads(1 << 30)) if size <= PARALLEL_FACES_BYTES else 1
+    cores = pass_threads(1 << 30)  # the usable cores (no cap by a point count)
+    workers = min(len(metas), cores) if size <= PARALLEL_FACES_BYTES else 1
     with ThreadPoolExecutor(max(1, workers)) as ex:
         prepared = list(ex.map(prepare, range(len(metas))))
     init = max((p[2] for p in prepared), key=lambda c: c.inlier_fraction)
@@ -384,7 +382,7 @@ def fit_position(
     sizes = [len(p[0]) for p in prepared]
     n = int(sum(sizes))
     n_pad = bucket_size(n)
-    pdata = padded(concat_scans([p[0] for p in prepared]), n_pad)  # both faces, one table
+    pdata = concat_scans([p[0] for p in prepared]).padded(n_pad)  # both faces, one table
     l, c = scan_arrays(pdata)
     c[n:] = 0.0
     w = np.concatenate([p[3] for p in prepared] + [np.zeros(n_pad - n, bool)]).astype(float)
@@ -621,8 +619,7 @@ def fit_position(
 
         result = finish(mode_prior_m2, notes, rm, groups, modes, mdl2, ridge, cond, mz,
                         confounding)
-        if (mode_prior_m2 is None and keep_resume and result.surface is not None
-                and takes_campaign_prior(result.surface.mode_confounding, result.surface.modes)):
+        if mode_prior_m2 is None and keep_resume and result.takes_campaign_prior:
             # what fit_campaign needs to adjust it again with the campaign's mode variance
             # from here (not from its points again); holds this position's arrays until then
             loop_end = (notes, rm, groups, modes, mdl2, ridge, cond, mz, confounding)
@@ -695,10 +692,10 @@ def fit_campaign(
                 pf = fit_position(campaign, groups[pos], model, keep=keep, fixed=fixed,
                                   robust_k=robust_k, heading_hint_rad=hints[pos],
                                   surface=surface, keep_resume=True)
-                if pf.resume is not None:  # its arrays held for the campaign's prior
+                if fits_resume_budget(held_points, pf):  # its arrays held for the prior
                     held_points += pf.n_points
-                    if held_points > RESUME_POINTS:
-                        pf.resume = None  # adjusted again from its points instead
+                else:
+                    pf.resume = None  # adjusted again from its points, if at all
                 headings.append(scan_heading(pf.scans[0]))
                 pfits[pos] = pf
                 release_compiled_programs()
@@ -707,7 +704,7 @@ def fit_campaign(
             # smooth modes carried at the variance of the positions that show them
             prior, redo = positions_for_campaign_prior(
                 {p: _carried_mode_variance(pfits[p]) for p in order},
-                {p: _needs_pooled_modes(pfits[p]) for p in order})
+                {p: pfits[p].takes_campaign_prior for p in order})
             if redo:
                 task = prog.add_task("coma prior from the campaign", total=len(redo))
             for pos in redo:

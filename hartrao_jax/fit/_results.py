@@ -18,6 +18,7 @@ from ..preprocess._initial import InitialValues
 from ._align import Alignment
 from ._identify import Held
 from ._position_record import position_record
+from ._surface_effect import takes_campaign_prior
 
 
 def _faces(metas: Sequence[ScanMeta]) -> int:
@@ -194,6 +195,13 @@ class PositionFit:
     def estimate(self, name: str) -> tuple[float, float]:
         i = self.names.index(name)
         return float(self.x[i]), float(self.sigma[i])
+
+    @property
+    def takes_campaign_prior(self) -> bool:
+        """Whether a campaign's mode variance changes this adjustment
+        (:func:`._surface_effect.takes_campaign_prior` of its surface effect)."""
+        return self.surface is not None and takes_campaign_prior(self.surface.mode_confounding,
+                                                                 self.surface.modes)
 
 
 @dataclass

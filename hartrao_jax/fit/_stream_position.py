@@ -69,7 +69,6 @@ from ._surface_effect import (
     pooled_mode_variance,
     record_mode_variance,
     surface_components,
-    takes_campaign_prior,
     white_sigmas,
 )
 
@@ -212,8 +211,7 @@ def stream_fit_position(
     start = fit_position(campaign, metas, model, datas=samples, fixed=fixed, robust_k=robust_k,
                          window_m=window_m, mode_prior_m2=mode_prior_m2)
     timings["start_fit_s"] = time.perf_counter() - t0
-    if defer_campaign_prior and start.surface is not None and takes_campaign_prior(
-            start.surface.mode_confounding, start.surface.modes):
+    if defer_campaign_prior and start.takes_campaign_prior:
         return {"position": metas[0].position, "deferred": True,
                 "surface_mode_confounding": start.surface.mode_confounding,
                 "seconds": time.perf_counter() - t_start, "timings": timings}

@@ -39,13 +39,18 @@ KEEP_FREED_MEMORY_ENV = "HARTRAO_JAX_KEEP_FREED_MEMORY"
 
 def keep_freed_memory() -> bool:
     """Keep freed memory in the process for reuse (glibc ``mallopt``: large blocks from the
-    heap instead of their own memory maps, the heap's top not given back below 2 GiB); True
-    if set. The CLI does it (off with ``$HARTRAO_JAX_KEEP_FREED_MEMORY=0``).
+    heap instead of their own memory maps, the heap's top not given back below 2 GiB, and one
+    heap for every thread); True if set. The CLI does it (off with
+    ``$HARTRAO_JAX_KEEP_FREED_MEMORY=0``).
 
     Why: each large array (a column of 1e7 points is 80 MB) otherwise gets fresh pages from
     the kernel, which faults every 4 KiB page in on first touch (18-22 % of the CPU time of a
     full-resolution fit was system time); reused, it is already there. A two-face position of
-    1.26e7 points: whole ``fit`` 38.1 -> 30.9 s warm, peak resident 9.3 -> 10.3 GB. Freed
+    1.26e7 points: whole ``fit`` 38.1 -> 30.9 s warm, peak resident 9.3 -> 10.3 GB. One heap
+    (``M_ARENA_MAX`` 1): a thread's own heap is at most 64 MiB, so glibc gives the larger
+    blocks of a worker thread (the random effect's passes run in two) their own memory maps
+    whatever ``M_MMAP_MAX`` says, and each pass faulted 1.5 GB in again (381,000 faults); with
+    one heap none, and the random effect of that position took 12.7 -> 6.9 s warm. Freed
     memory is no longer returned to the kernel, so not for long-lived processes: a Dask
     worker whose resident memory stays above 80 % of its limit after a large position is
     paused by its nanny (workers keep the default; a streamed position on one core gained
@@ -56,9 +61,10 @@ def keep_freed_memory() -> bool:
         libc = ctypes.CDLL("libc.so.6")
     except OSError:  # not glibc
         return False
-    m_mmap_max, m_trim_threshold = -4, -1  # <malloc.h>
-    return bool(libc.mallopt(m_mmap_max, 0)) and bool(libc.mallopt(m_trim_threshold,
-                                                                   2**31 - 1))
+    m_mmap_max, m_trim_threshold, m_arena_max = -4, -1, -8  # <malloc.h>
+    return (bool(libc.mallopt(m_mmap_max, 0))
+            and bool(libc.mallopt(m_trim_threshold, 2**31 - 1))
+            and bool(libc.mallopt(m_arena_max, 1)))
 
 
 #: Share of the kernel's memory-map limit above which :func:`release_compiled_programs` drops

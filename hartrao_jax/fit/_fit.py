@@ -494,7 +494,8 @@ def fit_position(
             confounding = dict(start.surface.mode_confounding)
             x_start = {n_: float(v_) for n_, v_ in zip(st.model.free, st.x)}
             warm = {"v0": v_start, "u0": np.asarray(st.u), "noise_var0": float(st.var[0]),
-                    "cell_var0": np.maximum(np.asarray(st.var[1]), np.asarray(_CELL_VAR0))}
+                    "cell_var0": np.maximum(np.asarray(st.var[1]), np.asarray(_CELL_VAR0)),
+                    "rate0": st.contraction}
             ridge_var0 = np.maximum(np.asarray(st.var[2], float), _MODE_VAR0)
         if start is not None and robust_k is not None:
             # the outliers the white robust adjustment would have rejected, judged at the start
@@ -521,7 +522,8 @@ def fit_position(
             """Where ``rm`` ended, by name, and its state as the next adjustment's start."""
             return ({n_: float(v_) for n_, v_ in zip(mdl2.free, np.asarray(rm.x))},
                     {"v0": np.asarray(rm.v), "u0": np.asarray(rm.u),
-                     "cell_var0": np.asarray(rm.cell_var), "noise_var0": float(rm.noise_var)})
+                     "cell_var0": np.asarray(rm.cell_var), "noise_var0": float(rm.noise_var),
+                     "rate0": float(rm.contraction)})
 
         for _ in range(3 + len(groups)):
             modes, mdl2, ridge, cond, mz, rm = adjust(groups, x_start, w_mixed, ridge_var0, warm)
@@ -595,7 +597,8 @@ def fit_position(
             mixed = MixedState(mdl2, xs, np.asarray(rm.u), (float(rm.noise_var), np.asarray(
                 rm.cell_var), np.asarray(rm.ridge_var)), (1.0, np.asarray(_CELL_VAR0), np.full(
                     len(ridge or ()), _MODE_VAR0)), ridge, kappa, cell_m, keys,
-                [p[2] for p in prepared], cond, tuple(modes), aperture, variances_held=pooled)
+                [p[2] for p in prepared], cond, tuple(modes), aperture, variances_held=pooled,
+                contraction=float(rm.contraction))
             free = tuple(mdl2.free[i] for i in keep_idx)
             x_pos, cov_pos = xs[keep_idx], cov[np.ix_(keep_idx, keep_idx)]
             iterations, converged = int(rm.iterations), bool(rm.converged)

@@ -151,6 +151,9 @@ class MixedState:
     aperture_m: float = 1.0
     #: the variances were held (the modes carried at a campaign's variance), not estimated
     variances_held: bool = False
+    #: the contraction of its iteration (``MixedResult.contraction``), for an adjustment of
+    #: the same problem that starts here
+    contraction: float = 1.0
 
 
 @dataclass

@@ -327,10 +327,11 @@ def remaining_error(step, rate):
 def next_rate(rate, previous, step, restarted):
     """The iteration's contraction after a step of ``step`` sigmas that followed one of
     ``previous``: ``step / previous``; unchanged (``rate``) where the step restarted (a
-    rejection moved the solution between the two: not a contraction); 1 (no extrapolation)
-    where there was no previous step (``previous`` 0 or infinite). Floats or JAX scalars."""
+    rejection moved the solution between the two: not a contraction) or where there was no
+    previous step (``previous`` 0 or infinite): the start value, 1 (no extrapolation) or a
+    contraction measured on the same problem. Floats or JAX scalars."""
     has = jnp.isfinite(previous) & (previous > 0)
-    return jnp.where(restarted, rate, jnp.where(has, step / jnp.where(has, previous, 1.0), 1.0))
+    return jnp.where(restarted | ~has, rate, step / jnp.where(has, previous, 1.0))
 
 
 @eqx.filter_jit

@@ -93,6 +93,9 @@ class MixedResult(AbstractAdjustment):
             the estimates (``Q_xx s_g^T D_g^-1 Lambda``). The surface's share of ``cov`` is
             ``sum_g R_g diag(cell_var) R_g^T``; cells seen by other adjustments of the same
             reflector make their estimates' surface errors correlated (``gravity``).
+        contraction: the ratio of its last two steps with no rejection between them (its
+            ``rate0`` where it measured none): how fast the iteration converges on this
+            problem, for an adjustment of the same problem started from this one.
         ridge_fixed, ridge_fixed_cov: the ridge unknowns estimated as *fixed* effects (no prior:
             one Newton step from the solution with their priors removed, the cells still
             random) and their covariance ``s_e^2 Q``: ``ridge_fixed_g^T cov_g^-1 ridge_fixed_g``
@@ -123,6 +126,7 @@ class MixedResult(AbstractAdjustment):
     x_response: Float[Array, "g u k"]
     ridge_fixed: Float[Array, " r"]
     ridge_fixed_cov: Float[Array, "r r"]
+    contraction: Float[Array, ""]
 
 
 def _linearize(condition, dev_column, on, l0, x, c):
@@ -391,7 +395,7 @@ def _blank_step(n: int, x0, U0, var0):
 @eqx.filter_jit
 def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0, v0,
            var0, ridge_idx, ridge_group, n_ridge_groups, tol, max_iter, chunk, n_cells,
-           estimate_variances, robust_k, on, MZ):
+           estimate_variances, robust_k, on, MZ, reject_from, rate0):
     f = l.dtype
     upd = partial(_update, var0=var0, **_ridge_args(ridge_idx, ridge_group, n_ridge_groups))
 
@@ -420,10 +424,10 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
         rate = next_rate(rate, prev, ratio, prev_bad)
         step_ok = iteration_converged(ratio, rate, tol, var, var_prev, var0)
         # robust rejection inside the iteration: points beyond robust_k noise sigmas (judged
-        # once the surface is taken out, from the second step on) leave for good
+        # once the surface is taken out, from step ``reject_from`` on) leave for good
         ok = (weights > 0) & (lin.m > 0)
         e = jnp.sqrt(jnp.where(ok, kk * kk * lin.m, 0.0) / var[0])
-        bad = (e > robust_k) & (weights > 0) & (it >= 1)
+        bad = (e > robust_k) & (weights > 0) & (it >= reject_from)
         weights = jnp.where(bad, 0.0, weights)
         done = step_ok & ~jnp.any(bad)
         return (x + up.dx, U + up.dU, V_new, var, it + 1, done, weights, lin, (x, U, up),
@@ -436,8 +440,8 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
     # come from them (its step was below tol sigma: no further pass over the points)
     state = (x0, U0, v0, var0, jnp.array(0), jnp.array(False), weights,
              *_blank_step(l.shape[0], x0, U0, var0),
-             (jnp.zeros((), f), jnp.array(False), jnp.ones((), f)))
-    x, U, V, var, it, done, weights, lin, (x_lin, U_lin, up), _ = lax.while_loop(
+             (jnp.zeros((), f), jnp.array(False), jnp.asarray(rate0, f)))
+    x, U, V, var, it, done, weights, lin, (x_lin, U_lin, up), (_, _, rate) = lax.while_loop(
         cond, step, state)
     kk = _point_residuals(lin, up, groups)
     ok = (weights > 0) & (lin.m > 0)
@@ -462,7 +466,7 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
         normalized=jnp.sqrt(omega_pt) / jnp.sqrt(se2), dev=dev_final, omega_point=omega_pt,
         weights=weights, n_used=n_used, iterations=it, converged=done,
         x_response=_x_response(lin, var, up.Qxx), ridge_fixed=ridge_fixed,
-        ridge_fixed_cov=ridge_fixed_cov)
+        ridge_fixed_cov=ridge_fixed_cov, contraction=rate)
 
 
 # --------------------------------------------------------------------------------------------
@@ -496,13 +500,14 @@ def _part_update(sums, var, var0, x, U, n_used, ridge_idx, ridge_group, n_ridge_
 
 
 @eqx.filter_jit
-def _part_residuals(per, G, S2, W, dx, dU, se2, it, robust_k):
-    """A part's residuals after the step and its robust rejection (as :func:`_solve`)."""
+def _part_residuals(per, G, S2, W, dx, dU, se2, judge, robust_k):
+    """A part's residuals after the step and, where ``judge``, its robust rejection (as
+    :func:`_solve`)."""
     a, b, d, wm, m = per
     kk = _residual_k(a, d, wm, m, dx, dU, G)
     ok = (W > 0) & (m > 0)
     e = jnp.sqrt(jnp.where(ok, kk * kk * m, 0.0) / se2)
-    bad = (e > robust_k) & (W > 0) & (it >= 1)
+    bad = (e > robust_k) & (W > 0) & judge
     return S2 * b * kk[:, None], jnp.where(bad, 0.0, W), jnp.any(bad)
 
 
@@ -536,7 +541,7 @@ def _part_stats(sums, var, x, U, Qxx, ridge_idx, n_ridge_groups):
 
 def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_group,
                  n_ridge_groups, tol, max_iter, chunk, n_cells, estimate_variances, robust_k,
-                 back):
+                 reject_from, rate0, back):
     """:func:`_solve` with every pass split into ``parts`` (dicts of equal-length point
     arrays ``L, C, S2, G, DM, W, V``), each part's pass in its own thread; the normal-equation
     sums of the parts are added, the step and the variance components computed from them as
@@ -561,7 +566,7 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
                             n_ridge_groups, estimate_variances, tol)
 
     x, U, var, it, done = x0, U0, var0, 0, False
-    prev, any_bad, rate = 0.0, False, 1.0
+    prev, any_bad, rate = 0.0, False, float(rate0)
     while it < max_iter and not done:
         pers = per = None  # free the last linearisation's per-point terms before the next pass
         sums, pers, n_used = linearize(x, U)
@@ -575,7 +580,8 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
         any_bad = False
         for p, per in zip(parts, pers):
             p["V"], p["W"], bad = _part_residuals(per, p["G"], p["S2"], p["W"], up.dx, up.dU,
-                                                  var[0], jnp.asarray(it), robust_k)
+                                                  var[0], jnp.asarray(it >= reject_from),
+                                                  robust_k)
             any_bad = any_bad or bool(bad)
         x_lin, U_lin = x, U
         x, U = x + up.dx, U + up.dU
@@ -600,12 +606,13 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
         redundancy_ridge=up.r_ridge, sigma0=sigma0, v=cat(0), normalized=cat(1), dev=cat(2),
         omega_point=cat(3), weights=back([p["W"] for p in parts]),
         n_used=n_used, iterations=jnp.asarray(it), converged=jnp.asarray(done),
-        x_response=response, ridge_fixed=ridge_fixed, ridge_fixed_cov=ridge_fixed_cov)
+        x_response=response, ridge_fixed=ridge_fixed, ridge_fixed_cov=ridge_fixed_cov,
+        contraction=jnp.asarray(rate))
 
 
 def _solve_split(condition, dev_column, threads, order, L, x0, S2, C, W, G, DM, U0, V0, var0,
                  ridge_idx, ridge_group, n_ridge_groups, tol, max_iter, chunk, n_cells,
-                 estimate_variances, robust_k, MZ):
+                 estimate_variances, robust_k, reject_from, rate0, MZ):
     """The points in cell order (``order``) cut into ``threads`` equal parts (whole chunks;
     the last part's tail padded with copies of its last point at weight 0, outside every
     cell), each part gathered straight from the caller's arrays; :func:`_solve_parts`; the
@@ -650,7 +657,7 @@ def _solve_split(condition, dev_column, threads, order, L, x0, S2, C, W, G, DM, 
 
     return _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_group,
                         n_ridge_groups, tol, max_iter, chunk, n_cells, estimate_variances,
-                        robust_k, back)
+                        robust_k, reject_from, rate0, back)
 
 
 def gauss_helmert_mixed(
@@ -678,6 +685,7 @@ def gauss_helmert_mixed(
     chunk_size: int = 8192,
     threads: int | None = None,
     mode_design: Float[Array, "n r"] | None = None,
+    rate0: float = 1.0,
 ) -> MixedResult:
     """Gauss-Helmert adjustment of ``condition`` with the surface as a random effect.
 
@@ -695,7 +703,10 @@ def gauss_helmert_mixed(
         estimate_variances: False holds every variance at its start value.
         robust_k: reject, during the iteration, points whose residual exceeds ``robust_k``
             noise sigmas once the surface is taken out (None: no rejection); a rejected point
-            stays rejected.
+            stays rejected. Points are judged from the second step on, or from the first when
+            the start carries the cells (``u0``: another random-effect adjustment's solution,
+            so the first step does not move the surface into the cells and the residuals after
+            it are already the surface-free ones; it saves a pass over the points).
         tol: convergence when every step is below ``tol`` times its sigma and every variance
             component changed by less than 0.5 %.
         threads: parts each pass over the points is split into, one thread each (None:
@@ -709,6 +720,11 @@ def gauss_helmert_mixed(
             within 0.5 %, ``tests/solver/test_mixed.py``; at the points' true positions 0.05
             sigma, as range noise moves an observation across the surface by up to 15 mm),
             at half the cost of the pass (the derivatives of seven Zernike terms doubled it).
+        rate0: the contraction of the iteration on this problem where known (the
+            ``contraction`` of an adjustment of the same model and points, or of a sample of
+            them, that this one starts from); until it measures its own, a step is converged
+            when the rest it predicts, ``step rate0 / (1 - rate0)``, is below ``tol``
+            (:func:`._kernel.remaining_error`). 1: no prediction (the step itself).
 
     The statistics at the solution (covariance, variance components, residuals) come from the
     last step's linearisation: its step was below ``tol`` sigma, so no further pass is made.
@@ -729,6 +745,7 @@ def gauss_helmert_mixed(
     g_np = np.asarray(groups)
     order = np.argsort(np.where(g_np >= 0, g_np, n_cells), kind="stable")
     threads = mixed_threads(n) if threads is None else max(1, int(threads))
+    reject_from = 0 if u0 is not None else 1
     if threads > 1:
         sig2 = jnp.asarray(sigma_l, f) ** 2
         res = _solve_split(condition, int(dev_column), threads, order, l, jnp.asarray(x0, f),
@@ -736,7 +753,8 @@ def gauss_helmert_mixed(
                            consts, weights, g_np, design, U0, v0, var0,
                            ridge_idx, ridge_group, n_groups, float(tol), int(max_iter), chunk,
                            int(n_cells), bool(estimate_variances),
-                           jnp.asarray(np.inf if robust_k is None else robust_k, f), MZ)
+                           jnp.asarray(np.inf if robust_k is None else robust_k, f), reject_from,
+                           float(rate0), MZ)
         return res
     inv = np.empty_like(order)
     inv[order] = np.arange(n)
@@ -750,7 +768,7 @@ def gauss_helmert_mixed(
                  ridge_idx, ridge_group, n_groups, float(tol), int(max_iter), chunk,
                  int(n_cells), bool(estimate_variances),
                  jnp.asarray(np.inf if robust_k is None else robust_k, f), jnp.ones((), bool),
-                 jnp.asarray(MZ, f)[o])
+                 jnp.asarray(MZ, f)[o], jnp.asarray(reject_from), jnp.asarray(rate0, f))
     back = jnp.asarray(inv)
     return eqx.tree_at(lambda r: (r.v, r.normalized, r.dev, r.omega_point, r.weights), res,
                        (res.v[back], res.normalized[back], res.dev[back],

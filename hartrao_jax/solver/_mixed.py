@@ -745,6 +745,7 @@ def gauss_helmert_mixed(
     g_np = np.asarray(groups)
     order = np.argsort(np.where(g_np >= 0, g_np, n_cells), kind="stable")
     threads = mixed_threads(n) if threads is None else max(1, int(threads))
+    threads = min(threads, -(-n // chunk))  # whole chunks per part: no empty part
     reject_from = 0 if u0 is not None else 1
     if threads > 1:
         sig2 = jnp.asarray(sigma_l, f) ** 2

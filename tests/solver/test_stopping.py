@@ -31,3 +31,10 @@ def test_random_effect_stops_on_the_prediction_only_with_settled_variances():
     assert bool(iteration_converged(0.01, rate, 1e-3, var, var, var0))
     assert not bool(iteration_converged(0.01, rate, 1e-3, var, moved, var0))
     assert bool(iteration_converged(5e-4, rate, 1e-3, var, moved, var0))
+
+
+def test_a_measured_start_rate_is_kept_until_the_iteration_measures_its_own():
+    """An adjustment started from another's solution of the same problem begins with that
+    one's contraction (``rate0``): no previous step keeps it, the second step replaces it."""
+    assert float(next_rate(0.02, 0.0, 0.5, False)) == 0.02
+    assert float(next_rate(0.02, 0.1, 0.05, False)) == pytest.approx(0.5)

@@ -23,8 +23,8 @@ def test_compiled_programs_are_dropped_near_the_memory_map_limit():
 
 
 def test_freed_memory_is_kept_unless_switched_off(monkeypatch):
-    """The CLI keeps freed memory for reuse (glibc mallopt, Linux); the environment switch
-    turns it off before anything is changed."""
+    """The CLI keeps freed memory for reuse (glibc mallopt, Linux; Arrow's system pool); the
+    environment switch turns it off before anything is changed."""
     import sys
 
     from hartrao_jax._config import KEEP_FREED_MEMORY_ENV, keep_freed_memory
@@ -40,3 +40,7 @@ def test_freed_memory_is_kept_unless_switched_off(monkeypatch):
     except OSError:
         glibc = False
     assert keep_freed_memory() is glibc
+    if glibc:  # Arrow's buffers from the same heap
+        import pyarrow as pa
+
+        assert pa.default_memory_pool().backend_name == "system"

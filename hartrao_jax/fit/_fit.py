@@ -261,9 +261,11 @@ RESUME_POINTS = 4_000_000
 RESUMED_NOTE = ("adjusted with the campaign's mode variance from where its first adjustment "
                 "ended (the same points, cells and variances), not from its points again")
 #: Scan files of a position (bytes, all faces) up to which its faces are read and preprocessed
-#: in parallel threads (about 4e6 rows of Parquet): the 12-scan profile campaign 10.2 -> 9.1 s;
-#: a position of 1.26e7 rows gained nothing (31.0 vs 31.9 s) and peaked 0.6 GiB higher.
-PARALLEL_FACES_BYTES = 128 * 2**20
+#: in parallel threads (about 2.2e7 rows of Parquet; above, one face at a time holds less):
+#: the 12-scan profile campaign 10.2 -> 9.1 s; a position of 1.26e7 rows (1.2 GB) 22.5 ->
+#: 20.6 s in a fresh process (three runs each), peak resident 9.3-9.6 GiB either way (with
+#: one heap for every thread, ``_config.keep_freed_memory``; before it, nothing was gained).
+PARALLEL_FACES_BYTES = 2 * 2**30
 
 
 def fits_resume_budget(held_points: int, pf: PositionFit) -> bool:

@@ -43,18 +43,21 @@ def keep_freed_memory() -> bool:
     heap for every thread; Arrow's buffers from that heap too); True if set. The CLI does it
     (off with ``$HARTRAO_JAX_KEEP_FREED_MEMORY=0``).
 
-    Why: each large array (a column of 1e7 points is 80 MB) otherwise gets fresh pages from
-    the kernel, which faults every 4 KiB page in on first touch (18-22 % of the CPU time of a
-    full-resolution fit was system time); reused, it is already there. A two-face position of
-    1.26e7 points: whole ``fit`` 38.1 -> 30.9 s warm, peak resident 9.3 -> 10.3 GB. One heap
-    (``M_ARENA_MAX`` 1): a thread's own heap is at most 64 MiB, so glibc gives the larger
-    blocks of a worker thread (the random effect's passes run in two) their own memory maps
-    whatever ``M_MMAP_MAX`` says, and each pass faulted 1.5 GB in again (381,000 faults); with
-    one heap none, and the random effect of that position took 12.7 -> 6.9 s warm. Arrow
-    (reading and writing Parquet) allocates through its system pool instead of mimalloc,
-    which hands freed memory back to the kernel: a 611 MiB residual table after that fit was
-    written in 1.6-2.2 s, now 0.7-1.4 s. Freed
-    memory is no longer returned to the kernel, so not for long-lived processes: a Dask
+    Why, measured on a two-face position of 1.26e7 points:
+
+    * Each large array (a column of 1e7 points is 80 MB) otherwise gets fresh pages from the
+      kernel, which faults every 4 KiB page in on first touch (18-22 % of the CPU time of a
+      full-resolution fit was system time); reused, it is already there. Whole ``fit`` 38.1
+      -> 30.9 s warm, peak resident 9.3 -> 10.3 GB.
+    * One heap (``M_ARENA_MAX`` 1): a thread's own heap holds at most 64 MiB, so glibc gives
+      the larger blocks of a worker thread (the random effect's passes run in two) their own
+      memory maps whatever ``M_MMAP_MAX`` says, and each pass faulted 1.5 GB in again
+      (381,000 faults); with one heap none. Random effect 12.7 -> 6.9 s warm.
+    * Arrow (reading and writing Parquet) allocates through its system pool instead of
+      mimalloc, which hands freed memory back to the kernel: a 611 MiB residual table written
+      after that fit in 1.6-2.2 s, now 0.7-1.4 s.
+
+    Freed memory is no longer returned to the kernel, so not for long-lived processes: a Dask
     worker whose resident memory stays above 80 % of its limit after a large position is
     paused by its nanny (workers keep the default; a streamed position on one core gained
     4 %, 53.2 -> 51.0 s)."""

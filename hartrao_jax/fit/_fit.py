@@ -51,7 +51,7 @@ from ..solver._ghm import (
     gauss_helmert_batch,
     robust_gauss_helmert,
 )
-from ..solver._kernel import pass_threads
+from ..solver._kernel import usable_cores
 from ..solver._mixed import gauss_helmert_mixed
 from ._align import mean_heading, north_alignment, scan_heading
 from ._identify import (
@@ -374,8 +374,7 @@ def fit_position(
         size = sum((campaign.root / m.file).stat().st_size for m in metas) if datas is None else 0
     except OSError:  # read_scan says what is wrong with the file
         size = PARALLEL_FACES_BYTES + 1
-    cores = pass_threads(1 << 30)  # the usable cores (no cap by a point count)
-    workers = min(len(metas), cores) if size <= PARALLEL_FACES_BYTES else 1
+    workers = min(len(metas), usable_cores()) if size <= PARALLEL_FACES_BYTES else 1
     with ThreadPoolExecutor(max(1, workers)) as ex:
         prepared = list(ex.map(prepare, range(len(metas))))
     init = max((p[2] for p in prepared), key=lambda c: c.inlier_fraction)

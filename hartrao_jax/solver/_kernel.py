@@ -465,18 +465,23 @@ THREADS_ENV = "HARTRAO_JAX_THREADS"
 _POOL: dict[int, ThreadPoolExecutor] = {}
 
 
+def usable_cores() -> int:
+    """The threads this process's work may use: ``$HARTRAO_JAX_THREADS``, else the cores it
+    may run on (its CPU affinity on Linux; elsewhere the core count)."""
+    env = os.environ.get(THREADS_ENV)
+    affinity = getattr(os, "sched_getaffinity", None)
+    return max(1, int(env) if env else (len(affinity(0)) if affinity else os.cpu_count() or 1))
+
+
 def pass_threads(n: int) -> int:
-    """Parts (threads) a pass over ``n`` points is split into: ``$HARTRAO_JAX_THREADS``, else
-    the cores this process may use; at most one part per :data:`PARALLEL_MIN_POINTS` points.
+    """Parts (threads) a pass over ``n`` points is split into: :func:`usable_cores`, at most 8
+    and at most one part per :data:`PARALLEL_MIN_POINTS` points.
 
     XLA runs one fusion on one core, and the pass is one loop of fusions: one jitted call uses
     one core whatever the machine. Two calls from two threads run at the same time (the
     runtime executes concurrent calls concurrently), so the points are split into parts, each
     part's pass runs in its own thread, and the sums are added."""
-    env = os.environ.get(THREADS_ENV)
-    affinity = getattr(os, "sched_getaffinity", None)  # Linux; elsewhere the core count
-    t = int(env) if env else (len(affinity(0)) if affinity else os.cpu_count() or 1)
-    return int(max(1, min(t, 8, n // PARALLEL_MIN_POINTS)))
+    return int(max(1, min(usable_cores(), 8, n // PARALLEL_MIN_POINTS)))
 
 
 def thread_pool(threads: int) -> ThreadPoolExecutor:

@@ -73,6 +73,33 @@ def write_table(table, path, **kwargs) -> None:
     pq.write_table(table, path, **{**PARQUET_WRITE_OPTIONS, **kwargs})
 
 
+#: Rows per row group of :func:`write_columns` (pyarrow's default for ``write_table``).
+ROW_GROUP_ROWS = 1 << 20
+
+
+def write_columns(columns: Mapping[str, np.ndarray], path, *,
+                  row_group_rows: int = ROW_GROUP_ROWS) -> None:
+    """Write equal-length NumPy columns as Parquet, one row group at a time.
+
+    The file :func:`write_table` would write from ``pa.table(columns)``, but a strided column
+    (``v[:, 0]`` of an ``(n, 3)`` array) is copied one row group at a time instead of whole:
+    a 6.3e6-row residual table with six such columns holds 50 MB of copies instead of 300 MB.
+    """
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    n = len(next(iter(columns.values()))) if columns else 0
+
+    def rows(a: int, b: int):
+        return pa.table({k: np.ascontiguousarray(v[a:b]) for k, v in columns.items()})
+
+    first = rows(0, min(n, row_group_rows))
+    with pq.ParquetWriter(path, first.schema, **PARQUET_WRITE_OPTIONS) as w:
+        w.write_table(first, row_group_size=row_group_rows)
+        for a in range(row_group_rows, n, row_group_rows):
+            w.write_table(rows(a, min(n, a + row_group_rows)), row_group_size=row_group_rows)
+
+
 # ----------------------------------------------------------------------------- strict JSON
 
 
@@ -301,6 +328,7 @@ class OutputDir:
         self.main_json = _relpath(main_json)
         self.durable = durable
         self._pending: dict[str, pathlib.Path] = {}
+        self._sealed: dict[str, dict[str, Any]] = {}  # rel -> digest of a finished file
         self._adopted: set[str] = set()
         self._committed = False
 
@@ -336,6 +364,7 @@ class OutputDir:
         final.parent.mkdir(parents=True, exist_ok=True)
         if rel in self._pending:
             _unlink(self._pending[rel])
+            self._sealed.pop(rel, None)
         else:
             remove_stale_temporaries(final.parent)
         tmp = _tmp_name(final)
@@ -355,6 +384,48 @@ class OutputDir:
             raise RuntimeError(f"{rel}: the writer wrote no file")
         _pause()
         return self.final_path(rel)
+
+    def write_each(self, items: Iterable[tuple[str, Callable[[pathlib.Path], Any]]], *,
+                   threads: int = 1) -> list[pathlib.Path]:
+        """:meth:`write_with` for every ``(rel, writer)`` of ``items``, ``threads`` at a time;
+        each file is flushed (``durable``) and hashed for the manifest by the thread that
+        wrote it, while it is still in the page cache. Returns the final paths in order.
+
+        For writers that release the GIL (Parquet encoding and compression, ``savefig`` does
+        not): the two 6.3e6-row residual tables of a full-resolution position are written and
+        hashed in about half the time on two threads. If a writer fails, the others finish,
+        every file of the call is removed and the first error is raised.
+        """
+        from concurrent.futures import ThreadPoolExecutor
+
+        items = [(_relpath(rel), writer) for rel, writer in items]
+        tmps = [self.temp_path(rel) for rel, _ in items]
+
+        def one(k: int) -> dict[str, Any]:
+            rel, writer = items[k]
+            writer(tmps[k])
+            if not tmps[k].is_file():
+                raise RuntimeError(f"{rel}: the writer wrote no file")
+            return self._seal(tmps[k])
+
+        with ThreadPoolExecutor(max(1, min(threads, len(items)))) as ex:
+            futures = [ex.submit(one, k) for k in range(len(items))]
+        errors = [f.exception() for f in futures if f.exception() is not None]
+        if errors:
+            for (rel, _), tmp in zip(items, tmps):
+                _unlink(tmp)
+                self._pending.pop(rel, None)
+            raise errors[0]
+        for (rel, _), f in zip(items, futures):
+            self._sealed[rel] = f.result()
+            _pause()
+        return [self.final_path(rel) for rel, _ in items]
+
+    def _seal(self, path: pathlib.Path) -> dict[str, Any]:
+        """Flush a finished file to disk (``durable``) and return its manifest entry."""
+        if self.durable:
+            _fsync_file(path)
+        return file_digest(path)
 
     def write_bytes(self, rel: str, data: bytes) -> pathlib.Path:
         return self.write_with(rel, lambda t: t.write_bytes(data))
@@ -406,10 +477,8 @@ class OutputDir:
             raise RuntimeError("OutputDir: already committed")
         manifest = {}
         for rel in self.files:
-            src = self._pending.get(rel, self.root / rel)
-            if self.durable:
-                _fsync_file(src)
-            manifest[rel] = file_digest(src)
+            sealed = self._sealed.get(rel)
+            manifest[rel] = sealed or self._seal(self._pending.get(rel, self.root / rel))
         body = strict_document({**dict(doc), "files": manifest}, default=default)
         text = json.dumps(body, indent=indent, allow_nan=False) + "\n"
         main = self.root / self.main_json

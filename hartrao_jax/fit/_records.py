@@ -14,9 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..campaign._safeio import OutputDir, write_file_atomic, write_table
+from ..campaign._safeio import OutputDir, write_columns, write_file_atomic
 from ..geometry._geometry import face_of
 from ..model._model import parameter_unit
+from ..solver._kernel import usable_cores
 from ._identify import Held
 from ._results import CampaignFit, ScanFit
 
@@ -88,12 +89,9 @@ def write_residuals(path: Path, s: ScanFit) -> None:
 
     Written to a temporary name and renamed (never a half-written table at ``path``).
     """
-    import pyarrow as pa
-
-
     d = s.data
-    table = pa.table({
-        "row": d.row.astype(np.int64),
+    columns = {
+        "row": d.row.astype(np.int64, copy=False),
         "used": s.used,
         "face": face_of(d.theta_rad).astype(np.int8),
         "phi_rad": d.phi_rad,
@@ -109,8 +107,8 @@ def write_residuals(path: Path, s: ScanFit) -> None:
         "X_m": s.X_tel[:, 0],
         "Y_m": s.X_tel[:, 1],
         "Z_m": s.X_tel[:, 2],
-    })
-    write_file_atomic(path, lambda t: write_table(table, t), durable=False)
+    }
+    write_file_atomic(path, lambda t: write_columns(columns, t), durable=False)
 
 
 def write_fit(out_dir: str | Path, cf: CampaignFit, *, residuals: bool = True) -> Path:
@@ -133,8 +131,8 @@ def write_fit_dir(out_dir, doc: dict, scans: Sequence[ScanFit] = ()) -> Path:
     """``residuals/<scan>.parquet`` of ``scans`` under temporary names, then ``fit.json``
     (``doc``, strict, with the ``"files"`` manifest) last: the one commit of every fit."""
     with OutputDir(out_dir, "fit.json") as od:
-        for s in scans:
-            od.write_with(f"residuals/{s.meta.id}.parquet", lambda t, s=s: write_residuals(t, s))
+        od.write_each([(f"residuals/{s.meta.id}.parquet", lambda t, s=s: write_residuals(t, s))
+                       for s in scans], threads=usable_cores())
         return od.commit(doc)
 
 

@@ -658,6 +658,36 @@ def test_output_dir_commit_manifest_and_verify(tmp_path):
         verify_result_dir(root, "main.json")
 
 
+def test_output_dir_write_each_in_threads(tmp_path):
+    """Files written and hashed by several threads: the same manifest as one at a time; a
+    failing writer takes every file of its call with it, and the error is the writer's."""
+    blobs = {f"t/{k}.bin": bytes([k]) * (1000 + k) for k in range(5)}
+    docs = []
+    for threads, root in ((1, tmp_path / "one"), (3, tmp_path / "three")):
+        with OutputDir(root, "main.json") as od:
+            paths = od.write_each([(rel, lambda t, b=b: t.write_bytes(b))
+                                   for rel, b in blobs.items()], threads=threads)
+            assert paths == [root / rel for rel in blobs]
+            assert not any(p.exists() for p in paths)  # nothing visible before the commit
+            od.commit({"schema": "t/1"})
+        docs.append(verify_result_dir(root, "main.json")["files"])
+    assert docs[0] == docs[1]
+    assert docs[0]["t/3.bin"] == {"bytes": 1003,
+                                  "sha256": hashlib.sha256(b"\3" * 1003).hexdigest()}
+
+    def bad(t):
+        t.write_bytes(b"half")
+        raise OSError("disk full")
+
+    root = tmp_path / "three"
+    with pytest.raises(OSError, match="disk full"):
+        with OutputDir(root, "main.json") as od:
+            od.write_each([("t/0.bin", lambda t: t.write_bytes(b"new")), ("t/9.bin", bad)],
+                          threads=2)
+    assert verify_result_dir(root, "main.json")["files"] == docs[1]  # the old result stands
+    assert not _temporaries(root)
+
+
 def test_output_dir_abort_keeps_the_previous_result(tmp_path):
     root = tmp_path / "r"
     with OutputDir(root, "main.json") as od:

@@ -93,11 +93,23 @@ log = logging.getLogger("hartrao_jax")
 # --------------------------------------------------------------------------------------------
 
 
-def scan_arrays(data: ScanData) -> tuple[np.ndarray, np.ndarray]:
-    """Observations ``l = (r, phi, theta)`` (n, 3) and constants ``c = (time_s, 0)`` (n, 2)."""
-    l = np.column_stack([data.range_m, data.phi_rad, data.theta_rad])
-    c = np.zeros((len(data), N_CONSTS))
-    c[:, 0] = data.time_s
+def scan_arrays(*datas: ScanData, n_pad: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Observations ``l = (r, phi, theta)`` (n, 3) and constants ``c = (time_s, 0)`` (n, 2) of
+    the rows of ``datas`` one after the other; up to ``n_pad`` rows (the padding of a size
+    bucket, given weight 0 by the caller) follow as copies of the first row's observations
+    with constants 0. Filled in place: no concatenated or padded table is made on the way."""
+    n = sum(len(d) for d in datas)
+    n_pad = max(n, n_pad or 0)
+    l = np.empty((n_pad, 3))
+    c = np.zeros((n_pad, N_CONSTS))
+    at = 0
+    for d in datas:
+        rows = slice(at, at + len(d))
+        for j, col in enumerate((d.range_m, d.phi_rad, d.theta_rad)):
+            l[rows, j] = col
+        c[rows, 0] = d.time_s
+        at += len(d)
+    l[n:] = l[0] if n else 0.0
     return l, c
 
 
@@ -164,8 +176,7 @@ def fit_scan(
     n = len(data)
     n_pad = bucket_size(n) if pad else n
     pdata = data.padded(n_pad)  # one size bucket, one compiled program
-    l, c = scan_arrays(pdata)
-    c[n:] = 0.0
+    l, c = scan_arrays(data, n_pad=n_pad)
     wpad = np.zeros(n_pad, bool)
     wpad[:n] = window
     w = wpad.astype(float)
@@ -383,9 +394,7 @@ def fit_position(
     sizes = [len(p[0]) for p in prepared]
     n = int(sum(sizes))
     n_pad = bucket_size(n)
-    pdata = concat_scans([p[0] for p in prepared]).padded(n_pad)  # both faces, one table
-    l, c = scan_arrays(pdata)
-    c[n:] = 0.0
+    l, c = scan_arrays(*(p[0] for p in prepared), n_pad=n_pad)  # both faces, one table
     w = np.concatenate([p[3] for p in prepared] + [np.zeros(n_pad - n, bool)]).astype(float)
     sig = sigma_vector(campaign)
     aperture = tel.diameter_m / 2
@@ -465,6 +474,7 @@ def fit_position(
                 break
             hold_parameters(held, fixed, bad, res.cov, mdl.free, elevation)
         used = np.asarray(res.weights) > 0
+        pdata = concat_scans([p[0] for p in prepared]).padded(n_pad)
         fit1 = finish_scan_fit(campaign, metas[0], mdl, pdata, res, g, init, used,
                                heading_hint_rad=heading_hint_rad)
         kappa = fit1.alignment.kappa_rad

@@ -59,8 +59,9 @@ def keep_freed_memory() -> bool:
 
     Freed memory is no longer returned to the kernel, so not for long-lived processes: a Dask
     worker whose resident memory stays above 80 % of its limit after a large position is
-    paused by its nanny (workers keep the default; a streamed position on one core gained
-    4 %, 53.2 -> 51.0 s)."""
+    paused by its nanny. ``fit-dask`` workers keep glibc's default; those of
+    ``fit-stream --dask``'s local cluster, whose footprint is bounded, get the same settings
+    from their environment at their start (``..fit._distributed.KEEP_FREED_WORKER_ENV``)."""
     if os.environ.get(KEEP_FREED_MEMORY_ENV, "1") == "0" or not sys.platform.startswith("linux"):
         return False
     try:

@@ -261,7 +261,7 @@ def _streamed(run, camp, ids, model, rows_per_chunk, store, json_file, robust_k,
     with ``use_dask``; its document is written to ``json_file`` when given and returned."""
     client = cluster = None
     if use_dask:
-        client, cluster = start_client(scheduler, n_workers=workers)
+        client, cluster = start_client(scheduler, n_workers=workers, keep_freed=True)
     try:
         doc = run(camp, ids or None, model, store=store, rows_per_chunk=rows_per_chunk,
                   robust_k=robust_k or None, client=client, progress=True)

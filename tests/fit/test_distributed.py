@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -271,9 +272,11 @@ def test_cli_fit_stream(scatter_campaign, tmp_path):
 
 def test_stream_campaign_in_process_and_on_dask(scatter_campaign, tmp_path):
     """Every scan streamed (the full-resolution campaign path): in-process one after the other
-    and one task per scan on a 2-worker LocalCluster give the single-scan results."""
+    and one task per scan on a 2-worker LocalCluster give the single-scan results; the
+    workers keep freed memory (as ``fit-stream --dask`` starts them) from their start on,
+    and this process's environment is left as it was."""
     pytest.importorskip("distributed")
-    from hartrao_jax.fit._distributed import close_client, start_client
+    from hartrao_jax.fit._distributed import KEEP_FREED_WORKER_ENV, close_client, start_client
     from hartrao_jax.fit._stream import stream_document, stream_fit_campaign, stream_fit_scan
 
     camp = scatter_campaign
@@ -286,8 +289,12 @@ def test_stream_campaign_in_process_and_on_dask(scatter_campaign, tmp_path):
     assert local["schema"] == "hartrao-stream-campaign/1" and local["workers"] is None
     assert [r["scan"] for r in local["scans"]] == ids
     assert (tmp_path / "local" / ids[0] / "v.npy").is_file()
-    client, cluster = start_client(n_workers=2)
+    before = {k: os.environ.get(k) for k in KEEP_FREED_WORKER_ENV}
+    client, cluster = start_client(n_workers=2, keep_freed=True)
     try:
+        assert {k: os.environ.get(k) for k in KEEP_FREED_WORKER_ENV} == before
+        seen = client.run(lambda: {k: os.environ.get(k) for k in KEEP_FREED_WORKER_ENV})
+        assert list(seen.values()) == [KEEP_FREED_WORKER_ENV] * 2
         remote = stream_fit_campaign(camp, ids, "extended", rows_per_chunk=5000, client=client,
                                      store=tmp_path / "dask")
     finally:

@@ -192,10 +192,10 @@ def stage_fit_local(a) -> None:
     _emit(res)
 
 
-def _on_local_cluster(a, run):
+def _on_local_cluster(a, run, keep_freed: bool = False):
     """``run(campaign, client)`` on a LocalCluster of ``a.workers`` workers (the campaign of
-    ``a.camp``, compilation cache on); returns its result, the start time (perf_counter) and
-    the cluster's start-up seconds."""
+    ``a.camp``, compilation cache on; ``keep_freed`` as ``fit-stream --dask`` starts them);
+    returns its result, the start time (perf_counter) and the cluster's start-up seconds."""
     from hartrao_jax._config import enable_compilation_cache
     from hartrao_jax.campaign._campaign import load_campaign
     from hartrao_jax.fit._distributed import close_client, start_client
@@ -203,7 +203,7 @@ def _on_local_cluster(a, run):
     enable_compilation_cache()
     camp = load_campaign(a.camp)
     t0 = time.perf_counter()
-    client, cluster = start_client(n_workers=a.workers)
+    client, cluster = start_client(n_workers=a.workers, keep_freed=keep_freed)
     t_start = time.perf_counter() - t0
     try:
         return run(camp, client), t0, t_start
@@ -268,7 +268,8 @@ def stage_stream_dask(a) -> None:
     from hartrao_jax.fit._stream_position import stream_fit_positions
 
     doc, t0, t_start = _on_local_cluster(a, lambda camp, client: stream_fit_positions(
-        camp, None, "extended", rows_per_chunk=a.rows_per_chunk, client=client))
+        camp, None, "extended", rows_per_chunk=a.rows_per_chunk, client=client),
+        keep_freed=True)
     recs = doc["positions"]
     _emit({"positions": len(recs), "scans": len(doc["scans"]), "cluster_start_s": t_start,
            "fit_s": doc["seconds"], "end_to_end_s": time.perf_counter() - t0,

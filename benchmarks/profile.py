@@ -26,9 +26,11 @@ each shape (the persistent compilation cache is on, as in the CLI): run twice to
 from __future__ import annotations
 
 import argparse
+import atexit
 import json
 import os
 import resource
+import shutil
 import sys
 import tempfile
 import threading
@@ -227,7 +229,8 @@ def main(argv=None) -> int:
     enable_compilation_cache()
     if args.keep_memory:  # as the CLI
         keep_freed_memory()
-    tmp = Path(tempfile.mkdtemp(prefix="profile-"))
+    tmp = Path(tempfile.mkdtemp(prefix="profile-"))  # the outputs (and the campaign it made)
+    atexit.register(shutil.rmtree, tmp, True)  # 1.2 GB per run of a full-resolution position
     t0 = time.perf_counter()
     camp_dir = args.camp or tmp / "camp"
     if args.camp is None:

@@ -373,17 +373,7 @@ class OutputDir:
 
     def write_with(self, rel: str, writer: Callable[[pathlib.Path], Any]) -> pathlib.Path:
         """Call ``writer(temporary_path)`` to write the file ``rel``; returns the final path."""
-        tmp = self.temp_path(rel)
-        try:
-            writer(tmp)
-        except BaseException:
-            _unlink(tmp)
-            self._pending.pop(_relpath(rel), None)
-            raise
-        if not tmp.is_file():
-            raise RuntimeError(f"{rel}: the writer wrote no file")
-        _pause()
-        return self.final_path(rel)
+        return self.write_each([(rel, writer)])[0]
 
     def write_each(self, items: Iterable[tuple[str, Callable[[pathlib.Path], Any]]], *,
                    threads: int = 1) -> list[pathlib.Path]:
@@ -391,13 +381,11 @@ class OutputDir:
         each file is flushed (``durable``) and hashed for the manifest by the thread that
         wrote it, while it is still in the page cache. Returns the final paths in order.
 
-        For writers that release the GIL (Parquet encoding and compression, ``savefig`` does
-        not): the two 6.3e6-row residual tables of a full-resolution position are written and
-        hashed in about half the time on two threads. If a writer fails, the others finish,
-        every file of the call is removed and the first error is raised.
+        For writers that release the GIL (Parquet encoding and compression; ``savefig`` does
+        not): the two 6.3e6-row residual tables of a full-resolution position are written in
+        2.6-2.7 s instead of 3.8-4.6 s on two threads. If a writer fails, the others finish,
+        every file of the call is removed and the error is raised.
         """
-        from concurrent.futures import ThreadPoolExecutor
-
         items = [(_relpath(rel), writer) for rel, writer in items]
         tmps = [self.temp_path(rel) for rel, _ in items]
 
@@ -408,16 +396,22 @@ class OutputDir:
                 raise RuntimeError(f"{rel}: the writer wrote no file")
             return self._seal(tmps[k])
 
-        with ThreadPoolExecutor(max(1, min(threads, len(items)))) as ex:
-            futures = [ex.submit(one, k) for k in range(len(items))]
-        errors = [f.exception() for f in futures if f.exception() is not None]
-        if errors:
+        try:
+            if threads <= 1 or len(items) <= 1:
+                sealed = [one(k) for k in range(len(items))]
+            else:
+                from concurrent.futures import ThreadPoolExecutor
+
+                with ThreadPoolExecutor(min(threads, len(items))) as ex:
+                    futures = [ex.submit(one, k) for k in range(len(items))]
+                sealed = [f.result() for f in futures]  # all finished: the first error
+        except BaseException:
             for (rel, _), tmp in zip(items, tmps):
                 _unlink(tmp)
                 self._pending.pop(rel, None)
-            raise errors[0]
-        for (rel, _), f in zip(items, futures):
-            self._sealed[rel] = f.result()
+            raise
+        for (rel, _), digest in zip(items, sealed):
+            self._sealed[rel] = digest
             _pause()
         return [self.final_path(rel) for rel, _ in items]
 

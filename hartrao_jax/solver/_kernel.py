@@ -46,12 +46,21 @@ def point_weights(F, b, v, w, s2):
     q = jnp.where(ok, w / jnp.where(ok, m, 1.0), 0.0)
     return wm, m, ok, q
 
+def _trig(v):
+    return jnp.sin(v), jnp.cos(v)
+
+
+def _no_trig(v):
+    return jnp.zeros_like(v), jnp.ones_like(v)
+
+
 def _sincos_impl(x, on):
     # A conditional is a fusion boundary: XLA cannot duplicate sin/cos into each consumer fusion.
     # ``on`` must be a runtime, unbatched boolean (True), else XLA folds the cond away (constant)
-    # or vmap turns it into a select (batched) and the trig is duplicated again.
-    return lax.cond(on, lambda v: (jnp.sin(v), jnp.cos(v)),
-                    lambda v: (jnp.zeros_like(v), jnp.ones_like(v)), x)
+    # or vmap turns it into a select (batched) and the trig is duplicated again. The branches
+    # are module functions, not lambdas: JAX then traces each once per shape instead of at
+    # every sin/cos of every condition traced.
+    return lax.cond(on, _trig, _no_trig, x)
 
 
 @jax.custom_jvp
@@ -187,7 +196,15 @@ def solve_scaled(N, rhs):
 def _materialize(on, tree):
     """Identity behind a runtime ``lax.cond``: a fusion boundary, so XLA computes ``tree``
     once instead of duplicating its producers into every consumer fusion."""
-    return lax.cond(on, lambda t: t, lambda t: jax.tree_util.tree_map(jnp.zeros_like, t), tree)
+    return lax.cond(on, _identity, _zeros_like, tree)
+
+
+def _identity(t):
+    return t
+
+
+def _zeros_like(t):
+    return jax.tree_util.tree_map(jnp.zeros_like, t)
 
 
 def _window(i, chunk, n):

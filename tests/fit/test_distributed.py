@@ -270,6 +270,35 @@ def test_cli_fit_stream(scatter_campaign, tmp_path):
     assert (tmp_path / "s" / "v.npy").is_file()
 
 
+def test_cli_fit_stream_on_dask_equals_in_process(scatter_campaign, tmp_path):
+    """``fit-stream --dask`` (its workers keeping freed memory from their start) gives the
+    in-process streamed position's estimates, and leaves this process's environment as it
+    was."""
+    pytest.importorskip("distributed")
+    from click.testing import CliRunner
+
+    import hartrao_jax.cli._campaign  # noqa: F401  (registers the commands)
+    from hartrao_jax.cli import main
+    from hartrao_jax.fit._distributed import KEEP_FREED_WORKER_ENV
+
+    before = {k: os.environ.get(k) for k in KEEP_FREED_WORKER_ENV}
+    docs = []
+    for extra in ([], ["--dask", "--workers", "1"]):
+        out = tmp_path / f"st{len(extra)}.json"
+        r = CliRunner().invoke(main, ["fit-stream", str(scatter_campaign.root), "--rows-per-chunk",
+                                      "5000", "--json", str(out), *extra])
+        assert r.exit_code == 0, r.output
+        docs.append(json.loads(out.read_text()))
+    assert {k: os.environ.get(k) for k in KEEP_FREED_WORKER_ENV} == before
+    (local,), (remote,) = docs[0]["positions"], docs[1]["positions"]
+    assert remote["n_points"] == local["n_points"] > 0
+    estimates = [n for n, e in local.items() if isinstance(e, dict) and "sigma" in e]
+    assert {"f", "tx", "x4"} <= set(estimates)
+    for n in estimates:
+        e = local[n]
+        assert remote[n]["value"] == pytest.approx(e["value"], rel=1e-10, abs=1e-8 * e["sigma"])
+
+
 def test_stream_campaign_in_process_and_on_dask(scatter_campaign, tmp_path):
     """Every scan streamed (the full-resolution campaign path): in-process one after the other
     and one task per scan on a 2-worker LocalCluster give the single-scan results; the

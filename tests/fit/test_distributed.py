@@ -188,6 +188,12 @@ def _compare_docs(a, b, rtol=1e-9):
     for sa, sb in zip(a["scans"], b["scans"]):
         assert sa.keys() == sb.keys()
         for n, e in sb["estimates"].items():
+            if e["sigma"] is None:  # not identifiable here: held, or (per cycle) not reported
+                mine = sa["estimates"][n]
+                assert mine["sigma"] is None and mine["note"] == e["note"], n
+                assert mine["value"] == (None if e["value"] is None
+                                         else pytest.approx(e["value"], rel=rtol)), n
+                continue
             assert sa["estimates"][n]["value"] == pytest.approx(
                 e["value"], rel=rtol, abs=1e-6 * e["sigma"])
             assert sa["estimates"][n]["sigma"] == pytest.approx(e["sigma"], rel=1e-6)

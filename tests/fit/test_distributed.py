@@ -276,6 +276,7 @@ def test_cli_fit_stream(scatter_campaign, tmp_path):
     assert (tmp_path / "s" / "v.npy").is_file()
 
 
+@pytest.mark.slow  # a worker compiling its own programs: about 20 s with an empty cache
 def test_cli_fit_stream_on_dask_equals_in_process(scatter_campaign, tmp_path):
     """``fit-stream --dask`` (its workers keeping freed memory from their start) gives the
     in-process streamed position's estimates, and leaves this process's environment as it

@@ -50,7 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
-from scipy.stats import chi2 as chi2_dist
+from scipy.special import chdtrc  # chi-square survival function (scipy.stats: 0.38 s to import)
 
 from ._ghm import AbstractAdjustment
 from ._kernel import (
@@ -925,7 +925,7 @@ def ridge_chi2(result: MixedResult, ridge: dict[str, list[int]] | None) -> dict[
         start += len(idx)
         c = C[sl, sl]
         t = float(xf[sl] @ np.linalg.lstsq(c, xf[sl], rcond=1e-12)[0])
-        out[name] = (t, len(idx), float(chi2_dist.sf(t, len(idx))))
+        out[name] = (t, len(idx), float(chdtrc(len(idx), t)))
     return out
 
 

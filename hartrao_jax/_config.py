@@ -33,8 +33,30 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     return p
 
 
-#: ``$HARTRAO_JAX_KEEP_FREED_MEMORY=0`` turns :func:`keep_freed_memory` off.
+#: ``$HARTRAO_JAX_KEEP_FREED_MEMORY=0`` turns :func:`keep_freed_memory` (and
+#: :func:`keep_freed_environment`) off.
 KEEP_FREED_MEMORY_ENV = "HARTRAO_JAX_KEEP_FREED_MEMORY"
+#: glibc's malloc settings of :func:`keep_freed_memory`: ``(mallopt parameter of <malloc.h>,
+#: the environment variable glibc reads when a process starts, value)``: no memory maps for
+#: large blocks, the heap's top kept up to 2 GiB, one heap for every thread.
+MALLOC_SETTINGS = ((-4, "MALLOC_MMAP_MAX_", 0), (-1, "MALLOC_TRIM_THRESHOLD_", 2**31 - 1),
+                   (-8, "MALLOC_ARENA_MAX", 1))
+
+
+def keep_freed_wanted() -> bool:
+    """False where ``$HARTRAO_JAX_KEEP_FREED_MEMORY=0`` turns keeping freed memory off."""
+    return os.environ.get(KEEP_FREED_MEMORY_ENV, "1") != "0"
+
+
+def keep_freed_environment() -> dict[str, str]:
+    """:func:`keep_freed_memory`'s settings (and Arrow's system pool) as the environment of a
+    process about to start, for processes whose threads exist before any code of the package
+    runs (glibc and Arrow read them at the start; ``mallopt`` would come too late for those
+    threads); empty where turned off."""
+    if not keep_freed_wanted():
+        return {}
+    return {name: str(v) for _, name, v in MALLOC_SETTINGS} | {
+        "ARROW_DEFAULT_MEMORY_POOL": "system"}
 
 
 def keep_freed_memory() -> bool:
@@ -61,17 +83,14 @@ def keep_freed_memory() -> bool:
     worker whose resident memory stays above 80 % of its limit after a large position is
     paused by its nanny. ``fit-dask`` workers keep glibc's default; those of
     ``fit-stream --dask``'s local cluster, whose footprint is bounded, get the same settings
-    from their environment at their start (``..fit._distributed.KEEP_FREED_WORKER_ENV``)."""
-    if os.environ.get(KEEP_FREED_MEMORY_ENV, "1") == "0" or not sys.platform.startswith("linux"):
+    from their environment at their start (:func:`keep_freed_environment`)."""
+    if not keep_freed_wanted() or not sys.platform.startswith("linux"):
         return False
     try:
         libc = ctypes.CDLL("libc.so.6")
     except OSError:  # not glibc
         return False
-    m_mmap_max, m_trim_threshold, m_arena_max = -4, -1, -8  # <malloc.h>
-    ok = (bool(libc.mallopt(m_mmap_max, 0))
-          and bool(libc.mallopt(m_trim_threshold, 2**31 - 1))
-          and bool(libc.mallopt(m_arena_max, 1)))
+    ok = all(bool(libc.mallopt(param, value)) for param, _, value in MALLOC_SETTINGS)
     if ok:
         import pyarrow as pa
 

@@ -44,3 +44,16 @@ def test_freed_memory_is_kept_unless_switched_off(monkeypatch):
         import pyarrow as pa
 
         assert pa.default_memory_pool().backend_name == "system"
+
+
+def test_freed_memory_environment_for_new_processes(monkeypatch):
+    """The same settings as the environment of a process about to start (Dask workers of
+    ``fit-stream --dask``), and nothing where the switch turns keeping off."""
+    from hartrao_jax._config import KEEP_FREED_MEMORY_ENV, keep_freed_environment
+
+    monkeypatch.setenv(KEEP_FREED_MEMORY_ENV, "0")
+    assert keep_freed_environment() == {}
+    monkeypatch.delenv(KEEP_FREED_MEMORY_ENV)
+    assert keep_freed_environment() == {
+        "MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_": str(2**31 - 1),
+        "MALLOC_ARENA_MAX": "1", "ARROW_DEFAULT_MEMORY_POOL": "system"}

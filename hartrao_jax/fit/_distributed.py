@@ -41,9 +41,9 @@ from pathlib import Path
 import numpy as np
 
 from .._config import (
-    KEEP_FREED_MEMORY_ENV,
     enable_compilation_cache,
     enable_x64,
+    keep_freed_environment,
     release_compiled_programs,
 )
 from ..campaign._campaign import load_campaign, read_scan
@@ -84,18 +84,6 @@ WORKER_ENV = {
     "HARTRAO_JAX_THREADS": "1",
 }
 MALLOC_VAR = "MALLOC_TRIM_THRESHOLD_"  # see _pre_spawn_environ
-#: Worker environment of a local cluster for streamed work (``start_client(keep_freed=True)``):
-#: glibc's :func:`.._config.keep_freed_memory` set at the worker's start (its task thread
-#: exists before any code of the package runs, so ``mallopt`` would come too late for it).
-#: A task thread has its own glibc heap of at most 64 MiB, so every larger block of a streamed
-#: position's chunks was a fresh memory map, faulted in page by page on every chunk; with one
-#: heap, no memory maps and the heap's top kept up to 2 GiB, the blocks are reused. Only for
-#: streamed work: its footprint is bounded (1.6 GiB for a full-resolution position), so the
-#: memory a worker keeps is too, where an in-memory position's peak would stay with it.
-KEEP_FREED_WORKER_ENV = {
-    "MALLOC_ARENA_MAX": "1", "MALLOC_MMAP_MAX_": "0", MALLOC_VAR: str(2**31 - 1),
-    "ARROW_DEFAULT_MEMORY_POOL": "system",
-}
 
 
 # --------------------------------------------------------------------------------------------
@@ -155,10 +143,14 @@ def start_client(scheduler: str | None = None, *, n_workers: int = 2, threads_pe
                  memory_limit: str | float | None = "auto", keep_freed: bool = False):
     """A Dask client: to ``scheduler`` (address) or to a new local cluster of processes.
 
-    ``keep_freed``: the local cluster's workers keep freed memory for reuse
-    (:data:`KEEP_FREED_WORKER_ENV`; for streamed work only; ``$HARTRAO_JAX_KEEP_FREED_MEMORY=0``
-    turns it off). Returns ``(client, cluster)``; ``cluster`` is None for an existing
-    scheduler. Close both when done (:func:`close_client`).
+    ``keep_freed``: the local cluster's workers keep freed memory for reuse from their start
+    (:func:`.._config.keep_freed_environment`; ``$HARTRAO_JAX_KEEP_FREED_MEMORY=0`` turns it
+    off). A worker's task thread otherwise has its own glibc heap of at most 64 MiB, so every
+    larger block of a streamed position's chunks is a fresh memory map, faulted in page by
+    page on every chunk. For streamed work only: its footprint is bounded (1.6 GiB for a
+    full-resolution position), so the memory a worker keeps is too, where an in-memory
+    position's peak would stay with it. Returns ``(client, cluster)``; ``cluster`` is None
+    for an existing scheduler. Close both when done (:func:`close_client`).
     """
     try:
         from distributed import Client, LocalCluster
@@ -173,10 +165,10 @@ def start_client(scheduler: str | None = None, *, n_workers: int = 2, threads_pe
         import dask
 
         pre = _pre_spawn_environ()
-        if keep_freed and os.environ.get(KEEP_FREED_MEMORY_ENV, "1") != "0":
+        if keep_freed:
             # glibc reads them when the process starts: only the nanny's pre-spawn environment
             # (set in this process's environment before each spawn) comes early enough
-            pre.update(KEEP_FREED_WORKER_ENV)
+            pre.update(keep_freed_environment())
         saved = {k: os.environ.get(k) for k in pre}
         try:
             with dask.config.set({"distributed.nanny.pre-spawn-environ": pre}):

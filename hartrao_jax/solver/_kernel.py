@@ -46,6 +46,7 @@ def point_weights(F, b, v, w, s2):
     q = jnp.where(ok, w / jnp.where(ok, m, 1.0), 0.0)
     return wm, m, ok, q
 
+
 def _trig(v):
     return jnp.sin(v), jnp.cos(v)
 

@@ -285,10 +285,12 @@ def test_cli_fit_stream_on_dask_equals_in_process(scatter_campaign, tmp_path):
     from click.testing import CliRunner
 
     import hartrao_jax.cli._campaign  # noqa: F401  (registers the commands)
+    from hartrao_jax._config import keep_freed_environment
     from hartrao_jax.cli import main
-    from hartrao_jax.fit._distributed import KEEP_FREED_WORKER_ENV
 
-    before = {k: os.environ.get(k) for k in KEEP_FREED_WORKER_ENV}
+    kept = keep_freed_environment()
+    assert kept
+    before = {k: os.environ.get(k) for k in kept}
     docs = []
     for extra in ([], ["--dask", "--workers", "1"]):
         out = tmp_path / f"st{len(extra)}.json"
@@ -296,7 +298,7 @@ def test_cli_fit_stream_on_dask_equals_in_process(scatter_campaign, tmp_path):
                                       "5000", "--json", str(out), *extra])
         assert r.exit_code == 0, r.output
         docs.append(json.loads(out.read_text()))
-    assert {k: os.environ.get(k) for k in KEEP_FREED_WORKER_ENV} == before
+    assert {k: os.environ.get(k) for k in kept} == before
     (local,), (remote,) = docs[0]["positions"], docs[1]["positions"]
     assert remote["n_points"] == local["n_points"] > 0
     estimates = [n for n, e in local.items() if isinstance(e, dict) and "sigma" in e]
@@ -312,7 +314,8 @@ def test_stream_campaign_in_process_and_on_dask(scatter_campaign, tmp_path):
     workers keep freed memory (as ``fit-stream --dask`` starts them) from their start on,
     and this process's environment is left as it was."""
     pytest.importorskip("distributed")
-    from hartrao_jax.fit._distributed import KEEP_FREED_WORKER_ENV, close_client, start_client
+    from hartrao_jax._config import keep_freed_environment
+    from hartrao_jax.fit._distributed import close_client, start_client
     from hartrao_jax.fit._stream import stream_document, stream_fit_campaign, stream_fit_scan
 
     camp = scatter_campaign
@@ -325,12 +328,14 @@ def test_stream_campaign_in_process_and_on_dask(scatter_campaign, tmp_path):
     assert local["schema"] == "hartrao-stream-campaign/1" and local["workers"] is None
     assert [r["scan"] for r in local["scans"]] == ids
     assert (tmp_path / "local" / ids[0] / "v.npy").is_file()
-    before = {k: os.environ.get(k) for k in KEEP_FREED_WORKER_ENV}
+    kept = keep_freed_environment()
+    assert kept
+    before = {k: os.environ.get(k) for k in kept}
     client, cluster = start_client(n_workers=2, keep_freed=True)
     try:
-        assert {k: os.environ.get(k) for k in KEEP_FREED_WORKER_ENV} == before
-        seen = client.run(lambda: {k: os.environ.get(k) for k in KEEP_FREED_WORKER_ENV})
-        assert list(seen.values()) == [KEEP_FREED_WORKER_ENV] * 2
+        assert {k: os.environ.get(k) for k in kept} == before
+        seen = client.run(lambda: {k: os.environ.get(k) for k in kept})
+        assert list(seen.values()) == [kept] * 2
         remote = stream_fit_campaign(camp, ids, "extended", rows_per_chunk=5000, client=client,
                                      store=tmp_path / "dask")
     finally:

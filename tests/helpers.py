@@ -79,3 +79,8 @@ def finite_difference(fn, x, eps=1e-6):
         e[i] = eps * max(1.0, abs(x[i]))
         out.append((fn(x + e) - fn(x - e)) / (2 * e[i]))
     return np.asarray(out)
+
+
+def temporaries(out) -> list:
+    """The temporary files (``.<name>.tmp-<pid>-<token>``) left under a result directory."""
+    return [p for p in out.rglob(".*.tmp-*")] if out.exists() else []

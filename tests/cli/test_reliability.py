@@ -5,6 +5,8 @@ The table :data:`CASES` holds the bad inputs and options; every case runs the CL
 (click's CliRunner) and asserts exit status 2, one stderr line ``error: ...`` with the
 expected words, and that no input file changed. The crash test (slow) kills ``fit`` with
 SIGKILL while it writes; the property tests (hypothesis) feed the scan readers random tables.
+The safe-output units themselves (strict JSON, atomic files, ``OutputDir``) are tested in
+``tests/campaign/test_safeio.py``.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 from click.testing import CliRunner
+from helpers import temporaries
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -45,12 +48,7 @@ from hartrao_jax.campaign._campaign import (
 )
 from hartrao_jax.campaign._safeio import (
     OutputDir,
-    check_output_path,
-    dumps_strict,
-    loads_strict,
-    strict_json,
     verify_result_dir,
-    write_json_atomic,
 )
 from hartrao_jax.cli import main
 
@@ -605,126 +603,6 @@ def test_import_exit_status_two(tmp_path):
     assert r.exit_code == 2 and r.stderr.count("\n") == 1 and r.stderr.startswith("error: --out")
 
 
-# ----------------------------------------------------------------------------- safe IO
-
-
-def test_strict_json_replaces_nonfinite_and_converts_numpy():
-    replaced: list[str] = []
-    obj = {"a": float("nan"), "b": [1.0, np.inf, np.float32(2.5)], "c": np.array([[1, 2]]),
-           "d": {"e": -np.inf, 3: np.int64(4)}, "f": (np.bool_(True), None),
-           "g": pathlib.Path("x/y")}
-    out = strict_json(obj, replaced)
-    assert out == {"a": None, "b": [1.0, None, 2.5], "c": [[1, 2]], "d": {"e": None, "3": 4},
-                   "f": [True, None], "g": "x/y"}
-    assert replaced == ["a", "b[1]", "d.e"]
-    text = dumps_strict({"x": float("nan")})
-    doc = loads_strict(text)
-    assert doc["x"] is None and doc["nonfinite"]["paths"] == ["x"]
-    with pytest.raises(ValueError):
-        loads_strict('{"x": NaN}')
-    with pytest.raises(TypeError):
-        strict_json({"x": object()})
-
-
-def test_write_json_atomic_leaves_no_temporaries(tmp_path):
-    p = write_json_atomic(tmp_path / "sub" / "a.json", {"v": np.float64("inf")})
-    assert loads_strict(p.read_text())["v"] is None
-    assert [q.name for q in p.parent.iterdir()] == ["a.json"]
-
-
-def test_output_dir_commit_manifest_and_verify(tmp_path):
-    root = tmp_path / "r"
-    with OutputDir(root, "main.json") as od:
-        od.write_text("a/x.txt", "hello")
-        od.write_bytes("y.bin", b"\0" * 10)
-        assert not (root / "a" / "x.txt").exists()  # nothing visible before the commit
-        od.commit({"schema": "t/1", "v": float("nan")})
-    doc = verify_result_dir(root, "main.json")
-    assert doc["files"]["a/x.txt"]["bytes"] == 5
-    assert doc["files"]["y.bin"]["sha256"] == hashlib.sha256(b"\0" * 10).hexdigest()
-    assert doc["v"] is None and doc["nonfinite"]["paths"] == ["v"]
-    assert (root / "a" / "x.txt").read_text() == "hello"
-    # a second result without y.bin: the old file listed by the old manifest goes
-    with OutputDir(root, "main.json") as od:
-        od.write_text("a/x.txt", "bye")
-        od.commit({"schema": "t/1"})
-    assert not (root / "y.bin").exists()
-    assert verify_result_dir(root, "main.json")["files"].keys() == {"a/x.txt"}
-    (root / "a" / "x.txt").write_text("BYE")
-    with pytest.raises(CampaignError, match="sha256: content differs"):
-        verify_result_dir(root, "main.json")
-    (root / "a" / "x.txt").unlink()
-    with pytest.raises(CampaignError, match="missing"):
-        verify_result_dir(root, "main.json")
-
-
-def test_output_dir_write_each_in_threads(tmp_path):
-    """Files written and hashed by several threads: the same manifest as one at a time; a
-    failing writer takes every file of its call with it, and the error is the writer's."""
-    blobs = {f"t/{k}.bin": bytes([k]) * (1000 + k) for k in range(5)}
-    docs = []
-    for threads, root in ((1, tmp_path / "one"), (3, tmp_path / "three")):
-        with OutputDir(root, "main.json") as od:
-            paths = od.write_each([(rel, lambda t, b=b: t.write_bytes(b))
-                                   for rel, b in blobs.items()], threads=threads)
-            assert paths == [root / rel for rel in blobs]
-            assert not any(p.exists() for p in paths)  # nothing visible before the commit
-            od.commit({"schema": "t/1"})
-        docs.append(verify_result_dir(root, "main.json")["files"])
-    assert docs[0] == docs[1]
-    assert docs[0]["t/3.bin"] == {"bytes": 1003,
-                                  "sha256": hashlib.sha256(b"\3" * 1003).hexdigest()}
-
-    def bad(t):
-        t.write_bytes(b"half")
-        raise OSError("disk full")
-
-    root = tmp_path / "three"
-    with pytest.raises(OSError, match="disk full"):
-        with OutputDir(root, "main.json") as od:
-            od.write_each([("t/0.bin", lambda t: t.write_bytes(b"new")), ("t/9.bin", bad)],
-                          threads=2)
-    assert verify_result_dir(root, "main.json")["files"] == docs[1]  # the old result stands
-    assert not _temporaries(root)
-
-
-def test_output_dir_abort_keeps_the_previous_result(tmp_path):
-    root = tmp_path / "r"
-    with OutputDir(root, "main.json") as od:
-        od.write_text("x.txt", "old")
-        od.commit({"schema": "t/1"})
-    with pytest.raises(RuntimeError, match="boom"):
-        with OutputDir(root, "main.json") as od:
-            od.write_text("x.txt", "new")
-            raise RuntimeError("boom")
-    assert verify_result_dir(root, "main.json")
-    assert (root / "x.txt").read_text() == "old"
-    assert sorted(p.name for p in root.rglob("*")) == ["main.json", "x.txt"]
-
-
-def test_stale_temporaries_of_dead_writers_are_removed(tmp_path):
-    root = tmp_path / "r"
-    root.mkdir()
-    stale = root / ".x.txt.tmp-999999999-0123abcd"
-    stale.write_text("left by a killed writer")
-    with OutputDir(root, "main.json") as od:
-        od.write_text("x.txt", "new")
-        od.commit({})
-    assert not stale.exists()
-
-
-def test_check_output_path(tmp_path):
-    (tmp_path / "f").write_text("x")
-    check_output_path(tmp_path / "new" / "deeper", "--out")
-    check_output_path(tmp_path / "new.json", "--json", kind="file")
-    with pytest.raises(CampaignError, match="--out: .*regular file"):
-        check_output_path(tmp_path / "f" / "sub", "--out")
-    with pytest.raises(CampaignError, match="--out: .*is a regular file, expected a directory"):
-        check_output_path(tmp_path / "f", "--out")
-    with pytest.raises(CampaignError, match="--json: .*is a directory"):
-        check_output_path(tmp_path, "--json", kind="file")
-
-
 def test_simulate_writes_campaign_toml_last(tmp_path, monkeypatch):
     """An interrupted simulation never leaves a campaign.toml beside missing scans."""
     from hartrao_jax.campaign import _campaign as _campaign
@@ -907,10 +785,6 @@ def _run_fit(camp, out, model, env):
                             stderr=subprocess.PIPE)
 
 
-def _temporaries(out: pathlib.Path) -> list[pathlib.Path]:
-    return [p for p in out.rglob(".*.tmp-*")] if out.exists() else []
-
-
 @pytest.mark.slow
 def test_kill_during_fit_leaves_old_or_new_result(tmp_path):
     """kill -9 a `fit` writing over a previous result at several moments: afterwards the
@@ -953,7 +827,7 @@ def test_kill_during_fit_leaves_old_or_new_result(tmp_path):
 
         def seen():
             if event == "temp":
-                return bool(_temporaries(out))
+                return bool(temporaries(out))
             if event == "commit":
                 return not (out / "fit.json").exists()
             return event == "start"

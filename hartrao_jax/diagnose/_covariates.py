@@ -51,6 +51,17 @@ def _bins_predict(vt, rt, vv):
     return mean[np.searchsorted(qs, vv, side="right")]
 
 
+def _sincos_turns(turns):
+    """``(sin 2 pi t, cos 2 pi t)`` of phases ``t`` in turns, as float64 arrays, evaluated in
+    single precision after removing the whole turns in double: absolute error below 2e-7 at
+    a sixth of the time (NumPy's float32 sine is vectorised, its float64 sine is not: 0.4
+    against 16 ns per value here). For the period searches only: the sinusoid of the chosen
+    period is fitted in double."""
+    frac = turns - np.rint(turns)
+    ph = (frac * (2 * np.pi)).astype(np.float32)
+    return np.sin(ph).astype(float), np.cos(ph).astype(float)
+
+
 def _periodogram_folds(v, r, fold, periods, n_folds: int = FOLDS):
     """Residual sum of squares of a constant plus one sinusoid at each period, fitted to the
     training points of every fold (all points but the fold's): ``(n_folds, len(periods))``.
@@ -77,8 +88,7 @@ def _periodogram_folds(v, r, fold, periods, n_folds: int = FOLDS):
     out = np.empty((n_folds, len(periods)))
     for lo in range(0, len(periods), 64):
         P = np.asarray(periods[lo: lo + 64])
-        ph = (2 * np.pi / P)[:, None] * v[None, :]  # (periods, points): sums along rows
-        S, C = np.sin(ph), np.cos(ph)
+        S, C = _sincos_turns((1.0 / P)[:, None] * v[None, :])  # (periods, points)
         s1, c1 = train(S), train(C)
         ss = train(S * S) - s1 * s1 / m
         cc = train(C * C) - c1 * c1 / m

@@ -65,7 +65,7 @@ def _box_search(edges, Nb, nbv, cfg: DiagnoseConfig):
         k = int(np.argmax(T))
         if T[k] > best[2]:
             best = (k, k + L, float(T[k]))
-        np.maximum.at(profile, np.arange(len(T)), T)
+        np.maximum(profile[: len(T)], T, out=profile[: len(T)])
     return best[0], best[1], best[2], profile, Lmax
 
 

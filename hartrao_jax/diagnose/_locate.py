@@ -97,6 +97,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from ..geometry._geometry import cell_code, grid_sum
+
 WIDTHS_M: tuple[float, ...] = (0.3, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
 BACKGROUND = 3.0  # background window (Gaussian sigma) in units of the width
 TAIL_QUANTILE = 0.8  # 0.5 when there are fewer than 100 peaks (a strip, a small patch)
@@ -172,7 +174,7 @@ def _density(xy: np.ndarray) -> float:
     area0 = max(float(span[0] * span[1]), 1e-6)
     h = max(math.sqrt(30.0 * area0 / len(xy)), 1e-3)
     ij = np.floor((xy - xy.min(0)) / h).astype(np.int64)
-    _, cnt = np.unique(ij, axis=0, return_counts=True)
+    _, cnt = np.unique(cell_code(ij), return_counts=True)
     return float(np.median(cnt)) / (h * h)
 
 
@@ -319,10 +321,7 @@ def width_map(xy: np.ndarray, r: np.ndarray, w: float, sigma: float, density: fl
     lo, shape, ij, h = grid_of(xy, w)
     if shape == (0, 0):
         return None
-    C = np.zeros(shape)
-    R = np.zeros(shape)
-    np.add.at(C, (ij[:, 0], ij[:, 1]), 1.0)
-    np.add.at(R, (ij[:, 0], ij[:, 1]), r)
+    C, R = grid_sum(ij, shape), grid_sum(ij, shape, r)
     sw = w / h
     # points under the bump (unweighted sum of g^2) and coverage of the disc of radius w
     covered, ng, disc = coverage(C, sw, h, density, min_coverage, min_points)

@@ -19,7 +19,7 @@ from math import factorial
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from ..campaign._format import cartesian_to_raw  # noqa: F401  (the recording's face rule)
 
@@ -297,9 +297,27 @@ def panel_cells(
     return cell, local, int(len(keys)), f"square cells of {cell_m:g} m (no panel layout)"
 
 
-def _cell_code(ij: np.ndarray) -> np.ndarray:
-    """One int64 per grid index pair, ordered as the pairs are lexicographically."""
+def cell_code(ij: Int[np.ndarray, "n 2"]) -> Int[np.ndarray, " n"]:
+    """One int64 per grid index pair (each index within +-2^30), ordered as the pairs are
+    lexicographically: sorting or counting the codes is that of the pairs, without
+    ``np.unique(axis=0)``'s row views (10x the time)."""
+    ij = np.asarray(ij, np.int64)
     return (ij[:, 0] + (1 << 30)) * (1 << 31) + (ij[:, 1] + (1 << 30))
+
+
+def _cell_pairs(code: np.ndarray) -> np.ndarray:
+    """The grid index pairs (g, 2) of :func:`cell_code` values."""
+    return np.column_stack([code // (1 << 31) - (1 << 30), code % (1 << 31) - (1 << 30)])
+
+
+def grid_sum(ij: Int[np.ndarray, "n 2"], shape: tuple[int, int],
+             weights: np.ndarray | None = None) -> np.ndarray:
+    """Per cell of a grid of ``shape``, the sum of ``weights`` (default 1) of the points in it
+    (``ij`` their cells, inside the grid): ``np.add.at`` by ``bincount``, the same sums in the
+    same order."""
+    flat = ij[:, 0] * shape[1] + ij[:, 1]
+    return np.bincount(flat, weights, minlength=shape[0] * shape[1]).astype(float).reshape(
+        shape)
 
 
 def square_cells(
@@ -312,11 +330,11 @@ def square_cells(
     X = np.asarray(X, float)
     ij = np.floor(X[:, :2] / cell_m).astype(np.int64)
     if keys is None:
-        keys, cell = np.unique(ij, axis=0, return_inverse=True)
-        cell = cell.reshape(-1).astype(np.int64)
+        codes, cell = np.unique(cell_code(ij), return_inverse=True)
+        keys, cell = _cell_pairs(codes), cell.reshape(-1).astype(np.int64)
     else:
         keys = np.asarray(keys, np.int64).reshape(-1, 2)
-        codes, want = _cell_code(keys), _cell_code(ij)
+        codes, want = cell_code(keys), cell_code(ij)
         cell = np.full(len(ij), -1, np.int64)
         if len(codes):
             pos = np.clip(np.searchsorted(codes, want), 0, len(codes) - 1)

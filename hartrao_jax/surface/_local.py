@@ -19,6 +19,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy import ndimage, optimize
 
+from ..geometry._geometry import grid_sum
+
 
 @dataclass(frozen=True)
 class LocalDeformation:
@@ -43,10 +45,7 @@ class LocalDeformation:
 
 def _bandpass_z(xy, dev, sigma_dev, scale, cell, origin, shape):
     ij = np.floor((xy - origin) / cell).astype(int)
-    S = np.zeros(shape)
-    C = np.zeros(shape)
-    np.add.at(S, (ij[:, 0], ij[:, 1]), dev)
-    np.add.at(C, (ij[:, 0], ij[:, 1]), 1.0)
+    S, C = grid_sum(ij, shape, dev), grid_sum(ij, shape)
     s = scale / cell
 
     def smooth(a, sg):

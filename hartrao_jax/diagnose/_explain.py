@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import jax.numpy as jnp
 import numpy as np
-from scipy import special, stats
+from scipy import special
 
 from ..model._model import (
     DRIFT,
@@ -89,7 +89,7 @@ def _z_of(T: float, dof: int) -> float:
 
 
 def _p_of(T: float, dof: int) -> float:
-    return float(stats.chi2.sf(max(T, 0.0), max(dof, 1)))
+    return float(special.chdtrc(max(dof, 1), max(T, 0.0)))  # chi-square survival
 
 
 K_CELL = 3  # per surface cell: offset (m) and two tilts (rad) about its centre

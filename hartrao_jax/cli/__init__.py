@@ -1,7 +1,8 @@
 """Command line: ``hartrao-jax COMMAND``, one module per verb group; the only layer that prints.
 
 * ``_base``: the click group ``main`` (verbs loaded lazily by name, :data:`._base.VERBS`),
-  one-line errors, the console, the result table
+  ``run`` (the console command: ``main`` without Python's shutdown), one-line errors, the
+  console, the result table
 * ``_pipeline``: simulate, preprocess, fit, demo
 * ``_campaign``: schedule, fit-joint, gravity, sensitivity, fit-dask, fit-stream
 * ``_surface``: surface, report
@@ -11,6 +12,6 @@
 * ``_tables``: terminal summaries
 """
 
-from ._base import VERBS, UserError, command, main, print_fit_table
+from ._base import VERBS, UserError, command, main, print_fit_table, run
 
-__all__ = ["UserError", "VERBS", "command", "main", "print_fit_table"]
+__all__ = ["UserError", "VERBS", "command", "main", "print_fit_table", "run"]

@@ -9,6 +9,7 @@ from __future__ import annotations
 import functools
 import importlib
 import logging
+import os
 import sys
 
 import click
@@ -132,6 +133,35 @@ def main(ctx, debug, verbose):
     )
     for noisy in ("jax", "absl", "matplotlib", "distributed", "asyncio"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
+
+
+#: ``HARTRAO_JAX_FAST_EXIT=0``: :func:`run` ends the process through Python's own shutdown
+FAST_EXIT_ENV = "HARTRAO_JAX_FAST_EXIT"
+
+
+def run() -> None:
+    """The ``hartrao-jax`` console command: :data:`main`, then, once its output is flushed,
+    the process ends at once (``os._exit``) instead of through Python's shutdown: tearing
+    down JAX's runtime and the modules took 0.7 s after a 12-scan ``fit`` and 1 s after a
+    1.3e7-point position, with every output already written and synced. Every command has
+    closed its files, progress bars and Dask cluster by then. In-process callers (tests,
+    notebooks) call :data:`main`, which exits normally."""
+    try:
+        main()
+        code = 0
+    except SystemExit as e:
+        code = e.code
+    if code is None:
+        code = 0
+    if not isinstance(code, int) or os.environ.get(FAST_EXIT_ENV, "1") == "0":
+        sys.exit(code)
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # closed or gone (a closed pipe): nothing to flush
+            pass
+    logging.shutdown()
+    os._exit(code)
 
 
 def _console(stderr=False):

@@ -421,12 +421,14 @@ def fit_position(
             n_s = int(np.sum(ws > 0))
             r_s = max(r_e * n_s / max(n_used, 1), 1.0)
             s0 = math.sqrt(float(np.sum(np.where(ws > 0, omega_pt[sl], 0.0))) / r_s)
+            # the scan's own arrays by device_put: jnp.asarray and jnp.zeros compile a program
+            # for every new length (10-25 ms each, 36 per 12-scan fit of a new recording)
+            per_scan = jax.device_put((v[sl], np.zeros(size), normalized[sl], ws))
             gh = GHResult(x=jnp.asarray(x_pos), cov=jnp.asarray(cov_pos),
                           N=jnp.asarray(np.linalg.pinv(cov_pos)), sigma0=jnp.asarray(s0),
-                          v=jnp.asarray(v[sl]), misclosure=jnp.zeros(size),
-                          normalized=jnp.asarray(normalized[sl]), weights=jnp.asarray(ws),
-                          redundancy=jnp.asarray(n_s), iterations=jnp.asarray(iterations),
-                          converged=jnp.asarray(converged))
+                          v=per_scan[0], misclosure=per_scan[1], normalized=per_scan[2],
+                          weights=per_scan[3], redundancy=jnp.asarray(n_s),
+                          iterations=jnp.asarray(iterations), converged=jnp.asarray(converged))
             sf = finish_scan_fit(campaign, m, mdl_final, data, gh, gg, init_s, window,
                                  heading_hint_rad=heading_hint_rad)
             sf.notes.append("two-face position adjustment" if faces == 2 else

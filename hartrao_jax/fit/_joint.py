@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Protocol
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -561,11 +562,15 @@ def joint_scan_fit(campaign: Campaign, s: ScanFit, x: np.ndarray, cov: np.ndarra
                    u_object: int, iterations: int, converged: bool,
                    heading_hint_rad: float | None) -> ScanFit:
     """The :class:`ScanFit` of one scan of a joint solution (alignment, deviations redone)."""
+    # the scan's own arrays by device_put: jnp.asarray and jnp.zeros compile a program for
+    # every new length (10-25 ms each)
+    per_point = jax.device_put((np.asarray(v), np.zeros(len(v)), np.asarray(e) / sigma0,
+                                s.used.astype(float)))
     res = GHResult(
         x=jnp.asarray(x), cov=jnp.asarray(cov), N=jnp.asarray(N), sigma0=jnp.asarray(sigma0),
-        v=jnp.asarray(v), misclosure=jnp.zeros(len(v)), normalized=jnp.asarray(e) / sigma0,
-        weights=jnp.asarray(s.used.astype(float)), redundancy=jnp.asarray(n_used - u_object),
-        iterations=jnp.asarray(iterations), converged=jnp.asarray(converged))
+        v=per_point[0], misclosure=per_point[1], normalized=per_point[2], weights=per_point[3],
+        redundancy=jnp.asarray(n_used - u_object), iterations=jnp.asarray(iterations),
+        converged=jnp.asarray(converged))
     f = finish_scan_fit(campaign, s.meta, s.model, s.data, res, s.gravity, s.init, s.used,
                         heading_hint_rad=None if s.alignment.source == "gravity"
                         else heading_hint_rad)

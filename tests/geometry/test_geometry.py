@@ -118,3 +118,28 @@ def test_zernike_orthonormal_on_unit_disk():
     Z = np.stack([np.asarray(zernike(j, U, P)).ravel() for j in range(1, 12)])
     G = Z @ Z.T / Z.shape[1]
     np.testing.assert_allclose(G, np.eye(11), atol=2e-2)
+
+
+def test_grid_sum_and_cell_codes_equal_add_at_and_unique_rows():
+    """``grid_sum`` is ``np.add.at`` (the same sums in the same order, bit for bit);
+    ``cell_code`` sorts and counts as the rows of ``np.unique(axis=0)``, negative indices
+    included; ``square_cells`` gives the same cells as before."""
+    from hartrao_jax.geometry._geometry import cell_code, grid_sum, square_cells
+
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(50_000, 3)) * 8.0
+    ij = np.floor(X[:, :2] / 0.7).astype(np.int64)
+    keys, inv, cnt = np.unique(ij, axis=0, return_inverse=True, return_counts=True)
+    codes, inv2, cnt2 = np.unique(cell_code(ij), return_inverse=True, return_counts=True)
+    assert np.array_equal(np.argsort(cell_code(keys)), np.arange(len(keys)))
+    assert np.array_equal(inv.reshape(-1), inv2) and np.array_equal(cnt, cnt2)
+    cell, _, k = square_cells(X, 0.7)
+    assert np.array_equal(k, keys) and np.array_equal(cell, inv.reshape(-1))
+    g = ij - ij.min(0)
+    shape = tuple(int(v) for v in g.max(0) + 1)
+    ref = np.zeros(shape)
+    np.add.at(ref, (g[:, 0], g[:, 1]), X[:, 2])
+    assert np.array_equal(grid_sum(g, shape, X[:, 2]), ref)
+    ones = np.zeros(shape)
+    np.add.at(ones, (g[:, 0], g[:, 1]), 1.0)
+    assert np.array_equal(grid_sum(g, shape), ones)

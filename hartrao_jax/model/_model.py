@@ -137,8 +137,8 @@ class ParaboloidModel(eqx.Module):
     def params(self, x: Float[Array, " u"]) -> dict[str, Array]:
         """All named parameter values: free ones from ``x``, then the fixed ones."""
         # one unstack per vector: indexing ``x[i]`` once per name costs 5x the tracing
-        p = dict(zip(self.fixed_names, _unstack(self.fixed_values)))
-        p.update(zip(self.free, _unstack(x)))
+        p = dict(zip(self.fixed_names, _unstack(self.fixed_values), strict=True))
+        p.update(zip(self.free, _unstack(x), strict=True))
         return p
 
     def telescope_point(self, l: Float[Array, " 3"], x: Float[Array, " u"], c: Float[Array, " k"]):

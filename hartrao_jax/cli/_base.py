@@ -142,10 +142,10 @@ FAST_EXIT_ENV = "HARTRAO_JAX_FAST_EXIT"
 def run() -> None:
     """The ``hartrao-jax`` console command: :data:`main`, then, once its output is flushed,
     the process ends at once (``os._exit``) instead of through Python's shutdown: tearing
-    down JAX's runtime and the modules took 0.7 s after a 12-scan ``fit`` and 1 s after a
-    1.3e7-point position, with every output already written and synced. Every command has
-    closed its files, progress bars and Dask cluster by then. In-process callers (tests,
-    notebooks) call :data:`main`, which exits normally."""
+    down JAX's runtime and the modules took 0.7 s after a 12-scan ``fit``, with every output
+    already written and synced (the kernel's reclaiming of a large position's memory remains
+    either way). Every command has closed its files, progress bars and Dask cluster by then.
+    In-process callers (tests, notebooks) call :data:`main`, which exits normally."""
     try:
         main()
         code = 0

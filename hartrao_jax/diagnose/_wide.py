@@ -44,6 +44,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import sparse
 
+from ..geometry._geometry import grid_sum
 from ._locate import (
     BackgroundFilter,
     Candidate,
@@ -135,9 +136,8 @@ class _Grid:
     def __init__(self, xy, w, density, panels):
         self.w = w
         self.lo, self.shape, ij, self.h = grid_of(xy, w)
-        n_cells = self.shape[0] * self.shape[1]
-        self.flat = ij[:, 0] * self.shape[1] + ij[:, 1]
-        self.C = np.bincount(self.flat, minlength=n_cells).astype(float).reshape(self.shape)
+        self.flat = ij[:, 0] * self.shape[1] + ij[:, 1]  # the points' cells (panel design)
+        self.C = grid_sum(ij, self.shape)
         covered, _, _ = coverage(self.C, w / self.h, self.h, density)
         self.bf = BackgroundFilter.of(self.C, w / self.h, covered)
         self._panels = panels

@@ -10,6 +10,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy import special
@@ -111,12 +112,25 @@ def _cell_sums(ctx: _Context, sc: _Scan, model, x: np.ndarray, w: np.ndarray,
     consts = sc.consts().copy()
     consts[:, 1] -= np.where(cell >= 0, np.sum(design * U[np.maximum(cell, 0)], axis=1), 0.0)
     npad = _npad(n)
-    sums, _ = mixed_chunk(
-        model, jnp.asarray(_pad(sc.l, npad)), jnp.asarray(_pad(consts, npad)),
-        jnp.asarray(_pad(w, npad, 0.0)), jnp.asarray(np.broadcast_to(ctx.sigma**2, (npad, 3))),
-        jnp.asarray(_pad(cell, npad, -1)), jnp.asarray(_pad(design, npad, 0.0)),
-        jnp.asarray(x, float), jnp.asarray(U), jnp.asarray(1.0),
-        jnp.asarray(np.inf), dev_column=1)
+    args = (jnp.asarray(_pad(sc.l, npad)), jnp.asarray(_pad(consts, npad)),
+            jnp.asarray(_pad(w, npad, 0.0)), jnp.asarray(np.broadcast_to(ctx.sigma**2, (npad, 3))),
+            jnp.asarray(_pad(cell, npad, -1)), jnp.asarray(_pad(design, npad, 0.0)))
+
+    def sums_of(m, x_m):
+        s, _ = mixed_chunk(m, *args, jnp.asarray(x_m, float), jnp.asarray(U), jnp.asarray(1.0),
+                           jnp.asarray(np.inf), dev_column=1)
+        return jax.tree.map(np.asarray, s)
+
+    # by the widest model of the scan that gives the same values (one program for the
+    # successive joint systems, :class:`._state._Supersets`), its rows of ``model``'s unknowns
+    wide, x_wide, idx = ctx.supersets.of(sc.id, model, x)
+    sums = sums_of(wide, x_wide)
+    if wide is not model:
+        if not all(np.isfinite(a).all() for a in jax.tree.leaves(sums)):
+            return sums_of(model, x)
+        sums = MixedSums(N=sums.N[np.ix_(idx, idx)], nv=sums.nv[idx], S=sums.S,
+                         sg=sums.sg[:, :, idx], tg=sums.tg, wMw=sums.wMw, n_used=sums.n_used,
+                         omega=sums.omega)
     return sums
 
 

@@ -17,7 +17,14 @@ import numpy as np
 
 from ..campaign._campaign import Campaign, ScanData, ScanMeta
 from ..geometry._geometry import panel_geometry
-from ..model._model import OSCILLATION, SHIFT, ZERNIKE_PREFIX, make_model
+from ..model._model import (
+    OSCILLATION,
+    SHIFT,
+    ZERNIKE_PREFIX,
+    ParaboloidModel,
+    is_bump_parameter,
+    make_model,
+)
 from ..solver._ghm import GHResult, gauss_helmert, robust_gauss_helmert
 
 ZERNIKE_TESTED: tuple[int, ...] = (5, 6, 7, 8, 9, 10, 11)  # Noll; defocus (4) is the focal length
@@ -253,6 +260,64 @@ class _Context:
                                 "ids are grid cells, not panels")
         self.geo = panel_geometry(self.edges, self.counts)
         self.n_panels = int(sum(self.counts))
+        self.supersets = _Supersets()
+
+
+def _named_values(model, x) -> dict[str, float]:
+    """Every value ``model`` names at ``x``: its fixed ones, then its free ones."""
+    out = dict(zip(model.fixed_names, np.asarray(model.fixed_values, float).tolist()))
+    out.update(zip(model.free, np.asarray(x, float).tolist()))
+    return out
+
+
+def _held_outside(model, names) -> tuple[str, ...]:
+    """The names ``model`` holds at a value that are not among ``names`` (sorted, as
+    :func:`..model.make_model` orders them)."""
+    return tuple(sorted(n for n in model.fixed_names if n not in names))
+
+
+def _covers(big, model) -> bool:
+    """Whether ``big``'s names can stand in for ``model``'s: every free name of ``model`` free
+    in ``big``, the same names held outside them, the same aperture, and no parameter of a
+    bump free in ``big`` alone (a zero width is not "no bump"; every other parameter of the
+    catalog at zero leaves the condition as it is)."""
+    if big.aperture_radius_m != model.aperture_radius_m or not set(model.free) <= set(big.free):
+        return False
+    if big.fixed_names != _held_outside(model, big.free):
+        return False
+    named = set(model.free) | set(model.fixed_names)
+    return not any(is_bump_parameter(n) for n in set(big.free) - named)
+
+
+class _Supersets:
+    """Per scan, the widest sets of names evaluated on it so far, each to stand in for the
+    narrower ones it covers (:func:`_covers`). The free names are static in a model, so every
+    candidate set would otherwise be a program of its own to trace, lower and load (0.1-0.3 s
+    each); the wider set gives the same values with the names it adds at zero (equal to the
+    narrower model's to rounding: 1e-11 relative in the diagnosis)."""
+
+    def __init__(self):
+        self._by_scan: dict[str, list] = {}
+
+    def of(self, scan_id: str, model, x) -> tuple[ParaboloidModel, np.ndarray, np.ndarray]:
+        """``(wide, x_wide, idx)``: ``model`` with the names of a wider set seen before (its
+        own the first time, or where none covers it), the unknowns at ``model``'s values for
+        ``x`` (its held values where it holds them, else zero), and the positions of
+        ``model.free`` in ``wide.free``. Shift window, period, frame and held values are
+        ``model``'s."""
+        known = self._by_scan.setdefault(scan_id, [])
+        big = next((b for b in known if _covers(b, model)), None)
+        if big is None:
+            known.append(model)
+            return model, np.asarray(x, float), np.arange(len(model.free))
+        values = _named_values(model, x)
+        wide = ParaboloidModel(
+            free=big.free, fixed_names=big.fixed_names,
+            fixed_values=jnp.asarray([values[n] for n in big.fixed_names], float).reshape(-1),
+            shift_window_s=model.shift_window_s, osc_period_s=model.osc_period_s,
+            kappa_rad=model.kappa_rad, aperture_radius_m=model.aperture_radius_m)
+        x_wide = np.array([values.get(n, 0.0) for n in big.free])
+        return wide, x_wide, np.array([big.free.index(n) for n in model.free], int)
 
 
 _BUCKET = 1 << 15  # point arrays are padded to a multiple: scans of similar size share programs

@@ -73,13 +73,18 @@ class ModelError(ValueError):
     """A model that cannot be built (unknown or inseparable parameters)."""
 
 
+def is_bump_parameter(name: str) -> bool:
+    """Whether ``name`` is a parameter of a local deformation (``bump_amp_m``, ``bump2_x_m``...)."""
+    return _bump_key(name) is not None
+
+
 def known_parameter(name: str) -> bool:
     return (
         name in OBJECT_PARAMETERS or name in INSTRUMENT or name in SHIFT or name in OSCILLATION
         or name == OSC_FREQUENCY
         or name in DRIFT
         or (name.startswith(ZERNIKE_PREFIX) and name[len(ZERNIKE_PREFIX):].isdigit())
-        or _bump_key(name) is not None
+        or is_bump_parameter(name)
     )
 
 

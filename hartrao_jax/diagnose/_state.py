@@ -210,23 +210,18 @@ def _scan_model(sc: _Scan, spec: _Spec, aperture: float, extra: Sequence[str] = 
 
 @eqx.filter_jit
 def _pointwise(model, probe, l, x, xp, c, s2):
-    """Per point: ``m = b Sigma b^T``, ``dF/dr`` and the probe derivatives (translation,
-    rotation)."""
+    """Per point: the misclosure ``F``, ``m = b Sigma b^T``, ``dF/dr`` and the probe derivatives
+    (translation, rotation); one program and one pass over the points for all four."""
     k = len(PROBE)
 
     def one(args):
         ll, cc = args
-        b = jax.grad(lambda l0: model(l0, x, cc))(ll)
+        F, b = jax.value_and_grad(lambda l0: model(l0, x, cc))(ll)
         m = jnp.sum(b * b * s2)
         ap = jax.jacfwd(lambda p: probe(ll, jnp.concatenate([xp, p]), cc))(jnp.zeros(k, ll.dtype))
-        return m, b[0], ap
+        return F, m, b[0], ap
 
     return jax.lax.map(one, (l, c), batch_size=8192)
-
-
-_misclosure = eqx.filter_jit(
-    lambda model, l, x, c: jax.lax.map(lambda a: model(a[0], x, a[1]), (l, c), batch_size=8192)
-)
 
 
 class _Context:
@@ -383,16 +378,16 @@ def _evaluate(ctx: _Context, sc: _Scan, spec: _Spec, model=None) -> None:
     c = _pad(sc.consts(), npad)
     lp = jnp.asarray(_pad(sc.l, npad))
     x = jnp.asarray(sc.x)
-    sc.F = np.asarray(_misclosure(model, lp, x, jnp.asarray(c)))[:n]
     base = [n for n in model.free if n not in SHIFT + OSCILLATION]
     fixed = {k: v for k, v in _fixed(sc, spec).items() if k not in base}
     probe = make_model(base + list(PROBE), fixed, shift_window_s=(-1e9, 1e18),
                        osc_period_s=1e18, kappa_rad=sc.kappa, aperture_radius_m=ctx.aperture,
                        check_separable=False)
     xp = np.array([sc.value(n) for n in probe.free[: len(probe.free) - len(PROBE)]])
-    m, b0, ap = _pointwise(model, probe, lp, x, jnp.asarray(xp), jnp.asarray(c),
-                           jnp.asarray(ctx.sigma**2))
-    sc.m, sc.b0, sc.probe = np.asarray(m)[:n], np.asarray(b0)[:n], np.asarray(ap)[:n]
+    F, m, b0, ap = _pointwise(model, probe, lp, x, jnp.asarray(xp), jnp.asarray(c),
+                              jnp.asarray(ctx.sigma**2))
+    sc.F, sc.m = np.asarray(F)[:n], np.asarray(m)[:n]
+    sc.b0, sc.probe = np.asarray(b0)[:n], np.asarray(ap)[:n]
     u = sc.used
     sc.omega = float(np.sum(sc.F[u] ** 2 / sc.m[u]))
     sc.redundancy = int(u.sum() - len(sc.x))

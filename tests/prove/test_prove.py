@@ -88,3 +88,20 @@ def test_expected_effect_named_as_the_alternative_is_counted_apart():
     assert (s.found, s.false, s.as_alternative) == (False, ["x1n"], True)
     s = score(_case("x5n"), _doc([{**f, "alternatives": []}]), {}, 1, 1.0)
     assert s.as_alternative is False
+
+
+def test_mahalanobis_limit_is_the_chi2_quantile():
+    """The joint check of several estimates against the truth takes the 99.73 % chi-square
+    quantile from scipy.special (scipy.stats is not imported by the diagnose command)."""
+    import numpy as np
+    from scipy import stats
+
+    from hartrao_jax.prove._prove import _mahalanobis_ok
+
+    for q in (1, 2, 3, 7, 20):
+        cov = np.diag(np.full(q, 4.0))
+        limit = stats.chi2.ppf(0.9973, q)
+        d = np.full(q, 2.0 * np.sqrt(limit / q))  # d2 = limit exactly, up to rounding
+        ok, d2 = _mahalanobis_ok(d * (1 - 1e-9), np.zeros(q), cov)
+        assert ok and abs(d2 - limit) < 1e-6 * limit
+        assert not _mahalanobis_ok(d * (1 + 1e-9), np.zeros(q), cov)[0]

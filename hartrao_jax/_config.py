@@ -98,6 +98,26 @@ def keep_freed_memory() -> bool:
     return ok
 
 
+
+def return_free_heap() -> bool:
+    """Give the pages of the heap's free blocks back to the kernel (glibc ``malloc_trim(0)``);
+    True where done. With :func:`keep_freed_memory` freed memory otherwise stays resident for
+    reuse, and the free blocks the random effect's passes leave between them (a pass's
+    per-point store freed, the next one's blocks of the same size placed elsewhere in the
+    heap) added 1.1 and 0.5 GiB of resident memory at its second and third pass over a
+    1.26e7-point position. Called before each pass over many points: the pass faults its store
+    in again either way (measured: 221,184 faults per thread without it), so it costs no
+    time, and the peak resident of that position's ``fit`` fell from 8.79-8.81 to 7.47-8.01 GB.
+    """
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:  # not glibc
+        return False
+    libc.malloc_trim(0)
+    return True
+
 #: Share of the kernel's memory-map limit above which :func:`release_compiled_programs` drops
 #: JAX's in-memory compiled programs.
 MAPS_FRACTION = 0.5

@@ -52,6 +52,7 @@ from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 from scipy.special import chdtrc  # chi-square survival function (scipy.stats: 0.38 s to import)
 
+from .._config import return_free_heap
 from ._ghm import AbstractAdjustment
 from ._kernel import (
     PARALLEL_MIN_POINTS,  # noqa: F401  (re-exported: this module's name since 520202b)
@@ -473,6 +474,10 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
 # The same iteration with each pass split over the cores
 # --------------------------------------------------------------------------------------------
 
+#: Rows per part from which each pass gives the heap's free blocks back first
+#: (:func:`.._config.return_free_heap`; a smaller position's heap stays as it is).
+TRIM_ROWS = 2**20
+
 # the parts and their threads: :func:`._kernel.pass_threads`, :func:`._kernel.thread_pool`
 # (shared with the white adjustment; ``mixed_threads`` is this module's name for the first)
 mixed_threads = pass_threads
@@ -550,7 +555,12 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
     on = jnp.ones((), bool)
     pool = thread_pool(len(parts))
 
+    large = parts[0]["L"].shape[0] >= TRIM_ROWS
+
     def linearize(x, U):
+        if large:  # the free blocks of the last pass back to the kernel (return_free_heap)
+            return_free_heap()
+
         def one(p):
             return jax.block_until_ready(_part_pass(
                 condition, dev_column, on, n_cells, chunk, p["L"], p["V"], p["C"], p["W"],
@@ -593,6 +603,8 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
     # that the footprint does not peak here (a 1.26e7-point position: 8.3 GiB before)
     se2 = var[0]
     per = None
+    if large:
+        return_free_heap()
     fin = []
     for i, p in enumerate(parts):
         fin.append(list(_part_final(pers[i], p["G"], p["S2"], p["W"], p["DM"], U, up.dx, up.dU,

@@ -98,7 +98,6 @@ def keep_freed_memory() -> bool:
     return ok
 
 
-
 def return_free_heap() -> bool:
     """Give the pages of the heap's free blocks back to the kernel (glibc ``malloc_trim(0)``);
     True where done. With :func:`keep_freed_memory` freed memory otherwise stays resident for
@@ -117,6 +116,7 @@ def return_free_heap() -> bool:
         return False
     libc.malloc_trim(0)
     return True
+
 
 #: Share of the kernel's memory-map limit above which :func:`release_compiled_programs` drops
 #: JAX's in-memory compiled programs.

@@ -288,8 +288,11 @@ class _Supersets:
     """Per scan, the widest sets of names evaluated on it so far, each to stand in for the
     narrower ones it covers (:func:`_covers`). The free names are static in a model, so every
     candidate set would otherwise be a program of its own to trace, lower and load (0.1-0.3 s
-    each); the wider set gives the same values with the names it adds at zero (equal to the
-    narrower model's to rounding: 1e-11 relative in the diagnosis)."""
+    each); the wider set gives the same values with the names it adds at zero (the sums equal
+    the narrower model's to 1e-9 relative, ``tests/diagnose/test_supersets.py``; the diagnosis
+    document within 1.2e-7, the same findings). Where a term of an added name is not finite at
+    some point (zero times an infinite column), :func:`._explain._cell_sums` falls back to the
+    narrower model."""
 
     def __init__(self):
         self._by_scan: dict[str, list] = {}

@@ -1,0 +1,115 @@
+"""One command of the CLI under two versions of the package, alternated: wall, CPU and peak.
+
+    python benchmarks/ab.py --before ae8eb1a [--after DIR] [--runs 3] [--json FILE] \
+        -- fit /path/campaign --out {out}
+
+``--before`` is a git revision of this repository, checked out into a temporary worktree
+(removed at the end); ``--after`` the package root to compare it with (default: this
+checkout, with its uncommitted changes). Each run is a fresh ``python -m hartrao_jax.cli``
+process with ``PYTHONPATH`` the version's root and its working directory an empty temporary
+directory, and the module actually imported is checked before the runs: from the repository's
+root, ``python -m`` and ``python -c`` put the working directory first on ``sys.path``, so the
+checkout there shadows ``PYTHONPATH`` and "before" silently runs the new code (two comparisons
+of 2026-11-27 were made that way). ``{out}`` in the arguments becomes a new temporary
+directory per run, removed after it. The versions alternate (before, after, before, ...), so a
+machine that slows down during the comparison slows both.
+
+Measured per run from the child's resource usage (``os.wait4``): wall seconds, user and system
+CPU seconds, peak resident set (GiB).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _module_root(root: Path, cwd: str, env: dict[str, str]) -> Path:
+    """The directory the package is imported from with this environment and directory."""
+    code = "import hartrao_jax; print(hartrao_jax.__file__)"
+    out = subprocess.run([sys.executable, "-c", code], cwd=cwd, env=env, capture_output=True,
+                         text=True, check=True)
+    return Path(out.stdout.strip()).resolve().parent.parent
+
+
+def _run(root: Path, args: list[str], cwd: str) -> dict[str, float]:
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    out = tempfile.mkdtemp(prefix="ab-out-")
+    shutil.rmtree(out)  # the command makes it
+    argv = [a.replace("{out}", out) for a in args]
+    t0 = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-m", "hartrao_jax.cli", *argv], cwd=cwd, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    _, status, ru = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    shutil.rmtree(out, ignore_errors=True)
+    if proc.returncode != 0:
+        raise SystemExit(f"error: {root}: exit {proc.returncode}: {err.strip()[-400:]}")
+    return {"wall_s": wall, "user_s": ru.ru_utime, "sys_s": ru.ru_stime,
+            "peak_gib": ru.ru_maxrss / 2**20}
+
+
+def _span(xs: list[float], fmt: str) -> str:
+    lo, hi, mid = (fmt.format(v) for v in (min(xs), max(xs), statistics.median(xs)))
+    return f"{lo}-{hi} (median {mid})"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--before", required=True, help="git revision of this repository")
+    ap.add_argument("--after", default=str(REPO), help="package root (default: this checkout)")
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--json", default=None, help="write the runs here as well")
+    ap.add_argument("args", nargs=argparse.REMAINDER, help="-- then the command's arguments")
+    a = ap.parse_args()
+    args = a.args[1:] if a.args[:1] == ["--"] else a.args
+    if not args:
+        raise SystemExit("error: no command given (after --)")
+    tree = Path(tempfile.mkdtemp(prefix="ab-before-"))
+    cwd = tempfile.mkdtemp(prefix="ab-cwd-")
+    subprocess.run(["git", "-C", str(REPO), "worktree", "add", "--detach", str(tree), a.before],
+                   check=True, capture_output=True)
+    try:
+        roots = {"before": tree, "after": Path(a.after).resolve()}
+        for label, root in roots.items():
+            got = _module_root(root, cwd, {**os.environ, "PYTHONPATH": str(root)})
+            if got != root:
+                raise SystemExit(f"error: {label}: the package comes from {got}, not {root}")
+        runs: dict[str, list[dict]] = {"before": [], "after": []}
+        for i in range(a.runs):
+            for label, root in roots.items():
+                r = _run(root, args, cwd)
+                runs[label].append(r)
+                print(f"{label} {i + 1}: {r['wall_s']:.2f} s wall, {r['user_s']:.2f} user, "
+                      f"{r['sys_s']:.2f} sys, {r['peak_gib']:.2f} GiB", flush=True)
+    finally:
+        subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)],
+                       capture_output=True)
+        shutil.rmtree(cwd, ignore_errors=True)
+    print(f"\n`hartrao-jax {' '.join(args)}`, {a.runs} runs each, alternated\n")
+    print("| | wall s | user s | sys s | peak GiB |\n|---|---|---|---|---|")
+    for label, rs in runs.items():
+        name = a.before if label == "before" else a.after
+        print(f"| {label} ({name}) | " + " | ".join(
+            _span([r[k] for r in rs], f) for k, f in (("wall_s", "{:.2f}"), ("user_s", "{:.1f}"),
+                                                      ("sys_s", "{:.1f}"),
+                                                      ("peak_gib", "{:.2f}"))) + " |")
+    if a.json:
+        Path(a.json).write_text(json.dumps({"before": a.before, "after": a.after,
+                                            "args": args, "runs": runs}, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -236,7 +236,7 @@ def finish_scan_fit(
     tel = campaign.telescope
     rim = tel.diameter_m / 2
     align = north_alignment(
-        p["rx"], p["ry"], g, X_fit[used], leg_azimuths_deg=tel.quadrupod_azimuths_deg,
+        p["rx"], p["ry"], g, X_fit, used=used, leg_azimuths_deg=tel.quadrupod_azimuths_deg,
         rho_range_m=(max(tel.cone_radius_m, 0.25 * rim) , 0.92 * rim),
         heading_hint_rad=heading_hint_rad,
     )

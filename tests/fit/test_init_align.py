@@ -90,6 +90,11 @@ def test_kappa_at_zenith_from_quadrupod_shadows():
     d = (al2.kappa_rad - kappa) % (np.pi / 2)
     assert min(d, np.pi / 2 - d) < np.radians(0.2)
     assert abs(al2.ambiguity_rad - np.pi / 2) < 1e-9
+    # the points to look at as a mask: the same as those points given alone
+    used = np.random.default_rng(1).random(len(X_fit)) < 0.7
+    a, b = (north_alignment(float(rx), float(ry), g, X, used=u, leg_azimuths_deg=LEGS,
+                            heading_hint_rad=0.7) for X, u in ((X_fit, used), (X_fit[used], None)))
+    assert a == b
 
 
 def test_geometry_window_leaves_out_the_scanners_pole():

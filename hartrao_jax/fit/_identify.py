@@ -12,7 +12,7 @@ import numpy as np
 
 from ..model._model import ZERNIKE_PREFIX
 from ..physics._catalog import INSTRUMENT, two_face_parameters
-from ..solver._mixed import unidentifiable
+from ..solver._identifiable import unidentifiable
 
 
 @dataclass

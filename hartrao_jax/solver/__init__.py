@@ -8,7 +8,8 @@ from ._ghm import (
     normal_equations,
     robust_gauss_helmert,
 )
-from ._mixed import MixedResult, gauss_helmert_mixed, unidentifiable
+from ._identifiable import unidentifiable
+from ._mixed import MixedResult, gauss_helmert_mixed
 
 __all__ = [
     "gauss_helmert",

@@ -17,7 +17,7 @@ from hartrao_jax.geometry._geometry import (
 )
 from hartrao_jax.model._model import make_model
 from hartrao_jax.solver._ghm import gauss_helmert
-from hartrao_jax.solver._mixed import gauss_helmert_mixed, ridge_chi2, unidentifiable
+from hartrao_jax.solver._mixed import gauss_helmert_mixed, ridge_chi2
 
 EDGES = (1.6, 3.2, 4.8, 6.4, 8.0, 9.6, 11.2, 12.95)
 COUNTS = (15, 24, 30, 36, 42, 48, 60)
@@ -115,18 +115,6 @@ def test_mixed_blups_predict_panel_offsets():
     z = d / su
     assert np.std(z) < 1.6
     assert np.corrcoef(u, truth)[0, 1] > 0.8  # ~160 points of 0.8 mm noise per panel
-
-
-def test_unidentifiable_by_correlation_and_by_sigma():
-    names = ["f", "x6", "x7", "x4"]
-    C = np.diag([1e-10, 1e-12, 1e-12, 1e-14])
-    C[1, 2] = C[2, 1] = 0.995e-12  # x6, x7 confounded
-    bad = unidentifiable(C, names, ["x6", "x7", "x4"])
-    assert len(bad) == 1 and set(bad[0][0]) == {"x6", "x7"} and bad[0][3] == "correlation"
-    C = np.diag([1e-10, (1e-3) ** 2, 1e-14, 1e-14])  # x6 sigma 1e-3 rad >> typical 5e-5
-    bad = unidentifiable(C, names, ["x6", "x7", "x4"], typical={"x6": 5e-5, "x7": 5e-5})
-    assert [b[0] for b in bad] == [("x6",)] and bad[0][3] == "sigma"
-    assert unidentifiable(np.diag([1e-10, 1e-12, 1e-12, 1e-14]), names, ["x6", "x7"]) == []
 
 
 def test_x_response_is_the_estimates_derivative_by_a_cell():

@@ -47,16 +47,20 @@ def _run(root: Path, args: list[str], cwd: str) -> dict[str, float]:
     out = tempfile.mkdtemp(prefix="ab-out-")
     shutil.rmtree(out)  # the command makes it
     argv = [a.replace("{out}", out) for a in args]
-    t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "hartrao_jax.cli", *argv], cwd=cwd, env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    _, status, ru = os.wait4(proc.pid, 0)
-    wall = time.perf_counter() - t0
-    err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
-    proc.returncode = os.waitstatus_to_exitcode(status)
+    # stderr to a file, read after the exit: a pipe read only then would block a child that
+    # writes more than the pipe holds (progress bars, logs), and wait4 would wait forever
+    with tempfile.TemporaryFile() as err:
+        t0 = time.perf_counter()
+        proc = subprocess.Popen([sys.executable, "-m", "hartrao_jax.cli", *argv], cwd=cwd,
+                                env=env, stdout=subprocess.DEVNULL, stderr=err)
+        _, status, ru = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        code = os.waitstatus_to_exitcode(status)
+        err.seek(0)
+        tail = err.read().decode(errors="replace").strip()[-400:]
     shutil.rmtree(out, ignore_errors=True)
-    if proc.returncode != 0:
-        raise SystemExit(f"error: {root}: exit {proc.returncode}: {err.strip()[-400:]}")
+    if code != 0:
+        raise SystemExit(f"error: {root}: exit {code}: {tail}")
     return {"wall_s": wall, "user_s": ru.ru_utime, "sys_s": ru.ru_stime,
             "peak_gib": ru.ru_maxrss / 2**20}
 

@@ -59,6 +59,16 @@ def keep_freed_environment() -> dict[str, str]:
         "ARROW_DEFAULT_MEMORY_POOL": "system"}
 
 
+def _glibc() -> ctypes.CDLL | None:
+    """The C library where it is glibc on Linux (``mallopt``, ``malloc_trim``), else None."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        return ctypes.CDLL("libc.so.6")
+    except OSError:  # not glibc
+        return None
+
+
 def keep_freed_memory() -> bool:
     """Keep freed memory in the process for reuse (glibc ``mallopt``: large blocks from the
     heap instead of their own memory maps, the heap's top not given back below 2 GiB, and one
@@ -84,11 +94,8 @@ def keep_freed_memory() -> bool:
     paused by its nanny. ``fit-dask`` workers keep glibc's default; those of
     ``fit-stream --dask``'s local cluster, whose footprint is bounded, get the same settings
     from their environment at their start (:func:`keep_freed_environment`)."""
-    if not keep_freed_wanted() or not sys.platform.startswith("linux"):
-        return False
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-    except OSError:  # not glibc
+    libc = _glibc() if keep_freed_wanted() else None
+    if libc is None:
         return False
     ok = all(bool(libc.mallopt(param, value)) for param, _, value in MALLOC_SETTINGS)
     if ok:
@@ -108,11 +115,8 @@ def return_free_heap() -> bool:
     in again either way (measured: 221,184 faults per thread without it), so it costs no
     time, and the peak resident of that position's ``fit`` fell from 8.79-8.81 to 7.47-8.01 GB.
     """
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-    except OSError:  # not glibc
+    libc = _glibc()
+    if libc is None:
         return False
     libc.malloc_trim(0)
     return True

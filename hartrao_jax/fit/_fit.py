@@ -207,15 +207,15 @@ def _fitted_points_jit(mdl: ParaboloidModel, l, x, c, f):
     return X, paraboloid_deviation(X, f)
 
 
-def _fitted_points(mdl: ParaboloidModel, l: np.ndarray, x, c: np.ndarray, f: float):
-    """The observations in the fitted paraboloid's frame (m) and their normal deviations from
-    it (m): one compiled program per size bucket (:func:`bucket_size`; eagerly, each of the
-    model's operations was a pass of its own over the points, 2.4x the time)."""
-    n = len(l)
-    pad = bucket_size(n) - n
-    if pad:
-        l = np.concatenate([l, np.repeat(l[-1:], pad, 0)])
-        c = np.concatenate([c, np.repeat(c[-1:], pad, 0)])
+def _fitted_points(mdl: ParaboloidModel, data: ScanData, x, f: float):
+    """The observations of ``data`` in the fitted paraboloid's frame (m) and their normal
+    deviations from it (m): one compiled program per size bucket (:func:`bucket_size`;
+    eagerly, each of the model's operations was a pass of its own over the points, 2.4x the
+    time). The observations are made at the bucket's size (:func:`scan_arrays`), not copied
+    with a padding on the way to the device: a 6.3e6-point scan 0.51 -> 0.33 s at the first
+    call in a process (fresh pages), 0.35 -> 0.33 s after."""
+    n = len(data)
+    l, c = scan_arrays(data, n_pad=bucket_size(n))
     X, dev = _fitted_points_jit(mdl, l, jnp.asarray(x), c, jnp.asarray(f, jnp.float64))
     return np.asarray(X)[:n], np.asarray(dev)[:n]
 
@@ -230,13 +230,8 @@ def finish_scan_fit(
     x = np.asarray(res.x)
     names = mdl.free
     used = np.asarray(res.weights) > 0
-    # padded to the size bucket as they are made, not copied with the padding on the way to
-    # the device: a 6.3e6-point scan's fitted points 0.51 -> 0.33 s at the first call in a
-    # process (fresh pages), 0.35 -> 0.33 s after
-    n = len(data)
-    l, c = scan_arrays(data, n_pad=bucket_size(n))
     p = {k: float(v) for k, v in mdl.params(res.x).items()}
-    X_fit, dev = (a[:n] for a in _fitted_points(mdl, l, res.x, c, p["f"]))
+    X_fit, dev = _fitted_points(mdl, data, res.x, p["f"])
     tel = campaign.telescope
     rim = tel.diameter_m / 2
     align = north_alignment(

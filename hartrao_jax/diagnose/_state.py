@@ -258,13 +258,6 @@ class _Context:
         self.supersets = _Supersets()
 
 
-def _named_values(model, x) -> dict[str, float]:
-    """Every value ``model`` names at ``x``: its fixed ones, then its free ones."""
-    out = dict(zip(model.fixed_names, np.asarray(model.fixed_values, float).tolist()))
-    out.update(zip(model.free, np.asarray(x, float).tolist()))
-    return out
-
-
 def _held_outside(model, names) -> tuple[str, ...]:
     """The names ``model`` holds at a value that are not among ``names`` (sorted, as
     :func:`..model.make_model` orders them)."""
@@ -308,7 +301,7 @@ class _Supersets:
         if big is None:
             known.append(model)
             return model, np.asarray(x, float), np.arange(len(model.free))
-        values = _named_values(model, x)
+        values = {k: float(v) for k, v in model.params(jnp.asarray(x, float)).items()}
         wide = ParaboloidModel(
             free=big.free, fixed_names=big.fixed_names,
             fixed_values=jnp.asarray([values[n] for n in big.fixed_names], float).reshape(-1),

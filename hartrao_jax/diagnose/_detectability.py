@@ -26,6 +26,7 @@ def _noncentrality(alpha: float, dof: int, power: float = POWER) -> float:
     crit = special.chdtri(dof, alpha)
     return optimize.brentq(lambda L: special.chndtr(crit, dof, L) - (1.0 - power), 1e-6, 1e6)
 
+
 def _detectability(ctx: _Context, joint: _Joint, tests: Sequence[_Test],
                    m_tests: int, S: Sequence[_Scan] = ()) -> list[dict]:
     """Minimal detectable amplitude of every candidate at the final solution (Baarda).

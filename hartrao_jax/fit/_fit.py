@@ -220,6 +220,21 @@ def _fitted_points(mdl: ParaboloidModel, data: ScanData, x, f: float):
     return np.asarray(X)[:n], np.asarray(dev)[:n]
 
 
+def scan_result(*, x, cov, N, sigma0, v, normalized, weights, redundancy, iterations,
+                converged) -> GHResult:
+    """One scan's share of a larger adjustment (a position's, a joint one) as a
+    :class:`GHResult` for :func:`finish_scan_fit`; its misclosures are not kept (zero). The
+    per-point arrays go to the device by ``device_put``: ``jnp.asarray`` and ``jnp.zeros``
+    compile a program for every new length (10-25 ms each, 36 per 12-scan fit of a new
+    recording)."""
+    v, misclosure, normalized, weights = jax.device_put(
+        (np.asarray(v), np.zeros(len(v)), np.asarray(normalized), np.asarray(weights, float)))
+    return GHResult(x=jnp.asarray(x), cov=jnp.asarray(cov), N=jnp.asarray(N),
+                    sigma0=jnp.asarray(sigma0), v=v, misclosure=misclosure,
+                    normalized=normalized, weights=weights, redundancy=jnp.asarray(redundancy),
+                    iterations=jnp.asarray(iterations), converged=jnp.asarray(converged))
+
+
 def finish_scan_fit(
     campaign: Campaign, meta: ScanMeta, mdl: ParaboloidModel, data: ScanData, res: GHResult,
     g: np.ndarray, init: InitialValues, window: np.ndarray, *,
@@ -420,14 +435,9 @@ def fit_position(
             n_s = int(np.sum(ws > 0))
             r_s = max(r_e * n_s / max(n_used, 1), 1.0)
             s0 = math.sqrt(float(np.sum(np.where(ws > 0, omega_pt[sl], 0.0))) / r_s)
-            # the scan's own arrays by device_put: jnp.asarray and jnp.zeros compile a program
-            # for every new length (10-25 ms each, 36 per 12-scan fit of a new recording)
-            per_scan = jax.device_put((v[sl], np.zeros(size), normalized[sl], ws))
-            gh = GHResult(x=jnp.asarray(x_pos), cov=jnp.asarray(cov_pos),
-                          N=jnp.asarray(np.linalg.pinv(cov_pos)), sigma0=jnp.asarray(s0),
-                          v=per_scan[0], misclosure=per_scan[1], normalized=per_scan[2],
-                          weights=per_scan[3], redundancy=jnp.asarray(n_s),
-                          iterations=jnp.asarray(iterations), converged=jnp.asarray(converged))
+            gh = scan_result(x=x_pos, cov=cov_pos, N=np.linalg.pinv(cov_pos), sigma0=s0,
+                             v=v[sl], normalized=normalized[sl], weights=ws, redundancy=n_s,
+                             iterations=iterations, converged=converged)
             sf = finish_scan_fit(campaign, m, mdl_final, data, gh, gg, init_s, window,
                                  heading_hint_rad=heading_hint_rad)
             sf.notes.append("two-face position adjustment" if faces == 2 else

@@ -38,7 +38,6 @@ from pathlib import Path
 from typing import Protocol
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -46,7 +45,6 @@ from ..campaign._campaign import Campaign, ScanMeta
 from ..model._model import parameter_unit
 from ..physics._catalog import CALIBRATION, OBJECT_PARAMETERS, two_face_parameters
 from ..solver._ghm import (
-    GHResult,
     _chunked,
     _pass_residuals,
     _unchunk,
@@ -55,7 +53,7 @@ from ..solver._ghm import (
     normal_equations,
 )
 from ._align import mean_heading, scan_heading
-from ._fit import finish_scan_fit, fit_campaign, scan_arrays, sigma_vector
+from ._fit import finish_scan_fit, fit_campaign, scan_arrays, scan_result, sigma_vector
 from ._identify import Held
 from ._records import fit_json, write_fit_dir
 from ._results import CampaignFit, ScanFit
@@ -562,15 +560,9 @@ def joint_scan_fit(campaign: Campaign, s: ScanFit, x: np.ndarray, cov: np.ndarra
                    u_object: int, iterations: int, converged: bool,
                    heading_hint_rad: float | None) -> ScanFit:
     """The :class:`ScanFit` of one scan of a joint solution (alignment, deviations redone)."""
-    # the scan's own arrays by device_put: jnp.asarray and jnp.zeros compile a program for
-    # every new length (10-25 ms each)
-    per_point = jax.device_put((np.asarray(v), np.zeros(len(v)), np.asarray(e) / sigma0,
-                                s.used.astype(float)))
-    res = GHResult(
-        x=jnp.asarray(x), cov=jnp.asarray(cov), N=jnp.asarray(N), sigma0=jnp.asarray(sigma0),
-        v=per_point[0], misclosure=per_point[1], normalized=per_point[2], weights=per_point[3],
-        redundancy=jnp.asarray(n_used - u_object), iterations=jnp.asarray(iterations),
-        converged=jnp.asarray(converged))
+    res = scan_result(x=x, cov=cov, N=N, sigma0=sigma0, v=v,
+                      normalized=np.asarray(e) / sigma0, weights=s.used,
+                      redundancy=n_used - u_object, iterations=iterations, converged=converged)
     f = finish_scan_fit(campaign, s.meta, s.model, s.data, res, s.gravity, s.init, s.used,
                         heading_hint_rad=None if s.alignment.source == "gravity"
                         else heading_hint_rad)

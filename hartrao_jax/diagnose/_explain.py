@@ -22,7 +22,7 @@ from ..model._model import (
     ZERNIKE_PREFIX,
 )
 from ..physics._catalog import INSTRUMENT, inseparable_pairs
-from ..solver._mixed import MixedSums, mixed_chunk, mixed_step
+from ..solver._mixed_stream import MixedSums, mixed_chunk, mixed_step
 from ._state import (
     ZERNIKE_TESTED,
     _Context,

@@ -49,14 +49,8 @@ from ..model._model import ZERNIKE_PREFIX
 from ..preprocess._initial import geometry_window
 from ..solver._ghm import bucket_size
 from ..solver._kernel import next_rate, remaining_error
-from ..solver._mixed import (
-    MixedSums,
-    iteration_converged,
-    mixed_chunk,
-    mixed_response,
-    mixed_step,
-    ridge_indices,
-)
+from ..solver._mixed import iteration_converged, mixed_response, ridge_indices
+from ..solver._mixed_stream import MixedSums, mixed_chunk, mixed_step
 from ._distributed import worker_campaign
 from ._fit import fit_position, scan_arrays, sigma_vector
 from ._identify import mode_prior

@@ -159,9 +159,9 @@ def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U
     condition then takes the first ``u - r``. Their columns of ``a`` are ``dF/ddev MZ_i``.
 
     ``robust = (noise_var, robust_k)``: ``V`` is not given but computed in the same loop, the
-    first-order residuals at ``(l, x, c + dev)`` (see :func:`mixed_chunk`), points beyond
-    ``robust_k`` get weight 0, and the sums gain ``n_used`` and ``omega``; per point ``(v, e,
-    weight)`` are kept instead (one pass over the points' memory, not three)."""
+    first-order residuals at ``(l, x, c + dev)`` (see :func:`._mixed_stream.mixed_chunk`),
+    points beyond ``robust_k`` get weight 0, and the sums gain ``n_used`` and ``omega``; per
+    point ``(v, e, weight)`` are kept instead (one pass over the points' memory, not three)."""
     u, k = x.shape[0], U.shape[1]
     if MZ is None:
         MZ = jnp.zeros((L.shape[0], 0), x.dtype)
@@ -256,8 +256,9 @@ def _x_response(lin, var, Qxx):
 
 
 def mixed_response(sums, var: tuple, Qxx: Float[Array, "u u"]) -> Float[Array, "g u k"]:
-    """``d x_hat / d u_g`` per cell from the :class:`MixedSums` of a streamed adjustment (see
-    :attr:`MixedResult.x_response`); ``var`` the variance components, ``Qxx`` the step's."""
+    """``d x_hat / d u_g`` per cell from the :class:`._mixed_stream.MixedSums` of a streamed
+    adjustment (see :attr:`MixedResult.x_response`); ``var`` the variance components, ``Qxx``
+    the step's."""
     return _x_response(sums, var, Qxx)
 
 
@@ -344,6 +345,53 @@ def _residual_k(a, d, wm, m, dx, dU, groups):
     return -(a @ dx + du_pt + wm) / jnp.where(m > 0, m, 1.0)
 
 
+def _rejected(kk, m, W, se2, judge, robust_k):
+    """The points a step rejects: used ones whose residual ``|k| sqrt(m)`` exceeds ``robust_k``
+    noise sigmas (``sqrt(se2)``), where ``judge``."""
+    ok = (W > 0) & (m > 0)
+    e = jnp.sqrt(jnp.where(ok, kk * kk * m, 0.0) / se2)
+    return (e > robust_k) & ok & judge
+
+
+#: Most points a step's rejections may count for their share of the sums to be taken out at
+#: the same linearisation (:func:`_dropped_sums`); more wait for the next pass.
+DROP_ROWS = 8192
+
+#: Rounds of rejection, sums taken out and the step again, at one linearisation.
+DROP_ROUNDS = 4
+
+
+def _dropped_sums(a, d, wm, m, W, G, idx, n_cells):
+    """What the points ``idx`` (-1: none) added to a pass's sums ``(N, nv, S, sg, tg, wMw)``,
+    from its stored per-point terms, ``W`` their weights at that pass (as :func:`_pass`: ``a``
+    and ``d`` are zero where a point did not enter, ``q = W / m``).
+
+    A rejection after a step changes only the weights: the step at the same linearisation
+    without the rejected points comes from the sums minus these, with no pass over the points
+    (the normal-equation sums are sums over points)."""
+    live = idx >= 0
+    i = jnp.where(live, idx, 0)
+    a, d, wm, m, w, g = a[i], d[i], wm[i], m[i], W[i], G[i]
+    ok = live & (w > 0) & (m > 0)
+    q = jnp.where(ok, w / jnp.where(ok, m, 1.0), 0.0)
+    wm0 = jnp.where(ok, wm, 0.0)
+    aq, dq = a * q[:, None], d * q[:, None]
+    seg = jnp.where(ok & (g >= 0), g, n_cells)
+
+    def cells(v):
+        return jax.ops.segment_sum(v, seg, n_cells + 1)[:n_cells]
+
+    return (aq.T @ a, aq.T @ wm0, cells(dq[:, :, None] * d[:, None, :]),
+            cells(dq[:, :, None] * a[:, None, :]), cells(dq * wm0[:, None]),
+            jnp.sum(q * wm0 * wm0))
+
+
+def _step_ratio(up):
+    """The largest step of an unknown in its sigmas, ``max |dx_j| / sqrt(Q_jj)``."""
+    q = jnp.diagonal(up.Qxx)
+    return jnp.max(jnp.abs(up.dx) / jnp.sqrt(jnp.where(q > 0, q, 1.0)))
+
+
 def iteration_converged(step, rate, tol, var, var_prev, var0):
     """The step is below tol, or the rest of the contracting steps is (:func:`remaining_error`)
     while the variance components have settled (:func:`_settled`): a step that moves them
@@ -412,27 +460,49 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
         return _vce(upd, lin, var, var0, x, U, jnp.sum(weights > 0))
 
     def step(state):
-        x, U, V, var_prev, it, _, weights, _, _, (prev, prev_bad, rate) = state
+        x, U, V, var_prev, it, _, weights, _, _, (prev, prev_pending, rate) = state
         lin = linearize(x, U, V, weights)
         var = vce(lin, var_prev, x, U, weights)
         up = upd(lin, var, x=x, U=U, n_used=jnp.sum(weights > 0))
-        kk = _point_residuals(lin, up, groups)
-        V_new = s2 * lin.b * kk[:, None]
-        sd = jnp.sqrt(jnp.where(jnp.diagonal(up.Qxx) > 0, jnp.diagonal(up.Qxx), 1.0))
-        ratio = jnp.max(jnp.abs(up.dx) / sd)
-        # the contraction from the last two steps with no rejection between them (a rejection
-        # moves the solution: the step after it is a new start, not a contraction)
-        rate = next_rate(rate, prev, ratio, prev_bad)
-        step_ok = iteration_converged(ratio, rate, tol, var, var_prev, var0)
+        # the contraction from the last two steps with no rejection left between them (a
+        # rejection not yet in the step moves the solution: the step after it is a new start)
+        rate = next_rate(rate, prev, _step_ratio(up), prev_pending)
         # robust rejection inside the iteration: points beyond robust_k noise sigmas (judged
-        # once the surface is taken out, from step ``reject_from`` on) leave for good
-        ok = (weights > 0) & (lin.m > 0)
-        e = jnp.sqrt(jnp.where(ok, kk * kk * lin.m, 0.0) / var[0])
-        bad = (e > robust_k) & (weights > 0) & (it >= reject_from)
+        # once the surface is taken out, from step ``reject_from`` on) leave for good; their
+        # share leaves the sums at once and the step is taken again (_dropped_sums), up to
+        # DROP_ROWS points and DROP_ROUNDS rounds; beyond that the next pass starts without them
+        judge = it >= reject_from
+        kk = _point_residuals(lin, up, groups)
+        bad = _rejected(kk, lin.m, weights, var[0], judge, robust_k)
+
+        def absorb(c):
+            sums, var, up, weights, kk, bad, r = c
+            idx = jnp.nonzero(bad, size=DROP_ROWS, fill_value=-1)[0]
+            drop = _dropped_sums(lin.a, lin.d, lin.wm, lin.m, weights, groups, idx, n_cells)
+            sums = tuple(s - t for s, t in zip(sums, drop))
+            weights = jnp.where(bad, 0.0, weights)
+            now = _Linearization(*sums, lin.a, lin.b, lin.d, lin.wm, lin.m)
+            var = vce(now, var, x, U, weights)
+            up = upd(now, var, x=x, U=U, n_used=jnp.sum(weights > 0))
+            kk = _point_residuals(now, up, groups)
+            return sums, var, up, weights, kk, _rejected(kk, lin.m, weights, var[0], judge,
+                                                         robust_k), r + 1
+
+        def more(c):
+            n_bad = jnp.sum(c[5])
+            return (n_bad > 0) & (n_bad <= DROP_ROWS) & (c[6] < DROP_ROUNDS)
+
+        sums, var, up, weights, kk, bad, _ = lax.while_loop(
+            more, absorb, ((lin.N, lin.nv, lin.S, lin.sg, lin.tg, lin.wMw), var, up, weights,
+                           kk, bad, jnp.array(0)))
+        lin = _Linearization(*sums, lin.a, lin.b, lin.d, lin.wm, lin.m)
+        ratio = _step_ratio(up)
+        step_ok = iteration_converged(ratio, rate, tol, var, var_prev, var0)
+        pending = jnp.any(bad)
         weights = jnp.where(bad, 0.0, weights)
-        done = step_ok & ~jnp.any(bad)
-        return (x + up.dx, U + up.dU, V_new, var, it + 1, done, weights, lin, (x, U, up),
-                (ratio, jnp.any(bad), rate))
+        V_new = s2 * lin.b * kk[:, None]
+        return (x + up.dx, U + up.dU, V_new, var, it + 1, step_ok & ~pending, weights, lin,
+                (x, U, up), (ratio, pending, rate))
 
     def cond(state):
         return (state[4] < max_iter) & ~state[5]
@@ -500,20 +570,21 @@ def _part_update(sums, var, var0, x, U, n_used, ridge_idx, ridge_group, n_ridge_
     if estimate_variances:
         var = _vce(upd, lin, var, var0, x, U, n_used)
     up = upd(lin, var, x=x, U=U, n_used=n_used)
-    sd = jnp.sqrt(jnp.where(jnp.diagonal(up.Qxx) > 0, jnp.diagonal(up.Qxx), 1.0))
-    return var, up, jnp.max(jnp.abs(up.dx) / sd)
+    return var, up, _step_ratio(up)
 
 
 @eqx.filter_jit
-def _part_residuals(per, G, S2, W, dx, dU, se2, judge, robust_k):
+def _part_residuals(per, G, S2, W, dx, dU, se2, judge, robust_k, n_cells):
     """A part's residuals after the step and, where ``judge``, its robust rejection (as
-    :func:`_solve`)."""
+    :func:`_solve`): ``(v, weights, rejected count, the rejected points' sums)``, the sums
+    those of its first :data:`DROP_ROWS` rejected points (:func:`_dropped_sums`)."""
     a, b, d, wm, m = per
     kk = _residual_k(a, d, wm, m, dx, dU, G)
-    ok = (W > 0) & (m > 0)
-    e = jnp.sqrt(jnp.where(ok, kk * kk * m, 0.0) / se2)
-    bad = (e > robust_k) & (W > 0) & judge
-    return S2 * b * kk[:, None], jnp.where(bad, 0.0, W), jnp.any(bad)
+    bad = _rejected(kk, m, W, se2, judge, robust_k)
+    idx = lax.cond(jnp.any(bad), lambda: jnp.nonzero(bad, size=DROP_ROWS, fill_value=-1)[0],
+                   lambda: jnp.full((DROP_ROWS,), -1, jnp.int64))
+    return (S2 * b * kk[:, None], jnp.where(bad, 0.0, W), jnp.sum(bad),
+            _dropped_sums(a, d, wm, m, W, G, idx, n_cells))
 
 
 @eqx.filter_jit
@@ -576,27 +647,39 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
                             n_ridge_groups, estimate_variances, tol)
 
     x, U, var, it, done = x0, U0, var0, 0, False
-    prev, any_bad, rate = 0.0, False, float(rate0)
+    prev, pending, rate = 0.0, False, float(rate0)
     while it < max_iter and not done:
         pers = per = None  # free the last linearisation's per-point terms before the next pass
         sums, pers, n_used = linearize(x, U)
         var_prev = var
         var, up, ratio = update(sums, var, x, U, n_used)
+        # as in _solve: the contraction of the last two steps with no rejection left between
+        rate = float(next_rate(rate, prev, float(ratio), pending))
+        # as in _solve: the rejected points' share out of the sums and the step again
+        judge = jnp.asarray(it >= reject_from)
+        for r in range(DROP_ROUNDS + 1):
+            n_bad, drops = 0, []
+            for p, per in zip(parts, pers):
+                p["V"], p["W"], nb, drop = _part_residuals(
+                    per, p["G"], p["S2"], p["W"], up.dx, up.dU, var[0], judge, robust_k,
+                    n_cells)
+                n_bad += int(nb)
+                drops.append(drop)
+            pending = n_bad > 0
+            if not pending or n_bad > DROP_ROWS or r == DROP_ROUNDS:
+                break
+            for drop in drops:
+                sums = tuple(s - t for s, t in zip(sums, drop))
+            n_used = n_used - n_bad
+            var, up, ratio = update(sums, var, x, U, n_used)
+        drops = None
         ratio = float(ratio)
-        # as in _solve: the contraction of the last two steps with no rejection between them
-        rate = float(next_rate(rate, prev, ratio, any_bad))
         step_ok = bool(iteration_converged(ratio, rate, tol, var, var_prev, var0))
         prev = ratio
-        any_bad = False
-        for p, per in zip(parts, pers):
-            p["V"], p["W"], bad = _part_residuals(per, p["G"], p["S2"], p["W"], up.dx, up.dU,
-                                                  var[0], jnp.asarray(it >= reject_from),
-                                                  robust_k)
-            any_bad = any_bad or bool(bad)
         x_lin, U_lin = x, U
         x, U = x + up.dx, U + up.dU
         it += 1
-        done = bool(step_ok) and not any_bad
+        done = step_ok and not pending
     # statistics at the solution from the last step's linearisation (its step was below tol
     # sigma: no further pass over the points); each part's store and observations are let go
     # once its statistics are out, and each statistic once it is in the caller's order, so
@@ -728,10 +811,13 @@ def gauss_helmert_mixed(
         estimate_variances: False holds every variance at its start value.
         robust_k: reject, during the iteration, points whose residual exceeds ``robust_k``
             noise sigmas once the surface is taken out (None: no rejection); a rejected point
-            stays rejected. Points are judged from the second step on, or from the first when
-            the start carries the cells (``u0``: another random-effect adjustment's solution,
-            so the first step does not move the surface into the cells and the residuals after
-            it are already the surface-free ones; it saves a pass over the points).
+            stays rejected, and its share of the normal-equation sums leaves them at once:
+            the step is taken again at the same linearisation (no pass over the points; up
+            to :data:`DROP_ROWS` points per step). Points are judged from the second step on,
+            or from the first when the start carries the cells (``u0``: another random-effect
+            adjustment's solution, so the first step does not move the surface into the cells
+            and the residuals after it are already the surface-free ones; it saves a pass over
+            the points).
         tol: convergence when every step is below ``tol`` times its sigma and every variance
             component changed by less than 0.5 %.
         threads: parts each pass over the points is split into, one thread each (None:
@@ -799,142 +885,6 @@ def gauss_helmert_mixed(
     return eqx.tree_at(lambda r: (r.v, r.normalized, r.dev, r.omega_point, r.weights), res,
                        (res.v[back], res.normalized[back], res.dev[back],
                         res.omega_point[back], res.weights[back]))
-
-
-# --------------------------------------------------------------------------------------------
-# The same adjustment streamed: sums per chunk of points, the step from the sums
-# --------------------------------------------------------------------------------------------
-
-
-class MixedSums(eqx.Module):
-    """Normal-equation sums of a set of points (add them over chunks), see :func:`mixed_chunk`.
-
-    ``N`` (u, u), ``nv`` (u,), per cell ``S`` (g, k, k), ``sg`` (g, k, u), ``tg`` (g, k),
-    ``wMw`` the weighted misclosure square sum, ``n_used`` the points in the sums,
-    ``omega`` the points' ``v^T Sigma^-1 v`` at the linearisation point (for sigma0).
-    """
-
-    N: Float[Array, "u u"]
-    nv: Float[Array, " u"]
-    S: Float[Array, "g k k"]
-    sg: Float[Array, "g k u"]
-    tg: Float[Array, "g k"]
-    wMw: Float[Array, ""]
-    n_used: Float[Array, ""]
-    omega: Float[Array, ""]
-
-    def __add__(self, other: MixedSums) -> MixedSums:
-        return jax.tree.map(jnp.add, self, other)
-
-
-class MixedChunk(eqx.Module):
-    """Per point of a chunk (the caller's order): residuals ``v`` (n, 3) at the solution the
-    chunk was linearised at, standardized residuals ``e`` (``|k| sqrt(m) / s_e``) and the
-    weights after the robust rejection."""
-
-    v: Float[Array, "n 3"]
-    e: Float[Array, " n"]
-    weights: Float[Array, " n"]
-
-
-def mixed_chunk(
-    condition,
-    l: Float[Array, "n 3"],
-    consts: Float[Array, "n c"],
-    weights: Float[Array, " n"],
-    s2: Float[Array, "n 3"] | Float[Array, " 3"],
-    groups: Int[Array, " n"],
-    design: Float[Array, "n k"],
-    x: Float[Array, " u"],
-    U: Float[Array, "g k"],
-    noise_var: Float[Array, ""],
-    robust_k: Float[Array, ""],
-    *,
-    dev_column: int = 1,
-    chunk: int = 8192,
-    mode_design: Float[Array, "n r"] | None = None,
-) -> tuple[MixedSums, MixedChunk]:
-    """One chunk of points of a streamed :func:`gauss_helmert_mixed` (constant memory per chunk).
-
-    1. Residuals at ``(x, U)``, first-order Gauss-Helmert at the observations:
-       ``k = -F(l, x, c + dev) / m``, ``v = Sigma b k``; points with ``|k| sqrt(m) / s_e`` above
-       ``robust_k`` get weight 0 (at every pass from the current solution: a point is out
-       exactly when its residual is beyond the limit there).
-    2. The linearisation at ``(l + v, x, c + dev)`` and its sums (as one pass of the in-memory
-       solver). The sums of all chunks give the step by :func:`mixed_step`.
-
-    ``mode_design`` (n, r): the last ``r`` unknowns of ``x`` enter the deviation through these
-    per-point columns (as ``mode_design`` of :func:`gauss_helmert_mixed`); ``condition`` then
-    takes the first ``u - r``. ``s2``: the observations' variances per point (n, 3), or one
-    vector (3,) for all.
-
-    Steps 1 and 2 run in one loop over blocks of ``chunk`` points (the residuals of a block
-    are linearised while its rows are in cache: 0.61 -> 0.46 s per 1e6 points on one core).
-    """
-    MZ = (jnp.zeros((l.shape[0], 0), x.dtype) if mode_design is None
-          else jnp.asarray(mode_design, x.dtype))
-    # the cell order by NumPy's stable sort (radix sort on small integers: 0.016 s per 1e6
-    # points, where XLA's CPU argsort takes 0.15 s, and the inverse took one more)
-    g = np.asarray(groups)
-    n_cells = U.shape[0]
-    key = np.where(g >= 0, g, n_cells).astype(np.int16 if n_cells < 2**15 else np.int32)
-    order = np.argsort(key, kind="stable")
-    # ``on`` enters the compiled program as an argument: a constant True would let XLA fold
-    # the materialising cond of the pass away and recompute the derivatives in every consumer
-    # (10x the time with the 30 unknowns of the diagnosis' candidates: 2.1 s for 2.6e5 points)
-    return _mixed_chunk(condition, l, consts, weights, s2, groups, design, x, U, noise_var,
-                        robust_k, jnp.ones((), bool), MZ, order.astype(np.int32),
-                        dev_column=dev_column, chunk=chunk)
-
-
-@eqx.filter_jit
-def _mixed_chunk(condition, l, consts, weights, s2, groups, design, x, U, noise_var, robust_k,
-                 on, MZ, order, *, dev_column, chunk):
-    n_cells = U.shape[0]
-    f = l.dtype
-    L, C, W, G, DM, Z = (a[order] for a in (l, consts, weights, groups, design, MZ))
-    S2 = s2[order] if s2.ndim == 2 else s2
-    (N, nv, S, sg, tg, wmw, n_used, omega), (V, e, W) = _pass(
-        condition, dev_column, on, n_cells, chunk, L, None, C, W, S2, G, DM, x, U, Z,
-        robust=(noise_var, robust_k))
-    sums = MixedSums(N, nv, S, sg, tg, wmw, n_used.astype(f), omega)
-    back = jnp.zeros_like(order).at[order].set(jnp.arange(order.shape[0], dtype=order.dtype))
-    return sums, MixedChunk(V[back], e[back], W[back])
-
-
-class MixedStep(eqx.Module):
-    """The step of a streamed mixed adjustment: new ``x``, ``U``, variance components
-    ``var = (s_e^2, cell variances (k,), ridge variances (r,))``, ``Qxx``, ``Quu``, the
-    redundancy shares and the convergence measure ``max |dx_j| / sigma_j``."""
-
-    x: Array
-    U: Array
-    var: tuple
-    Qxx: Array
-    Quu: Array
-    redundancy_noise: Array
-    redundancy_cells: Array
-    redundancy_ridge: Array
-    ratio: Array
-
-
-@eqx.filter_jit
-def mixed_step(
-    sums: MixedSums, var: tuple, var0: tuple, x: Float[Array, " u"], U: Float[Array, "g k"],
-    ridge_idx: Int[Array, " r"], ridge_group: Int[Array, " r"], n_ridge_groups: int,
-    estimate_variances: bool = True,
-) -> MixedStep:
-    """Variance components at these sums (Foerstner's fixed point), then the step: the same
-    arithmetic as one iteration of :func:`gauss_helmert_mixed`, from sums added over chunks."""
-    upd = partial(_update, var0=var0, **_ridge_args(ridge_idx, ridge_group, n_ridge_groups))
-    lin = _Linearization(sums.N, sums.nv, sums.S, sums.sg, sums.tg, sums.wMw,
-                         None, None, None, None, None)
-    if estimate_variances:
-        var = _vce(upd, lin, var, var0, x, U, sums.n_used)
-    up = upd(lin, var, x=x, U=U, n_used=sums.n_used)
-    sd = jnp.sqrt(jnp.where(jnp.diagonal(up.Qxx) > 0, jnp.diagonal(up.Qxx), 1.0))
-    return MixedStep(x + up.dx, U + up.dU, var, up.Qxx, up.Quu, up.r_e, up.r_cells, up.r_ridge,
-                     jnp.max(jnp.abs(up.dx) / sd))
 
 
 def ridge_chi2(result: MixedResult, ridge: dict[str, list[int]] | None) -> dict[str, tuple]:

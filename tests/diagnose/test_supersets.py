@@ -10,7 +10,7 @@ from helpers import F_TRUE, POSE, SIGMA, paraboloid_points, synthetic_scan
 from hartrao_jax.diagnose._state import _covers, _Supersets
 from hartrao_jax.geometry._geometry import panel_cells
 from hartrao_jax.model._model import make_model
-from hartrao_jax.solver._mixed import mixed_chunk
+from hartrao_jax.solver._mixed_stream import mixed_chunk
 
 EDGES = (1.6, 3.2, 4.8, 6.4, 8.0, 9.6, 11.2, 12.95)
 COUNTS = (15, 24, 30, 36, 42, 48, 60)

@@ -1,13 +1,37 @@
-"""Process-wide settings: float64, the XLA compilation cache, where the real recordings are."""
+"""Process-wide settings: float64, the XLA compilation cache, the threads work may use, where the
+real recordings are."""
 
 from __future__ import annotations
 
 import ctypes
 import os
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import jax
+
+#: Threads this process's work may use (default: the cores it may run on).
+THREADS_ENV = "HARTRAO_JAX_THREADS"
+_POOLS: dict[tuple[str, int], ThreadPoolExecutor] = {}
+
+
+def usable_cores() -> int:
+    """The threads this process's work may use: ``$HARTRAO_JAX_THREADS``, else the cores it
+    may run on (its CPU affinity on Linux; elsewhere the core count)."""
+    env = os.environ.get(THREADS_ENV)
+    affinity = getattr(os, "sched_getaffinity", None)
+    return max(1, int(env) if env else (len(affinity(0)) if affinity else os.cpu_count() or 1))
+
+
+def thread_pool(threads: int, name: str) -> ThreadPoolExecutor:
+    """The process's pool of ``threads`` threads for the parts of ``name``'s work (threads
+    ``hartrao-<name>_<i>``). A task of a pool must never wait for another task of the same
+    pool (each user has its own name)."""
+    key = (name, threads)
+    if key not in _POOLS:
+        _POOLS[key] = ThreadPoolExecutor(threads, thread_name_prefix=f"hartrao-{name}")
+    return _POOLS[key]
 
 
 def enable_x64() -> None:

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from .._config import thread_pool, usable_cores
 from ..campaign._format import cartesian_to_raw  # noqa: F401  (the recording's face rule)
 
 # --------------------------------------------------------------------------------------------
@@ -283,18 +284,42 @@ def panel_cells(
     """
     X = np.asarray(X, float)
     if ring_edges_m is not None and panels_per_ring is not None:
-        rho = np.hypot(X[:, 0], X[:, 1])
-        psi = np.mod(np.arctan2(X[:, 1], X[:, 0]), 2 * np.pi)
-        ids = panel_ids(rho, psi, ring_edges_m, panels_per_ring)
         geo = panel_geometry(ring_edges_m, panels_per_ring)
-        k = np.where(ids >= 0, ids, 0)
-        dpsi = np.mod(psi - geo["psi_c"][k] + np.pi, 2 * np.pi) - np.pi
-        local = np.stack([rho - geo["rho_c"][k], geo["rho_c"][k] * dpsi], 1)
-        local[ids < 0] = 0.0
-        return ids.astype(np.int64), local, int(len(geo["ring"])), (
+        n = len(X)
+        ids, local = np.empty(n, np.int64), np.empty((n, 2))
+        # one part of the rows per core (NumPy's ufuncs let go of the interpreter): 1.56 ->
+        # 0.66 s for 1.26e7 points on 2 cores, the same cells and coordinates
+        parts = max(1, min(usable_cores(), n // _PARALLEL_ROWS))
+        cuts = np.linspace(0, n, parts + 1).astype(int)
+
+        def one(i):
+            rows = slice(cuts[i], cuts[i + 1])
+            ids[rows], local[rows] = _ring_cells(X[rows], ring_edges_m, panels_per_ring, geo)
+
+        if parts > 1:
+            list(thread_pool(parts, "geometry").map(one, range(parts)))
+        else:
+            one(0)
+        return ids, local, int(len(geo["ring"])), (
             f"panels ({len(geo['ring'])} in {len(panels_per_ring)} rings)")
     cell, local, keys = square_cells(X, cell_m, keys)
     return cell, local, int(len(keys)), f"square cells of {cell_m:g} m (no panel layout)"
+
+
+#: Rows per thread from which :func:`panel_cells` cuts its points into parts.
+_PARALLEL_ROWS = 1 << 20
+
+
+def _ring_cells(X, ring_edges_m, panels_per_ring, geo):
+    """Panel ids and local ``(radial, tangential)`` coordinates (m) of points ``X`` (n, 3)."""
+    rho = np.hypot(X[:, 0], X[:, 1])
+    psi = np.mod(np.arctan2(X[:, 1], X[:, 0]), 2 * np.pi)
+    ids = panel_ids(rho, psi, ring_edges_m, panels_per_ring)
+    k = np.where(ids >= 0, ids, 0)
+    dpsi = np.mod(psi - geo["psi_c"][k] + np.pi, 2 * np.pi) - np.pi
+    local = np.stack([rho - geo["rho_c"][k], geo["rho_c"][k] * dpsi], 1)
+    local[ids < 0] = 0.0
+    return ids, local
 
 
 def cell_code(ij: Int[np.ndarray, "n 2"]) -> Int[np.ndarray, " n"]:

@@ -17,7 +17,6 @@ an argument and not batched by ``vmap``.
 
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 
@@ -26,6 +25,9 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 from jax.extend import core as jcore
+
+from .._config import THREADS_ENV, usable_cores  # noqa: F401  (this module's names before)
+from .._config import thread_pool as _config_pool
 
 # --------------------------------------------------------------------------------------------
 # sin/cos computed once: custom-JVP sincos materialised behind a runtime lax.cond
@@ -479,17 +481,6 @@ def final_sweep(condition, l, consts, weights, store, residuals, x, dx, on, *, c
 
 #: Points per part below which a pass is not split (one part, the single jitted loop).
 PARALLEL_MIN_POINTS = 1 << 17
-THREADS_ENV = "HARTRAO_JAX_THREADS"
-_POOL: dict[int, ThreadPoolExecutor] = {}
-
-
-def usable_cores() -> int:
-    """The threads this process's work may use: ``$HARTRAO_JAX_THREADS``, else the cores it
-    may run on (its CPU affinity on Linux; elsewhere the core count)."""
-    env = os.environ.get(THREADS_ENV)
-    affinity = getattr(os, "sched_getaffinity", None)
-    return max(1, int(env) if env else (len(affinity(0)) if affinity else os.cpu_count() or 1))
-
 
 def pass_threads(n: int) -> int:
     """Parts (threads) a pass over ``n`` points is split into: :func:`usable_cores`, at most 8
@@ -504,9 +495,7 @@ def pass_threads(n: int) -> int:
 
 def thread_pool(threads: int) -> ThreadPoolExecutor:
     """A pool of ``threads`` threads for the parts of a pass (one per process and size)."""
-    if threads not in _POOL:
-        _POOL[threads] = ThreadPoolExecutor(threads, thread_name_prefix="hartrao-mixed")
-    return _POOL[threads]
+    return _config_pool(threads, "mixed")
 
 
 @eqx.filter_jit

@@ -649,7 +649,7 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
     x, U, var, it, done = x0, U0, var0, 0, False
     prev, pending, rate = 0.0, False, float(rate0)
     while it < max_iter and not done:
-        pers = per = None  # free the last linearisation's per-point terms before the next pass
+        pers = None  # free the last linearisation's per-point terms before the next pass
         sums, pers, n_used = linearize(x, U)
         var_prev = var
         var, up, ratio = update(sums, var, x, U, n_used)
@@ -658,13 +658,19 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
         # as in _solve: the rejected points' share out of the sums and the step again
         judge = jnp.asarray(it >= reject_from)
         for r in range(DROP_ROUNDS + 1):
-            n_bad, drops = 0, []
-            for p, per in zip(parts, pers):
-                p["V"], p["W"], nb, drop = _part_residuals(
-                    per, p["G"], p["S2"], p["W"], up.dx, up.dU, var[0], judge, robust_k,
-                    n_cells)
-                n_bad += int(nb)
-                drops.append(drop)
+
+            def judged(i):  # each part in its thread, as its pass
+                p = parts[i]
+                return jax.block_until_ready(_part_residuals(
+                    pers[i], p["G"], p["S2"], p["W"], up.dx, up.dU, var[0], judge, robust_k,
+                    n_cells))
+
+            outs = list(pool.map(judged, range(len(parts))))
+            for p, o in zip(parts, outs):
+                p["V"], p["W"] = o[0], o[1]
+            n_bad = sum(int(o[2]) for o in outs)
+            drops = [o[3] for o in outs]
+            outs = None
             pending = n_bad > 0
             if not pending or n_bad > DROP_ROWS or r == DROP_ROUNDS:
                 break
@@ -685,7 +691,6 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
     # once its statistics are out, and each statistic once it is in the caller's order, so
     # that the footprint does not peak here
     se2 = var[0]
-    per = None
     if large:
         return_free_heap()
     fin = []

@@ -441,21 +441,52 @@ def _blank_step(n: int, x0, U0, var0):
     return lin, (z((u,)), z((g, k)), up)
 
 
+class _Settings(eqx.Module):
+    """What shapes an adjustment's programs (static fields): the condition's deviation column,
+    the cells, the chunk of a pass, the stopping rule (``tol`` sigma, ``max_iter`` passes),
+    whether the variance components are estimated, the number of ridge groups."""
+
+    dev_column: int
+    n_cells: int
+    chunk: int
+    tol: float
+    max_iter: int
+    estimate_variances: bool
+    n_ridge_groups: int
+
+
+#: The per-point arrays of an adjustment (the points in cell order) or of one of its parts,
+#: a dict with these keys: observations ``L`` (n, 3), their residuals ``V`` (n, 3), constants
+#: ``C`` (n, c), weights ``W`` (n,), variances ``S2`` (n, 3) or (3,) for all, cells ``G`` (n,),
+#: the cell design ``DM`` (n, k) and the smooth modes' design ``MZ`` (n, r).
+POINT_KEYS = ("L", "V", "C", "W", "S2", "G", "DM", "MZ")
+
+
+def _pass_of(condition, cfg: _Settings, on, pts: dict, x, U, V=None, W=None):
+    """:func:`_pass` over the points ``pts`` (:data:`POINT_KEYS`; ``V``, ``W`` in their stead
+    where given)."""
+    return _pass(condition, cfg.dev_column, on, cfg.n_cells, cfg.chunk, pts["L"],
+                 pts["V"] if V is None else V, pts["C"], pts["W"] if W is None else W,
+                 pts["S2"], pts["G"], pts["DM"], x, U, pts["MZ"])
+
+
 @eqx.filter_jit
-def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0, v0,
-           var0, ridge_idx, ridge_group, n_ridge_groups, tol, max_iter, chunk, n_cells,
-           estimate_variances, robust_k, on, MZ, reject_from, rate0):
-    f = l.dtype
-    upd = partial(_update, var0=var0, **_ridge_args(ridge_idx, ridge_group, n_ridge_groups))
+def _solve(condition, cfg: _Settings, pts: dict, x0, U0, var0, ridge_idx, ridge_group,
+           robust_k, on, reject_from, rate0):
+    """The adjustment as one compiled loop (:func:`gauss_helmert_mixed`; ``pts`` the points
+    in cell order, :data:`POINT_KEYS`)."""
+    f = pts["L"].dtype
+    s2, groups = pts["S2"], pts["G"]
+    n_cells, tol = cfg.n_cells, cfg.tol
+    upd = partial(_update, var0=var0, **_ridge_args(ridge_idx, ridge_group, cfg.n_ridge_groups))
 
     def linearize(x, U, V, weights):
-        (N, nv, S, sg, tg, wmw), (a, b, d, wm, m, _) = _pass(
-            condition, dev_column, on, n_cells, chunk, l, V, consts, weights, s2, groups, design,
-            x, U, MZ)
+        (N, nv, S, sg, tg, wmw), (a, b, d, wm, m, _) = _pass_of(condition, cfg, on, pts, x, U,
+                                                                 V, weights)
         return _Linearization(N, nv, S, sg, tg, wmw, a, b, d, wm, m)
 
     def vce(lin, var, x, U, weights):
-        if not estimate_variances:
+        if not cfg.estimate_variances:
             return var
         return _vce(upd, lin, var, var0, x, U, jnp.sum(weights > 0))
 
@@ -505,12 +536,12 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
                 (x, U, up), (ratio, pending, rate))
 
     def cond(state):
-        return (state[4] < max_iter) & ~state[5]
+        return (state[4] < cfg.max_iter) & ~state[5]
 
     # the last step's linearisation and solution are carried: the statistics at the solution
     # come from them (its step was below tol sigma: no further pass over the points)
-    state = (x0, U0, v0, var0, jnp.array(0), jnp.array(False), weights,
-             *_blank_step(l.shape[0], x0, U0, var0),
+    state = (x0, U0, pts["V"], var0, jnp.array(0), jnp.array(False), pts["W"],
+             *_blank_step(pts["L"].shape[0], x0, U0, var0),
              (jnp.zeros((), f), jnp.array(False), jnp.asarray(rate0, f)))
     x, U, V, var, it, done, weights, lin, (x_lin, U_lin, up), (_, _, rate) = lax.while_loop(
         cond, step, state)
@@ -521,9 +552,9 @@ def _solve(condition, dev_column, l, x0, s2, consts, weights, groups, design, U0
     n_used = jnp.sum(weights > 0)
     u = x.shape[0]
     gi = jnp.where(groups >= 0, groups, 0)
-    dev_final = jnp.where(groups >= 0, jnp.sum(design * U[gi], axis=-1), 0.0)
+    dev_final = jnp.where(groups >= 0, jnp.sum(pts["DM"] * U[gi], axis=-1), 0.0)
     sigma0 = jnp.sqrt(jnp.sum(weights * omega_pt) / jnp.maximum(n_used - u, 1))
-    if n_ridge_groups:  # the modes as fixed effects: one step with their priors removed
+    if cfg.n_ridge_groups:  # the modes as fixed effects: one step with their priors removed
         dx0, _, Q0, _ = _reduce(lin.N, lin.nv, lin.S, lin.sg, lin.tg, U_lin, x_lin,
                                 se2 / var[1], ridge_idx, jnp.zeros_like(ridge_idx, f))
         ridge_fixed = (x_lin + dx0)[ridge_idx]
@@ -554,20 +585,19 @@ mixed_threads = pass_threads
 
 
 @eqx.filter_jit
-def _part_pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U, MZ):
-    sums, (a, b, d, wm, m, _) = _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W,
-                                      S2, G, DM, x, U, MZ)
-    return sums, (a, b, d, wm, m), jnp.sum(W > 0)
+def _part_pass(condition, cfg: _Settings, on, p: dict, x, U):
+    """A part's pass: its sums, its per-point terms, its points in use."""
+    sums, (a, b, d, wm, m, _) = _pass_of(condition, cfg, on, p, x, U)
+    return sums, (a, b, d, wm, m), jnp.sum(p["W"] > 0)
 
 
 @eqx.filter_jit
-def _part_update(sums, var, var0, x, U, n_used, ridge_idx, ridge_group, n_ridge_groups,
-                 estimate_variances, tol):
+def _part_update(cfg: _Settings, sums, var, var0, x, U, n_used, ridge_idx, ridge_group):
     """Variance components (Foerstner) and the step from the added sums, as one step of
     :func:`_solve`."""
-    upd = partial(_update, var0=var0, **_ridge_args(ridge_idx, ridge_group, n_ridge_groups))
+    upd = partial(_update, var0=var0, **_ridge_args(ridge_idx, ridge_group, cfg.n_ridge_groups))
     lin = _Linearization(*sums, None, None, None, None, None)
-    if estimate_variances:
+    if cfg.estimate_variances:
         var = _vce(upd, lin, var, var0, x, U, n_used)
     up = upd(lin, var, x=x, U=U, n_used=n_used)
     return var, up, _step_ratio(up)
@@ -615,11 +645,10 @@ def _part_stats(sums, var, x, U, Qxx, ridge_idx, n_ridge_groups):
     return ridge_fixed, ridge_fixed_cov, _x_response(lin, var, Qxx)
 
 
-def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_group,
-                 n_ridge_groups, tol, max_iter, chunk, n_cells, estimate_variances, robust_k,
-                 reject_from, rate0, back):
+def _solve_parts(condition, cfg: _Settings, parts: list[dict], x0, U0, var0, ridge_idx,
+                 ridge_group, robust_k, reject_from: int, rate0: float, back):
     """:func:`_solve` with every pass split into ``parts`` (dicts of equal-length point
-    arrays ``L, C, S2, G, DM, W, V``), each part's pass in its own thread; the normal-equation
+    arrays, :data:`POINT_KEYS`), each part's pass in its own thread; the normal-equation
     sums of the parts are added, the step and the variance components computed from them as
     before. Same iteration, same arithmetic up to the order of the sums' additions.
     ``back``: the parts' per-point arrays (a list) -> one array in the caller's order."""
@@ -633,9 +662,7 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
             return_free_heap()
 
         def one(p):
-            return jax.block_until_ready(_part_pass(
-                condition, dev_column, on, n_cells, chunk, p["L"], p["V"], p["C"], p["W"],
-                p["S2"], p["G"], p["DM"], x, U, p["MZ"]))
+            return jax.block_until_ready(_part_pass(condition, cfg, on, p, x, U))
         outs = list(pool.map(one, parts))
         sums = outs[0][0]
         for o in outs[1:]:
@@ -643,12 +670,11 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
         return sums, [o[1] for o in outs], sum(o[2] for o in outs[1:]) + outs[0][2]
 
     def update(sums, var, x, U, n_used):
-        return _part_update(sums, var, var0, x, U, n_used, ridge_idx, ridge_group,
-                            n_ridge_groups, estimate_variances, tol)
+        return _part_update(cfg, sums, var, var0, x, U, n_used, ridge_idx, ridge_group)
 
     x, U, var, it, done = x0, U0, var0, 0, False
     prev, pending, rate = 0.0, False, float(rate0)
-    while it < max_iter and not done:
+    while it < cfg.max_iter and not done:
         pers = None  # free the last linearisation's per-point terms before the next pass
         sums, pers, n_used = linearize(x, U)
         var_prev = var
@@ -663,7 +689,7 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
                 p = parts[i]
                 return jax.block_until_ready(_part_residuals(
                     pers[i], p["G"], p["S2"], p["W"], up.dx, up.dU, var[0], judge, robust_k,
-                    n_cells))
+                    cfg.n_cells))
 
             outs = list(pool.map(judged, range(len(parts))))
             for p, o in zip(parts, outs):
@@ -680,7 +706,7 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
             var, up, ratio = update(sums, var, x, U, n_used)
         drops = None
         ratio = float(ratio)
-        step_ok = bool(iteration_converged(ratio, rate, tol, var, var_prev, var0))
+        step_ok = bool(iteration_converged(ratio, rate, cfg.tol, var, var_prev, var0))
         prev = ratio
         x_lin, U_lin = x, U
         x, U = x + up.dx, U + up.dU
@@ -703,7 +729,7 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
     u = x.shape[0]
     sigma0 = jnp.sqrt((sum(fp[4] for fp in fin[1:]) + fin[0][4]) / jnp.maximum(n_used - u, 1))
     ridge_fixed, ridge_fixed_cov, response = _part_stats(sums, var, x_lin, U_lin, up.Qxx,
-                                                          ridge_idx, n_ridge_groups)
+                                                          ridge_idx, cfg.n_ridge_groups)
 
     def cat(i):
         arrays = [fp[i] for fp in fin]
@@ -721,15 +747,15 @@ def _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_gr
         contraction=jnp.asarray(rate))
 
 
-def _solve_split(condition, dev_column, threads, order, L, x0, S2, C, W, G, DM, U0, V0, var0,
-                 ridge_idx, ridge_group, n_ridge_groups, tol, max_iter, chunk, n_cells,
-                 estimate_variances, robust_k, reject_from, rate0, MZ):
+def _solve_split(condition, cfg: _Settings, threads: int, order, pts: dict, x0, U0, var0,
+                 ridge_idx, ridge_group, robust_k, reject_from: int, rate0: float):
     """The points in cell order (``order``) cut into ``threads`` equal parts (whole chunks;
     the last part's tail padded with copies of its last point at weight 0, outside every
-    cell), each part gathered straight from the caller's arrays; :func:`_solve_parts`; the
-    per-point results in the caller's order. ``S2``: (n, 3) or (3,)."""
-    n = L.shape[0]
-    m = -(-n // (threads * chunk)) * chunk
+    cell), each part gathered straight from the caller's arrays ``pts`` (:data:`POINT_KEYS`,
+    in the caller's order; ``V`` None: zeros); :func:`_solve_parts`; the per-point results in
+    the caller's order."""
+    n = pts["L"].shape[0]
+    m = -(-n // (threads * cfg.chunk)) * cfg.chunk
     pieces = [order[i * m:(i + 1) * m] for i in range(threads)]
 
     def part(idx):
@@ -748,8 +774,9 @@ def _solve_split(condition, dev_column, threads, order, L, x0, S2, C, W, G, DM, 
             return jax.device_put(a)
 
         f = np.float64
-        return {"L": take(L, f), "C": take(C, f), "G": take(G, np.int32, -1),
-                "DM": take(DM, f), "W": take(W, f, 0.0), "MZ": take(MZ, f),
+        S2, V0 = pts["S2"], pts["V"]
+        return {"L": take(pts["L"], f), "C": take(pts["C"], f), "G": take(pts["G"], np.int32, -1),
+                "DM": take(pts["DM"], f), "W": take(pts["W"], f, 0.0), "MZ": take(pts["MZ"], f),
                 "V": jax.device_put(np.zeros((m, 3), f)) if V0 is None else take(V0, f),
                 "S2": take(S2, f) if S2.ndim == 2 else S2}
 
@@ -768,9 +795,8 @@ def _solve_split(condition, dev_column, threads, order, L, x0, S2, C, W, G, DM, 
         list(pool.map(one, range(threads)))
         return out
 
-    return _solve_parts(condition, dev_column, parts, x0, U0, var0, ridge_idx, ridge_group,
-                        n_ridge_groups, tol, max_iter, chunk, n_cells, estimate_variances,
-                        robust_k, reject_from, rate0, back)
+    return _solve_parts(condition, cfg, parts, x0, U0, var0, ridge_idx, ridge_group, robust_k,
+                        reject_from, rate0, back)
 
 
 def gauss_helmert_mixed(
@@ -863,29 +889,30 @@ def gauss_helmert_mixed(
     threads = mixed_threads(n) if threads is None else max(1, int(threads))
     threads = min(threads, -(-n // chunk))  # whole chunks per part: no empty part
     reject_from = 0 if u0 is not None else 1
+    cfg = _Settings(dev_column=int(dev_column), n_cells=int(n_cells), chunk=chunk,
+                    tol=float(tol), max_iter=int(max_iter),
+                    estimate_variances=bool(estimate_variances), n_ridge_groups=n_groups)
+    k_rob = jnp.asarray(np.inf if robust_k is None else robust_k, f)
+    x0 = jnp.asarray(x0, f)
     if threads > 1:
         sig2 = jnp.asarray(sigma_l, f) ** 2
-        res = _solve_split(condition, int(dev_column), threads, order, l, jnp.asarray(x0, f),
-                           sig2 if sig2.ndim == 2 else jnp.broadcast_to(sig2, (3,)),
-                           consts, weights, g_np, design, U0, v0, var0,
-                           ridge_idx, ridge_group, n_groups, float(tol), int(max_iter), chunk,
-                           int(n_cells), bool(estimate_variances),
-                           jnp.asarray(np.inf if robust_k is None else robust_k, f), reject_from,
-                           float(rate0), MZ)
-        return res
+        pts = {"L": l, "V": v0, "C": consts, "W": weights,
+               "S2": sig2 if sig2.ndim == 2 else jnp.broadcast_to(sig2, (3,)), "G": g_np,
+               "DM": design, "MZ": MZ}
+        return _solve_split(condition, cfg, threads, order, pts, x0, U0, var0, ridge_idx,
+                            ridge_group, k_rob, reject_from, float(rate0))
     inv = np.empty_like(order)
     inv[order] = np.arange(n)
     o = jnp.asarray(order)
     l = jnp.asarray(l, f)
     V0 = jnp.zeros_like(l) if v0 is None else jnp.asarray(v0, f)
-    s2o = jnp.broadcast_to(jnp.asarray(sigma_l, f) ** 2, l.shape)[o]
-    res = _solve(condition, int(dev_column), l[o], jnp.asarray(x0, f), s2o,
-                 jnp.asarray(consts, f)[o], jnp.asarray(weights, f)[o],
-                 jnp.asarray(g_np[order], jnp.int32), jnp.asarray(design, f)[o], U0, V0[o], var0,
-                 ridge_idx, ridge_group, n_groups, float(tol), int(max_iter), chunk,
-                 int(n_cells), bool(estimate_variances),
-                 jnp.asarray(np.inf if robust_k is None else robust_k, f), jnp.ones((), bool),
-                 jnp.asarray(MZ, f)[o], jnp.asarray(reject_from), jnp.asarray(rate0, f))
+    pts = {"L": l[o], "V": V0[o], "C": jnp.asarray(consts, f)[o],
+           "W": jnp.asarray(weights, f)[o],
+           "S2": jnp.broadcast_to(jnp.asarray(sigma_l, f) ** 2, l.shape)[o],
+           "G": jnp.asarray(g_np[order], jnp.int32), "DM": jnp.asarray(design, f)[o],
+           "MZ": jnp.asarray(MZ, f)[o]}
+    res = _solve(condition, cfg, pts, x0, U0, var0, ridge_idx, ridge_group, k_rob,
+                 jnp.ones((), bool), jnp.asarray(reject_from), jnp.asarray(rate0, f))
     back = jnp.asarray(inv)
     return eqx.tree_at(lambda r: (r.v, r.normalized, r.dev, r.omega_point, r.weights), res,
                        (res.v[back], res.normalized[back], res.dev[back],

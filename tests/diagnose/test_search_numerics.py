@@ -1,5 +1,6 @@
 """The searches' fast numerics equal what they replace: single-precision sines after removing
-whole turns (period searches), scipy.special's chi-square functions (detectability)."""
+whole turns (period searches), scipy.special's chi-square functions (detectability), the box
+search's 3 x 3 quadratic forms by the adjugate."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from scipy import optimize, stats
 
 from hartrao_jax.diagnose._covariates import _fold_periods, _periodogram_folds, _sincos_turns
 from hartrao_jax.diagnose._detectability import _noncentrality
+from hartrao_jax.diagnose._find import _quadratic_3x3
 
 
 def test_sincos_turns_within_2e7_of_double_at_any_phase():
@@ -56,3 +58,16 @@ def test_noncentrality_equals_scipy_stats(dof, alpha):
     crit = stats.chi2.isf(alpha, dof)
     ref = optimize.brentq(lambda L: stats.ncx2.sf(crit, dof, L) - 0.8, 1e-6, 1e6)
     assert _noncentrality(alpha, dof) == pytest.approx(ref, rel=1e-12)
+
+
+def test_quadratic_3x3_equals_the_solve():
+    """``n^T S^-1 n`` by the adjugate equals LAPACK's solve, well and badly conditioned (the
+    box search's Schur complements, a 1e-9 ridge on their trace)."""
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(2000, 3, 3))
+    S = A @ A.transpose(0, 2, 1) + np.logspace(-9, 0, 2000)[:, None, None] * np.eye(3)
+    n = rng.normal(size=(2000, 3))
+    ref = np.einsum("wi,wi->w", n, np.linalg.solve(S, n[..., None])[..., 0])
+    cond = np.linalg.cond(S)
+    got = _quadratic_3x3(S, n)
+    assert np.all(np.abs(got - ref) <= 1e-13 * cond * np.abs(ref) + 1e-300)

@@ -431,14 +431,19 @@ def _vce(upd, lin, var, var0, x, U, n_used):
 def _blank_step(n: int, x0, U0, var0):
     """Zeros shaped as one step's ``(linearisation, (x, U, update))`` of :func:`_solve`
     (the loop's carry before its first step)."""
-    u, (g, k), r = x0.shape[0], U0.shape, var0[2].shape[0]
-    f = x0.dtype
-    z = partial(jnp.zeros, dtype=f)
+    u, (g, k) = x0.shape[0], U0.shape
+    z = partial(jnp.zeros, dtype=x0.dtype)
     lin = _Linearization(z((u, u)), z((u,)), z((g, k, k)), z((g, k, u)), z((g, k)), z(()),
                          z((n, u)), z((n, 3)), z((n, k)), z((n,)), z((n,)))
-    up = _Update(z((u,)), z((g, k)), z((u, u)), z((g, k, k)), z(()), z(()), z((k,)), z((r,)),
-                 (z(()), z((k,)), z((r,))))
-    return lin, (z((u,)), z((g, k)), up)
+    return lin, (z((u,)), z((g, k)), _zero_update(x0, U0, var0))
+
+
+def _zero_update(x0, U0, var0) -> _Update:
+    """Zeros shaped as an :class:`_Update` of these unknowns, cells and ridge groups."""
+    u, (g, k), r = x0.shape[0], U0.shape, var0[2].shape[0]
+    z = partial(jnp.zeros, dtype=x0.dtype)
+    return _Update(z((u,)), z((g, k)), z((u, u)), z((g, k, k)), z(()), z(()), z((k,)), z((r,)),
+                   (z(()), z((k,)), z((r,))))
 
 
 class _Settings(eqx.Module):
@@ -493,21 +498,16 @@ def _solve(condition, cfg: _Settings, pts: dict, x0, U0, var0, ridge_idx, ridge_
     def step(state):
         x, U, V, var_prev, it, _, weights, _, _, (prev, prev_pending, rate) = state
         lin = linearize(x, U, V, weights)
-        var = vce(lin, var_prev, x, U, weights)
-        up = upd(lin, var, x=x, U=U, n_used=jnp.sum(weights > 0))
-        # the contraction from the last two steps with no rejection left between them (a
-        # rejection not yet in the step moves the solution: the step after it is a new start)
-        rate = next_rate(rate, prev, _step_ratio(up), prev_pending)
         # robust rejection inside the iteration: points beyond robust_k noise sigmas (judged
         # once the surface is taken out, from step ``reject_from`` on) leave for good; their
         # share leaves the sums at once and the step is taken again (_dropped_sums), up to
-        # DROP_ROWS points and DROP_ROUNDS rounds; beyond that the next pass starts without them
+        # DROP_ROWS points and DROP_ROUNDS rounds; beyond that the next pass starts without
+        # them. One loop of rounds, the first with nothing to take out: the variance
+        # components and the step are compiled once (half the program of a loop of its own)
         judge = it >= reject_from
-        kk = _point_residuals(lin, up, groups)
-        bad = _rejected(kk, lin.m, weights, var[0], judge, robust_k)
 
-        def absorb(c):
-            sums, var, up, weights, kk, bad, r = c
+        def round_(c):
+            sums, var, _, weights, _, bad, r, first = c
             idx = jnp.nonzero(bad, size=DROP_ROWS, fill_value=-1)[0]
             drop = _dropped_sums(lin.a, lin.d, lin.wm, lin.m, weights, groups, idx, n_cells)
             sums = tuple(s - t for s, t in zip(sums, drop))
@@ -516,17 +516,23 @@ def _solve(condition, cfg: _Settings, pts: dict, x0, U0, var0, ridge_idx, ridge_
             var = vce(now, var, x, U, weights)
             up = upd(now, var, x=x, U=U, n_used=jnp.sum(weights > 0))
             kk = _point_residuals(now, up, groups)
-            return sums, var, up, weights, kk, _rejected(kk, lin.m, weights, var[0], judge,
-                                                         robust_k), r + 1
+            bad = _rejected(kk, lin.m, weights, var[0], judge, robust_k)
+            return sums, var, up, weights, kk, bad, r + 1, jnp.where(r == 0, _step_ratio(up),
+                                                                      first)
 
         def more(c):
             n_bad = jnp.sum(c[5])
-            return (n_bad > 0) & (n_bad <= DROP_ROWS) & (c[6] < DROP_ROUNDS)
+            return (c[6] == 0) | ((n_bad > 0) & (n_bad <= DROP_ROWS) & (c[6] <= DROP_ROUNDS))
 
-        sums, var, up, weights, kk, bad, _ = lax.while_loop(
-            more, absorb, ((lin.N, lin.nv, lin.S, lin.sg, lin.tg, lin.wMw), var, up, weights,
-                           kk, bad, jnp.array(0)))
+        blank = _zero_update(x, U, var_prev)
+        sums, var, up, weights, kk, bad, _, first = lax.while_loop(
+            more, round_, ((lin.N, lin.nv, lin.S, lin.sg, lin.tg, lin.wMw), var_prev, blank,
+                           weights, jnp.zeros_like(weights), jnp.zeros_like(weights, bool),
+                           jnp.array(0), jnp.zeros((), f)))
         lin = _Linearization(*sums, lin.a, lin.b, lin.d, lin.wm, lin.m)
+        # the contraction from the last two steps with no rejection left between them (a
+        # rejection not yet in the step moves the solution: the step after it is a new start)
+        rate = next_rate(rate, prev, first, prev_pending)
         ratio = _step_ratio(up)
         step_ok = iteration_converged(ratio, rate, tol, var, var_prev, var0)
         pending = jnp.any(bad)

@@ -26,6 +26,7 @@ from ..model._model import (
     make_model,
 )
 from ..solver._ghm import GHResult, gauss_helmert, robust_gauss_helmert
+from ..solver._kernel import materialize_trig
 
 ZERNIKE_TESTED: tuple[int, ...] = (5, 6, 7, 8, 9, 10, 11)  # Noll; defocus (4) is the focal length
 
@@ -209,16 +210,20 @@ def _scan_model(sc: _Scan, spec: _Spec, aperture: float, extra: Sequence[str] = 
 
 
 @eqx.filter_jit
-def _pointwise(model, probe, l, x, xp, c, s2):
+def _pointwise(model, probe, l, x, xp, c, s2, on):
     """Per point: the misclosure ``F``, ``m = b Sigma b^T``, ``dF/dr`` and the probe derivatives
-    (translation, rotation); one program and one pass over the points for all four."""
+    (translation, rotation); one program and one pass over the points for all four. ``on``: a
+    runtime True, so that each distinct sine and cosine is evaluated once
+    (:func:`..solver._kernel.materialize_trig`: 0.15 -> 0.06 s for 2.6e5 points, the same
+    values to 2e-13 relative)."""
     k = len(PROBE)
+    cond, prb = materialize_trig(model, on), materialize_trig(probe, on)
 
     def one(args):
         ll, cc = args
-        F, b = jax.value_and_grad(lambda l0: model(l0, x, cc))(ll)
+        F, b = jax.value_and_grad(lambda l0: cond(l0, x, cc))(ll)
         m = jnp.sum(b * b * s2)
-        ap = jax.jacfwd(lambda p: probe(ll, jnp.concatenate([xp, p]), cc))(jnp.zeros(k, ll.dtype))
+        ap = jax.jacfwd(lambda p: prb(ll, jnp.concatenate([xp, p]), cc))(jnp.zeros(k, ll.dtype))
         return F, m, b[0], ap
 
     return jax.lax.map(one, (l, c), batch_size=8192)
@@ -381,7 +386,7 @@ def _evaluate(ctx: _Context, sc: _Scan, spec: _Spec, model=None) -> None:
                        check_separable=False)
     xp = np.array([sc.value(n) for n in probe.free[: len(probe.free) - len(PROBE)]])
     F, m, b0, ap = _pointwise(model, probe, lp, x, jnp.asarray(xp), jnp.asarray(c),
-                              jnp.asarray(ctx.sigma**2))
+                              jnp.asarray(ctx.sigma**2), jnp.ones((), bool))
     sc.F, sc.m = np.asarray(F)[:n], np.asarray(m)[:n]
     sc.b0, sc.probe = np.asarray(b0)[:n], np.asarray(ap)[:n]
     u = sc.used

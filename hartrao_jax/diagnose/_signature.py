@@ -15,17 +15,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..solver._kernel import materialize_trig
 from ._find import COVARIATES, _covariate_values
 from ._state import _Context, _fixed, _npad, _pad, _Scan, _scan_model, _Spec
 
 
 @eqx.filter_jit
-def _columns(model, l, x, c, idx):
-    """Per point derivatives of the condition w.r.t. the free parameters ``idx``."""
+def _columns(model, l, x, c, idx, on):
+    """Per point derivatives of the condition w.r.t. the free parameters ``idx``; ``on`` a
+    runtime True (each distinct sine and cosine evaluated once, :func:`materialize_trig`)."""
+    cond = materialize_trig(model, on)
 
     def one(args):
         ll, cc = args
-        return jax.grad(lambda xx: model(ll, xx, cc))(x)[idx]
+        return jax.grad(lambda xx: cond(ll, xx, cc))(x)[idx]
 
     return jax.lax.map(one, (l, c), batch_size=8192)
 
@@ -41,7 +44,8 @@ def _signature(ctx: _Context, sc: _Scan, spec: _Spec, names: Sequence[str], valu
     idx = np.array([model.free.index(n) for n in names])
     npad = _npad(len(sc.l))
     A = np.asarray(_columns(model, jnp.asarray(_pad(sc.l, npad)), jnp.asarray(x),
-                            jnp.asarray(_pad(sc.consts(), npad)), jnp.asarray(idx)))[: len(sc.l)]
+                            jnp.asarray(_pad(sc.consts(), npad)), jnp.asarray(idx),
+                            jnp.ones((), bool)))[: len(sc.l)]
     return A @ np.asarray(values, float)
 
 

@@ -3,6 +3,7 @@ same linearisation (``solver._mixed._dropped_sums``): no pass over the points of
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -40,8 +41,10 @@ def test_dropped_sums_are_the_points_share_of_a_pass():
     on = jnp.ones((), bool)
     x = jnp.asarray(x0 + 1e-4)
 
+    pass_ = eqx.filter_jit(_pass)  # one program for both calls
+
     def sums(w):
-        return _pass(model, 1, on, n_cells, 1024, L, V, C, w, S2, G, D, x, U, MZ)
+        return pass_(model, 1, on, n_cells, 1024, L, V, C, w, S2, G, D, x, U, MZ)
 
     full, (a, b, d, wm, m, _) = sums(W)
     idx = np.array([0, 7, 8, 1999, n - 1, -1, -1])  # the first, a cell-less tail, padding

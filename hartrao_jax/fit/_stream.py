@@ -79,6 +79,7 @@ from ..solver._kernel import (
     pass_threads,
     remaining_error,
     solve_scaled,
+    step_sigmas,
     thread_pool,
 )
 from ._distributed import worker_campaign
@@ -266,9 +267,7 @@ def _solve_step(N, nv, wmw):
     """``dx = -N^-1 n`` (as :func:`._kernel.gh_one_pass`), ``N^-1``, the convergence measure
     ``max |dx_j| / sqrt((N^-1)_jj)`` and the weighted square sum after the step."""
     dx, Ninv = solve_scaled(N, -nv)
-    d = jnp.diagonal(Ninv)
-    ratio = jnp.max(jnp.abs(dx) / jnp.sqrt(jnp.where(d > 0, d, 1.0)))
-    return dx, Ninv, ratio, wmw + dx @ nv
+    return dx, Ninv, step_sigmas(dx, Ninv), wmw + dx @ nv
 
 
 def _blocks(m: int, B: int, G: int) -> list[tuple[int, int, int]]:

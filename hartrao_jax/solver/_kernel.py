@@ -420,8 +420,7 @@ def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *,
             N, nv, store = one_pass(x, dx_prev, store)
             clean, moved = True, False
         dx, Ninv = solve_scaled(N, -nv)
-        dN = jnp.diagonal(Ninv)
-        ratio = jnp.max(jnp.abs(dx) / jnp.sqrt(jnp.where(dN > 0, dN, 1.0)))
+        ratio = step_sigmas(dx, Ninv)
         rate = next_rate(rate, ratio_prev, ratio, moved)
         done = (remaining_error(ratio, rate) < tol) & clean
         return x + dx, dx, store, it + 1, N, Ninv, done, ratio, rounds, rate
@@ -535,10 +534,17 @@ def part_final(condition, l, consts, sigma_l, store, x, dx, on, *, chunk):
     return final_sweep(condition, l, consts, None, store, residuals, x, dx, on, chunk=chunk)
 
 
+def step_sigmas(dx, Q):
+    """The convergence measure of a step: its largest component in its sigmas,
+    ``max |dx_j| / sqrt(Q_jj)`` (``Q`` the step's cofactor matrix; a zero diagonal counts as
+    1)."""
+    q = jnp.diagonal(Q)
+    return jnp.max(jnp.abs(dx) / jnp.sqrt(jnp.where(q > 0, q, 1.0)))
+
+
 @jax.jit
 def newton_step(N, nv):
     """``dx = -N^-1 n``, ``N^-1`` and the convergence measure ``max |dx_j| / sqrt((N^-1)_jj)``
     (as one step of :func:`gh_one_pass`)."""
     dx, Ninv = solve_scaled(N, -nv)
-    dN = jnp.diagonal(Ninv)
-    return dx, Ninv, jnp.max(jnp.abs(dx) / jnp.sqrt(jnp.where(dN > 0, dN, 1.0)))
+    return dx, Ninv, step_sigmas(dx, Ninv)

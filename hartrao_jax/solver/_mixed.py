@@ -64,6 +64,7 @@ from ._kernel import (
     point_weights,
     remaining_error,
     solve_scaled,
+    step_sigmas,
     thread_pool,
 )
 
@@ -386,12 +387,6 @@ def _dropped_sums(a, d, wm, m, W, G, idx, n_cells):
             jnp.sum(q * wm0 * wm0))
 
 
-def _step_ratio(up):
-    """The largest step of an unknown in its sigmas, ``max |dx_j| / sqrt(Q_jj)``."""
-    q = jnp.diagonal(up.Qxx)
-    return jnp.max(jnp.abs(up.dx) / jnp.sqrt(jnp.where(q > 0, q, 1.0)))
-
-
 def iteration_converged(step, rate, tol, var, var_prev, var0):
     """The step is below tol, or the rest of the contracting steps is (:func:`remaining_error`)
     while the variance components have settled (:func:`_settled`): a step that moves them
@@ -517,8 +512,8 @@ def _solve(condition, cfg: _Settings, pts: dict, x0, U0, var0, ridge_idx, ridge_
             up = upd(now, var, x=x, U=U, n_used=jnp.sum(weights > 0))
             kk = _point_residuals(now, up, groups)
             bad = _rejected(kk, lin.m, weights, var[0], judge, robust_k)
-            return sums, var, up, weights, kk, bad, r + 1, jnp.where(r == 0, _step_ratio(up),
-                                                                      first)
+            first = jnp.where(r == 0, step_sigmas(up.dx, up.Qxx), first)
+            return sums, var, up, weights, kk, bad, r + 1, first
 
         def more(c):
             n_bad = jnp.sum(c[5])
@@ -533,7 +528,7 @@ def _solve(condition, cfg: _Settings, pts: dict, x0, U0, var0, ridge_idx, ridge_
         # the contraction from the last two steps with no rejection left between them (a
         # rejection not yet in the step moves the solution: the step after it is a new start)
         rate = next_rate(rate, prev, first, prev_pending)
-        ratio = _step_ratio(up)
+        ratio = step_sigmas(up.dx, up.Qxx)
         step_ok = iteration_converged(ratio, rate, tol, var, var_prev, var0)
         pending = jnp.any(bad)
         weights = jnp.where(bad, 0.0, weights)
@@ -606,7 +601,7 @@ def _part_update(cfg: _Settings, sums, var, var0, x, U, n_used, ridge_idx, ridge
     if cfg.estimate_variances:
         var = _vce(upd, lin, var, var0, x, U, n_used)
     up = upd(lin, var, x=x, U=U, n_used=n_used)
-    return var, up, _step_ratio(up)
+    return var, up, step_sigmas(up.dx, up.Qxx)
 
 
 @eqx.filter_jit

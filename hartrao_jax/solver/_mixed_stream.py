@@ -16,7 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from ._mixed import _Linearization, _pass, _ridge_args, _step_ratio, _update, _vce
+from ._kernel import step_sigmas
+from ._mixed import _Linearization, _pass, _ridge_args, _update, _vce
 
 
 class MixedSums(eqx.Module):
@@ -146,4 +147,4 @@ def mixed_step(
         var = _vce(upd, lin, var, var0, x, U, sums.n_used)
     up = upd(lin, var, x=x, U=U, n_used=sums.n_used)
     return MixedStep(x + up.dx, U + up.dU, var, up.Qxx, up.Quu, up.r_e, up.r_cells, up.r_ridge,
-                     _step_ratio(up))
+                     step_sigmas(up.dx, up.Qxx))

@@ -208,21 +208,10 @@ def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U
         a = jnp.where(ok[:, None], a, 0.0)
         wm0 = jnp.where(ok, wm, 0.0)
         d = jnp.where((ok & live)[:, None], e[:, None] * dm, 0.0)
-        aq = a * q[:, None]
-        dq = d * q[:, None]
-        # the points come sorted by cell (cell-less last): one sorted segment sum of
-        # [d d^T, d a^T, d w] per point (rows of other points are zero, d = 0 there)
-        seg = jnp.where(live, g, n_cells)
-        per = jnp.concatenate([(dq[:, :, None] * d[:, None, :]).reshape(-1, k * k),
-                               (dq[:, :, None] * a[:, None, :]).reshape(-1, k * u),
-                               dq * wm0[:, None]], axis=1)
-        tot = jax.ops.segment_sum(per, seg, n_cells + 1, indices_are_sorted=True)[:n_cells]
-        S = S + tot[:, : k * k].reshape(n_cells, k, k)
-        sg = sg + tot[:, k * k: k * k + k * u].reshape(n_cells, k, u)
-        tg = tg + tot[:, k * k + k * u:]
+        # the points come sorted by cell (cell-less last): a sorted segment sum
+        add = _point_sums(a, d, q, wm0, jnp.where(live, g, n_cells), n_cells, is_sorted=True)
         keep = (v, e0, w8) if robust is not None else (a, b, d, wm, m, dev)
-        return (N + aq.T @ a, nv + aq.T @ wm0, S, sg, tg, wmw + jnp.sum(q * wm0 * wm0),
-                *used), keep
+        return (*(s + t for s, t in zip((N, nv, S, sg, tg, wmw), add)), *used), keep
 
     f = x.dtype
     init = (jnp.zeros((u, u), f), jnp.zeros((u,), f), jnp.zeros((n_cells, k, k), f),
@@ -375,15 +364,24 @@ def _dropped_sums(a, d, wm, m, W, G, idx, n_cells):
     a, d, wm, m, w, g = a[i], d[i], wm[i], m[i], W[i], G[i]
     ok = live & (w > 0) & (m > 0)
     q = jnp.where(ok, w / jnp.where(ok, m, 1.0), 0.0)
-    wm0 = jnp.where(ok, wm, 0.0)
+    return _point_sums(a, d, q, jnp.where(ok, wm, 0.0), jnp.where(ok & (g >= 0), g, n_cells),
+                       n_cells, is_sorted=False)
+
+
+def _point_sums(a, d, q, wm0, seg, n_cells: int, *, is_sorted: bool):
+    """What points add to a pass's sums ``(N, nv, S, sg, tg, wMw)``: ``N = sum q a a^T``,
+    ``nv = sum q a w``, per cell ``S = sum q d d^T``, ``sg = sum q d a^T``, ``tg = sum q d w``,
+    and ``wMw = sum q w^2``; ``a``, ``d`` zero and ``q`` 0 where a point does not enter,
+    ``seg`` each point's cell (``n_cells``: none). One segment sum of ``[d d^T, d a^T, d w]``
+    per point (``is_sorted``: the points in cell order, as a pass has them)."""
+    k, u = d.shape[1], a.shape[1]
     aq, dq = a * q[:, None], d * q[:, None]
-    seg = jnp.where(ok & (g >= 0), g, n_cells)
-
-    def cells(v):
-        return jax.ops.segment_sum(v, seg, n_cells + 1)[:n_cells]
-
-    return (aq.T @ a, aq.T @ wm0, cells(dq[:, :, None] * d[:, None, :]),
-            cells(dq[:, :, None] * a[:, None, :]), cells(dq * wm0[:, None]),
+    per = jnp.concatenate([(dq[:, :, None] * d[:, None, :]).reshape(-1, k * k),
+                           (dq[:, :, None] * a[:, None, :]).reshape(-1, k * u),
+                           dq * wm0[:, None]], axis=1)
+    tot = jax.ops.segment_sum(per, seg, n_cells + 1, indices_are_sorted=is_sorted)[:n_cells]
+    return (aq.T @ a, aq.T @ wm0, tot[:, : k * k].reshape(n_cells, k, k),
+            tot[:, k * k: k * k + k * u].reshape(n_cells, k, u), tot[:, k * k + k * u:],
             jnp.sum(q * wm0 * wm0))
 
 

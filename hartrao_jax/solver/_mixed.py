@@ -151,7 +151,7 @@ def _chunks(arrays, chunk):
 
 
 def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U, MZ=None,
-          robust=None):
+          robust=None, into=None):
     """Linearise every point at ``(l + v, x, c + dev)``; accumulate the normal equations and the
     per-cell sums; keep per point what the residual update needs.
 
@@ -162,7 +162,13 @@ def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U
     ``robust = (noise_var, robust_k)``: ``V`` is not given but computed in the same loop, the
     first-order residuals at ``(l, x, c + dev)`` (see :func:`._mixed_stream.mixed_chunk`),
     points beyond ``robust_k`` get weight 0, and the sums gain ``n_used`` and ``omega``; per
-    point ``(v, e, weight)`` are kept instead (one pass over the points' memory, not three)."""
+    point ``(v, e, weight)`` are kept instead (one pass over the points' memory, not three).
+
+    ``into``: arrays of the shapes of the kept ``(a, b, d, wm, m)`` (a last pass's, of the
+    same points, donated by the caller), written over chunk by chunk and returned in their
+    stead (``dev`` is then not kept): XLA gives a scan's stacked outputs new memory even where
+    a donated input would do, and 1.7 GB of new pages per pass over 1.26e7 points cost a
+    quarter of the pass in page faults."""
     u, k = x.shape[0], U.shape[1]
     if MZ is None:
         MZ = jnp.zeros((L.shape[0], 0), x.dtype)
@@ -217,7 +223,18 @@ def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U
     init = (jnp.zeros((u, u), f), jnp.zeros((u,), f), jnp.zeros((n_cells, k, k), f),
             jnp.zeros((n_cells, k, u), f), jnp.zeros((n_cells, k), f), jnp.zeros((), f)) + (
         (jnp.zeros((), f), jnp.zeros((), f)) if robust is not None else ())
-    sums, per_point = lax.scan(body, init, (Lc, Vc, Cc, Wc, S2c, Gc, Dc, Zc))
+    chunks = (Lc, Vc, Cc, Wc, S2c, Gc, Dc, Zc)
+    if into is None:
+        sums, per_point = lax.scan(body, init, chunks)
+    else:
+        def body_into(carry, ich):
+            sums, bufs = carry
+            sums, keep = body(sums, ich[1])
+            return (sums, tuple(b_.at[ich[0]].set(k_) for b_, k_ in zip(bufs, keep))), None
+
+        nc = Lc.shape[0]
+        bufs = tuple(b_.reshape((nc, chunk) + b_.shape[1:]) for b_ in into)
+        (sums, per_point), _ = lax.scan(body_into, (init, bufs), (jnp.arange(nc), chunks))
     n = L.shape[0]
     per_point = tuple(p.reshape((-1,) + p.shape[2:])[:n] for p in per_point)
     return sums, per_point
@@ -460,12 +477,12 @@ class _Settings(eqx.Module):
 POINT_KEYS = ("L", "V", "C", "W", "S2", "G", "DM", "MZ")
 
 
-def _pass_of(condition, cfg: _Settings, on, pts: dict, x, U, V=None, W=None):
+def _pass_of(condition, cfg: _Settings, on, pts: dict, x, U, V=None, W=None, into=None):
     """:func:`_pass` over the points ``pts`` (:data:`POINT_KEYS`; ``V``, ``W`` in their stead
     where given)."""
     return _pass(condition, cfg.dev_column, on, cfg.n_cells, cfg.chunk, pts["L"],
                  pts["V"] if V is None else V, pts["C"], pts["W"] if W is None else W,
-                 pts["S2"], pts["G"], pts["DM"], x, U, pts["MZ"])
+                 pts["S2"], pts["G"], pts["DM"], x, U, pts["MZ"], into=into)
 
 
 @eqx.filter_jit
@@ -584,10 +601,17 @@ mixed_threads = pass_threads
 
 
 @eqx.filter_jit
-def _part_pass(condition, cfg: _Settings, on, p: dict, x, U):
-    """A part's pass: its sums, its per-point terms, its points in use."""
-    sums, (a, b, d, wm, m, _) = _pass_of(condition, cfg, on, p, x, U)
-    return sums, (a, b, d, wm, m), jnp.sum(p["W"] > 0)
+def _part_pass(condition, cfg: _Settings, on, p: dict, x, U, into=None):
+    """A part's pass: its sums, its per-point terms ``(a, b, d, wm, m)``, its points in use."""
+    sums, per = _pass_of(condition, cfg, on, p, x, U, into=into)
+    return sums, tuple(per[:5]), jnp.sum(p["W"] > 0)
+
+
+@eqx.filter_jit(donate="all-except-first")
+def _part_pass_over(args: tuple, store):
+    """:func:`_part_pass` of ``args``, its per-point terms written over the last pass's
+    ``store`` (donated: the same memory again instead of new pages from the kernel)."""
+    return _part_pass(*args, into=store)
 
 
 @eqx.filter_jit
@@ -602,11 +626,15 @@ def _part_update(cfg: _Settings, sums, var, var0, x, U, n_used, ridge_idx, ridge
     return var, up, step_sigmas(up.dx, up.Qxx)
 
 
-@eqx.filter_jit
-def _part_residuals(per, G, S2, W, dx, dU, se2, judge, robust_k, n_cells):
+@eqx.filter_jit(donate="all-except-first", keep_unused=True)  # V unused: kept to be reused
+def _part_residuals(args: tuple, V, W):
     """A part's residuals after the step and, where ``judge``, its robust rejection (as
     :func:`_solve`): ``(v, weights, rejected count, the rejected points' sums)``, the sums
-    those of its first :data:`DROP_ROWS` rejected points (:func:`_dropped_sums`)."""
+    those of its first :data:`DROP_ROWS` rejected points (:func:`_dropped_sums`). ``args =
+    (per, G, S2, dx, dU, se2, judge, robust_k, n_cells)``; the part's last residuals ``V`` and
+    weights ``W`` are donated: the new ones are written over them (no new pages)."""
+    del V
+    per, G, S2, dx, dU, se2, judge, robust_k, n_cells = args
     a, b, d, wm, m = per
     kk = _residual_k(a, d, wm, m, dx, dU, G)
     bad = _rejected(kk, m, W, se2, judge, robust_k)
@@ -616,9 +644,13 @@ def _part_residuals(per, G, S2, W, dx, dU, se2, judge, robust_k, n_cells):
             _dropped_sums(a, d, wm, m, W, G, idx, n_cells))
 
 
-@eqx.filter_jit
-def _part_final(per, G, S2, W, DM, U, dx, dU, se2):
-    """A part's per-point statistics at the solution (as :func:`_solve`)."""
+@eqx.filter_jit(donate="all-except-first", keep_unused=True)
+def _part_final(args: tuple, per, V):
+    """A part's per-point statistics at the solution (as :func:`_solve`); ``args = (G, S2, W,
+    DM, U, dx, dU, se2)``. Its last per-point terms ``per`` and residuals ``V`` are donated:
+    the statistics are written over them."""
+    del V
+    G, S2, W, DM, U, dx, dU, se2 = args
     a, b, d, wm, m = per
     kk = _residual_k(a, d, wm, m, dx, dU, G)
     ok = (W > 0) & (m > 0)
@@ -656,13 +688,15 @@ def _solve_parts(condition, cfg: _Settings, parts: list[dict], x0, U0, var0, rid
 
     large = parts[0]["L"].shape[0] >= TRIM_ROWS
 
-    def linearize(x, U):
+    def linearize(x, U, old):
         if large:  # the free blocks of the last pass back to the kernel (return_free_heap)
             return_free_heap()
 
-        def one(p):
-            return jax.block_until_ready(_part_pass(condition, cfg, on, p, x, U))
-        outs = list(pool.map(one, parts))
+        def one(i):
+            args = (condition, cfg, on, parts[i], x, U)
+            return jax.block_until_ready(_part_pass(*args) if old is None else
+                                         _part_pass_over(args, old[i]))
+        outs = list(pool.map(one, range(len(parts))))
         sums = outs[0][0]
         for o in outs[1:]:
             sums = jax.tree.map(jnp.add, sums, o[0])
@@ -671,11 +705,11 @@ def _solve_parts(condition, cfg: _Settings, parts: list[dict], x0, U0, var0, rid
     def update(sums, var, x, U, n_used):
         return _part_update(cfg, sums, var, var0, x, U, n_used, ridge_idx, ridge_group)
 
-    x, U, var, it, done = x0, U0, var0, 0, False
+    x, U, var, it, done, pers = x0, U0, var0, 0, False, None
     prev, pending, rate = 0.0, False, float(rate0)
     while it < cfg.max_iter and not done:
-        pers = None  # free the last linearisation's per-point terms before the next pass
-        sums, pers, n_used = linearize(x, U)
+        # the last linearisation's per-point terms, their memory the next one's
+        sums, pers, n_used = linearize(x, U, pers)
         var_prev = var
         var, up, ratio = update(sums, var, x, U, n_used)
         # as in _solve: the contraction of the last two steps with no rejection left between
@@ -687,8 +721,8 @@ def _solve_parts(condition, cfg: _Settings, parts: list[dict], x0, U0, var0, rid
             def judged(i):  # each part in its thread, as its pass
                 p = parts[i]
                 return jax.block_until_ready(_part_residuals(
-                    pers[i], p["G"], p["S2"], p["W"], up.dx, up.dU, var[0], judge, robust_k,
-                    cfg.n_cells))
+                    (pers[i], p["G"], p["S2"], up.dx, up.dU, var[0], judge, robust_k,
+                     cfg.n_cells), p.pop("V"), p.pop("W")))
 
             outs = list(pool.map(judged, range(len(parts))))
             for p, o in zip(parts, outs):
@@ -720,10 +754,11 @@ def _solve_parts(condition, cfg: _Settings, parts: list[dict], x0, U0, var0, rid
         return_free_heap()
     fin = []
     for i, p in enumerate(parts):
-        fin.append(list(_part_final(pers[i], p["G"], p["S2"], p["W"], p["DM"], U, up.dx, up.dU,
-                                    se2)))
-        pers[i] = None
-        for k in ("L", "C", "DM", "MZ", "V"):
+        per, pers[i] = pers[i], None
+        fin.append(list(_part_final((p["G"], p["S2"], p["W"], p["DM"], U, up.dx, up.dU, se2),
+                                    per, p.pop("V"))))
+        per = None
+        for k in ("L", "C", "DM", "MZ"):
             p[k] = None
     u = x.shape[0]
     sigma0 = jnp.sqrt((sum(fp[4] for fp in fin[1:]) + fin[0][4]) / jnp.maximum(n_used - u, 1))

@@ -119,6 +119,32 @@ def test_cells_come_from_where_the_beam_met_the_surface():
     assert wrong_hit < 0.6 * wrong_raw, (wrong_hit, wrong_raw)
 
 
+def test_hit_points_by_row_blocks_equal_one_call():
+    """A large table's hit points and residuals are computed a block of rows at a time
+    (:func:`by_row_blocks`: the last block ends at the table's end, overlapping the one before;
+    two blocks at a time): every row written, each equal to the one-call result (to the last
+    bits a different vector lane may give a sine)."""
+    from hartrao_jax.fit._projection import _hit_points, by_row_blocks
+    from hartrao_jax.model._model import make_model
+    from tests.helpers import F_TRUE, POSE, SIGMA, synthetic_scan
+
+    n = 50_001
+    lobs = np.asarray(synthetic_scan(n, seed=7))
+    model = make_model(["tx", "ty", "tz", "rx", "ry", "f"])
+    x = np.array([{**POSE, "f": F_TRUE}[k] for k in model.free])
+    c = np.zeros((n, 2))
+    args = (np.asarray(SIGMA, float), np.asarray(0.3), np.ones((), bool), True)
+
+    def fn(l_, c_):
+        return _hit_points(model, l_, x, c_, *args)
+
+    whole = [np.asarray(a) for a in fn(lobs, c)]
+    blocks = by_row_blocks(fn, (lobs, c), block=8192)
+    assert all(isinstance(b, np.ndarray) and b.shape == w.shape for b, w in zip(blocks, whole))
+    for b, w in zip(blocks, whole):
+        np.testing.assert_allclose(b, w, rtol=1e-13, atol=1e-18)
+
+
 def test_panels_do_not_move_the_face_flipping_calibration(tmp_path):
     """x4, x6 and x7 flip sign between the faces; the panels are common to both faces and
     exactly an offset and two tilts each, which the cells carry. So in the two-face adjustment

@@ -51,7 +51,7 @@ from ..solver._ghm import (
     gauss_helmert_batch,
     robust_gauss_helmert,
 )
-from ..solver._kernel import usable_cores
+from ..solver._kernel import materialize_trig, usable_cores
 from ..solver._mixed import gauss_helmert_mixed
 from ._align import mean_heading, north_alignment, scan_heading
 from ._identify import (
@@ -208,8 +208,10 @@ def fit_scan(
 
 
 @eqx.filter_jit
-def _fitted_points_jit(mdl: ParaboloidModel, l, x, c, f):
-    X = jax.vmap(mdl.telescope_point, in_axes=(0, None, 0))(l, x, c)
+def _fitted_points_jit(mdl: ParaboloidModel, l, x, c, f, on):
+    # each distinct sin/cos evaluated once (materialize_trig): 6.3e6 points 0.34 -> 0.20 s
+    point = materialize_trig(mdl.telescope_point, on)
+    X = jax.vmap(lambda q, ci: point(q, x, ci))(l, c)
     return X, paraboloid_deviation(X, f)
 
 
@@ -223,8 +225,8 @@ def _fitted_points(mdl: ParaboloidModel, data: ScanData, x, f: float):
     :data:`BLOCK_ROWS` points is taken a block at a time (:func:`by_row_blocks`)."""
     n = len(data)
     l, c = scan_arrays(data, n_pad=bucket_size(n) if n <= BLOCK_ROWS else n)
-    x, f = jnp.asarray(x), jnp.asarray(f, jnp.float64)
-    X, dev = by_row_blocks(lambda l_, c_: _fitted_points_jit(mdl, l_, x, c_, f), (l, c))
+    x, f, on = jnp.asarray(x), jnp.asarray(f, jnp.float64), jnp.ones((), bool)
+    X, dev = by_row_blocks(lambda l_, c_: _fitted_points_jit(mdl, l_, x, c_, f, on), (l, c))
     return np.asarray(X)[:n], np.asarray(dev)[:n]
 
 

@@ -224,7 +224,8 @@ def _gauss_helmert_split(condition, l, x0, sigma_l, consts, weights, v0, tol, *,
     m = -(-n // (threads * chunk)) * chunk
     cuts = [(s0, min(s0 + m, n)) for s0 in range(0, n, m)]
     per_s2 = sigma_l.ndim == 2
-    parts = [dict(l=jnp.asarray(l[a:b]), c=jnp.asarray(consts[a:b]),
+    # host arrays to the device by device_put (jnp.asarray lowers a conversion per shape)
+    parts = [dict(l=jax.device_put(np.asarray(l[a:b])), c=jax.device_put(np.asarray(consts[a:b])),
                   s=sigma_l[a:b] if per_s2 else sigma_l, chunk=min(chunk, b - a))
              for a, b in cuts]
     pool = thread_pool(len(parts))
@@ -233,25 +234,27 @@ def _gauss_helmert_split(condition, l, x0, sigma_l, consts, weights, v0, tol, *,
         return list(pool.map(lambda ip: jax.block_until_ready(fn(*ip)), enumerate(parts)))
 
     stores = each(lambda i, p: part_start(
-        condition, p["l"], p["c"], jnp.asarray(weights[cuts[i][0]:cuts[i][1]]), p["s"],
-        None if v0 is None else jnp.asarray(v0[cuts[i][0]:cuts[i][1]]), on, u=u,
+        condition, p["l"], p["c"], np.asarray(weights[cuts[i][0]:cuts[i][1]]), p["s"],
+        None if v0 is None else np.asarray(v0[cuts[i][0]:cuts[i][1]]), on, u=u,
         chunk=p["chunk"]))
     robust = robust_k is not None
-    x, dx, it, ratio, rounds, done = x0, jnp.zeros_like(x0), 0, np.inf, 0, False
+    x, dx, it, ratio, rounds, done = x0, np.zeros(np.shape(x0), f), 0, np.inf, 0, False
     rate = 1.0  # the contraction of the steps (as gh_one_pass)
     while it < max_iter and not done:
         judge = robust and it >= 1 and ratio < REJECT_BELOW and rounds < max_rounds
-        limit = jnp.asarray(np.inf, f)
+        # the bookkeeping between the passes on the host, in NumPy (the same arithmetic; each
+        # eager JAX operation would be a program to lower and load in every process)
+        limit = np.asarray(np.inf, f)
         if judge:  # sigma0 of the current solution, the candidates included
             om = each(lambda i, p: part_omega(condition, p["l"], p["c"], p["s"], stores[i], dx,
                                               on, chunk=p["chunk"]))
             red = max(int(sum(int(o[1]) for o in om)) - u, 1)
-            limit = robust_k * robust_k * sum(o[0] for o in om) / red
+            limit = np.asarray(robust_k * robust_k * sum(np.asarray(o[0]) for o in om) / red)
         outs = each(lambda i, p: part_pass(
             (condition, p["l"], p["c"], p["s"], x, dx, limit, on, p["chunk"]), stores[i]))
         stores = [o[2] for o in outs]
-        N = sum(o[0] for o in outs[1:]) + outs[0][0]
-        nv = sum(o[1] for o in outs[1:]) + outs[0][1]
+        N = sum(np.asarray(o[0]) for o in outs[1:]) + np.asarray(outs[0][0])
+        nv = sum(np.asarray(o[1]) for o in outs[1:]) + np.asarray(outs[0][1])
         n_bad = int(sum(int(o[3]) for o in outs))
         judged = judge or not robust or rounds >= max_rounds
         rounds += n_bad > 0
@@ -259,22 +262,23 @@ def _gauss_helmert_split(condition, l, x0, sigma_l, consts, weights, v0, tol, *,
         dx, Ninv, r = newton_step(N, nv)
         rate = float(next_rate(rate, ratio, float(r), n_bad > 0))
         ratio = float(r)
-        x = x + dx
+        x = np.asarray(x) + np.asarray(dx)
         it += 1
         done = float(remaining_error(ratio, rate)) < tol and judged and n_bad == 0
     fins = each(lambda i, p: part_final(condition, p["l"], p["c"], p["s"], stores[i], x, dx, on,
                                         chunk=p["chunk"]))
     stores = None
-    omega = sum(fp[0] for fp in fins[1:]) + fins[0][0]
-    V, K, M, F0, W = (jnp.concatenate([fp[j] for fp in fins]) for j in range(1, 6))
+    omega = sum(np.asarray(fp[0]) for fp in fins[1:]) + np.asarray(fins[0][0])
+    V, K, M, F0, W = (np.concatenate([np.asarray(fp[j]) for fp in fins]) for j in range(1, 6))
     if not robust:
-        W = jnp.asarray(weights)
-    red = jnp.sum(W > 0) - u
-    sigma0 = jnp.sqrt(omega / jnp.maximum(red, 1).astype(f))
-    return GHResult(
+        W = np.asarray(weights, f)
+    red = np.sum(W > 0) - u
+    sigma0 = np.sqrt(omega / np.maximum(red, 1).astype(f))
+    Ninv = np.asarray(Ninv)
+    return GHResult(**jax.device_put(dict(
         x=x, cov=sigma0**2 * Ninv, N=N, sigma0=sigma0, v=V, misclosure=F0,
-        normalized=jnp.abs(K) * jnp.sqrt(M) / sigma0, weights=W, redundancy=red,
-        iterations=jnp.asarray(it), converged=jnp.asarray(done))
+        normalized=np.abs(K) * np.sqrt(M) / sigma0, weights=W, redundancy=red,
+        iterations=np.asarray(it), converged=np.asarray(done))))
 
 
 def _host_inputs(l, consts, weights, v0):

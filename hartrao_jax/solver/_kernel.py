@@ -23,6 +23,7 @@ from functools import partial
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 from jax.extend import core as jcore
 
@@ -332,6 +333,15 @@ def store_omega(residuals, store, dx):
 REJECT_BELOW = 1.0
 
 
+def array_namespace(*args):
+    """``jax.numpy`` where any of ``args`` (pytrees) is traced, else NumPy: the small
+    bookkeeping functions below serve both the compiled loops and the host's, and each
+    ``jax.numpy`` call on concrete values lowers and loads a program of its own per shape (30
+    of them, 0.1 s, for :func:`._mixed._settled` alone in one ``fit``)."""
+    traced = any(isinstance(a, jax.core.Tracer) for a in jax.tree.leaves(args))
+    return jnp if traced else np
+
+
 def remaining_error(step, rate):
     """The error left in a solution after a Gauss-Newton step of ``step`` sigmas (largest
     ``|dx_j| / sigma_j``) when the iteration contracts by ``rate`` per step (the ratio of two
@@ -339,9 +349,11 @@ def remaining_error(step, rate):
     series ``step rate / (1 - rate)`` where ``rate < 0.5`` (near the solution), else the step
     itself. The iterations stop when it is below tol: one pass fewer where the steps contract
     fast (3.1, 0.082, then 4.5e-5 sigma on a full-resolution position: the third step only
-    confirmed the second). Floats or JAX scalars."""
+    confirmed the second). Floats or JAX scalars (:func:`array_namespace`)."""
+    xp = array_namespace(step, rate)
+    step, rate = xp.asarray(step), xp.asarray(rate)
     fast = rate < 0.5
-    return jnp.where(fast, step * rate / (1.0 - jnp.where(fast, rate, 0.0)), step)
+    return xp.where(fast, step * rate / (1.0 - xp.where(fast, rate, 0.0)), step)
 
 
 def next_rate(rate, previous, step, restarted):
@@ -349,9 +361,12 @@ def next_rate(rate, previous, step, restarted):
     ``previous``: ``step / previous``; unchanged (``rate``) where the step restarted (a
     rejection moved the solution between the two: not a contraction) or where there was no
     previous step (``previous`` 0 or infinite): the start value, 1 (no extrapolation) or a
-    contraction measured on the same problem. Floats or JAX scalars."""
-    has = jnp.isfinite(previous) & (previous > 0)
-    return jnp.where(restarted | ~has, rate, step / jnp.where(has, previous, 1.0))
+    contraction measured on the same problem. Floats or JAX scalars
+    (:func:`array_namespace`)."""
+    xp = array_namespace(rate, previous, step, restarted)
+    rate, previous, step, restarted = map(xp.asarray, (rate, previous, step, restarted))
+    has = xp.isfinite(previous) & (previous > 0)
+    return xp.where(restarted | ~has, rate, step / xp.where(has, previous, 1.0))
 
 
 @eqx.filter_jit

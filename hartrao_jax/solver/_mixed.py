@@ -58,6 +58,7 @@ from ._kernel import (
     PARALLEL_MIN_POINTS,  # noqa: F401  (re-exported: this module's name since 520202b)
     THREADS_ENV,  # noqa: F401
     _materialize,
+    array_namespace,
     materialize_trig,
     next_rate,
     pass_threads,
@@ -410,9 +411,13 @@ def iteration_converged(step, rate, tol, var, var_prev, var0):
 
 
 def _settled(new, old, var0):
-    """Every component changed by < 0.5 % (0.25 % in its sigma), or sits at its floor."""
+    """Every component changed by < 0.5 % (0.25 % in its sigma), or sits at its floor
+    (traced or concrete: :func:`._kernel.array_namespace`)."""
+    xp = array_namespace(new, old, var0)
+    new, old, var0 = ([xp.asarray(v) for v in t] for t in (new, old, var0))
+
     def ok(a, b, floor):
-        return jnp.all((jnp.abs(jnp.log(a / b)) < 5e-3) | (a <= floor * 1.0001))
+        return xp.all((xp.abs(xp.log(a / b)) < 5e-3) | (a <= floor * 1.0001))
     return (ok(new[0], old[0], 0.0) & ok(new[1], old[1], _FLOOR * var0[1])
             & ok(new[2], old[2], _FLOOR * var0[2]))
 
@@ -697,10 +702,12 @@ def _solve_parts(condition, cfg: _Settings, parts: list[dict], x0, U0, var0, rid
             return jax.block_until_ready(_part_pass(*args) if old is None else
                                          _part_pass_over(args, old[i]))
         outs = list(pool.map(one, range(len(parts))))
-        sums = outs[0][0]
+        # the parts' sums added on the host (NumPy: the same additions, without a JAX program
+        # per shape to lower and load in every process)
+        sums = tuple(np.asarray(t) for t in outs[0][0])
         for o in outs[1:]:
-            sums = jax.tree.map(jnp.add, sums, o[0])
-        return sums, [o[1] for o in outs], sum(o[2] for o in outs[1:]) + outs[0][2]
+            sums = tuple(s + np.asarray(t) for s, t in zip(sums, o[0]))
+        return sums, [o[1] for o in outs], np.asarray(sum(int(o[2]) for o in outs))
 
     def update(sums, var, x, U, n_used):
         return _part_update(cfg, sums, var, var0, x, U, n_used, ridge_idx, ridge_group)
@@ -734,7 +741,7 @@ def _solve_parts(condition, cfg: _Settings, parts: list[dict], x0, U0, var0, rid
             if not pending or n_bad > DROP_ROWS or r == DROP_ROUNDS:
                 break
             for drop in drops:
-                sums = tuple(s - t for s, t in zip(sums, drop))
+                sums = tuple(s - np.asarray(t) for s, t in zip(sums, drop))
             n_used = n_used - n_bad
             var, up, ratio = update(sums, var, x, U, n_used)
         drops = None

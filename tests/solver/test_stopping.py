@@ -38,3 +38,28 @@ def test_a_measured_start_rate_is_kept_until_the_iteration_measures_its_own():
     one's contraction (``rate0``): no previous step keeps it, the second step replaces it."""
     assert float(next_rate(0.02, 0.0, 0.5, False)) == 0.02
     assert float(next_rate(0.02, 0.1, 0.05, False)) == pytest.approx(0.5)
+
+
+def test_the_rule_is_the_same_traced_and_on_the_host():
+    """The rule serves the compiled loops (traced: ``jax.numpy``) and the host's (NumPy, no
+    JAX program per call shape: ``_kernel.array_namespace``): the same values either way."""
+    import jax
+    import numpy as np
+
+    var0 = (np.asarray(1.0), np.ones(3), np.full(2, 1e-9))
+    cases = [((0.01, 0.02, 1e-3), (np.asarray(1.0), np.ones(3), np.full(2, 1e-17)),
+              (np.asarray(1.003), np.ones(3) * 1.001, np.full(2, 1e-17))),
+             ((0.01, 0.02, 1e-3), (np.asarray(1.0), np.ones(3), np.ones(2)),
+              (np.asarray(1.02), np.ones(3), np.ones(2))),
+             ((0.3, 0.7, 1e-3), (np.asarray(1.0), np.ones(3), np.ones(2)),
+              (np.asarray(1.0), np.ones(3), np.ones(2)))]
+    traced = jax.jit(iteration_converged, static_argnums=2)
+    for (step, rate, tol), var, prev in cases:
+        host = iteration_converged(step, rate, tol, var, prev, var0)
+        assert isinstance(host, (bool, np.bool_, np.ndarray))
+        assert bool(host) == bool(traced(step, rate, tol, var, prev, var0))
+    for args in [(1.0, 3.119, 0.08194, False), (0.02, 0.1, 0.5, True), (1.0, 0.0, 0.5, False)]:
+        host = next_rate(*args)
+        assert isinstance(host, np.ndarray)
+        assert float(host) == float(jax.jit(next_rate)(*args))
+        assert float(remaining_error(0.08, host)) == float(jax.jit(remaining_error)(0.08, host))

@@ -67,8 +67,7 @@ def by_row_blocks(fn, rows: tuple, block: int = BLOCK_ROWS) -> tuple:
         s = min(start, n - block)
         got = fn(*(r[s:s + block] for r in rows))
         for o, g in zip(out, got):
-            o[s:s + block] = np.asarray(g)
-        return got
+            o[s:s + block] = np.asarray(g)  # (nothing returned: the block's arrays let go)
 
     first = fn(*(r[:block] for r in rows))
     out.extend(np.empty((n,) + g.shape[1:], g.dtype) for g in first)

@@ -166,10 +166,10 @@ def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U
     point ``(v, e, weight)`` are kept instead (one pass over the points' memory, not three).
 
     ``into``: arrays of the shapes of the kept ``(a, b, d, wm, m)`` (a last pass's, of the
-    same points, donated by the caller), written over chunk by chunk and returned in their
-    stead (``dev`` is then not kept): XLA gives a scan's stacked outputs new memory even where
-    a donated input would do, and 1.7 GB of new pages per pass over 1.26e7 points cost a
-    quarter of the pass in page faults."""
+    same points, whole chunks of them, donated by the caller), written over chunk by chunk and
+    returned in their stead (``dev`` is then not kept): XLA gives a scan's stacked outputs new
+    memory even where a donated input would do, and 1.7 GB of new pages per pass over 1.26e7
+    points cost a quarter of the pass in page faults."""
     u, k = x.shape[0], U.shape[1]
     if MZ is None:
         MZ = jnp.zeros((L.shape[0], 0), x.dtype)

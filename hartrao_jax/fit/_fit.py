@@ -49,6 +49,7 @@ from ..solver._ghm import (
     bucket_size,
     gauss_helmert,
     gauss_helmert_batch,
+    host_result,
     robust_gauss_helmert,
 )
 from ..solver._kernel import materialize_trig, usable_cores
@@ -233,16 +234,12 @@ def _fitted_points(mdl: ParaboloidModel, data: ScanData, x, f: float):
 def scan_result(*, x, cov, N, sigma0, v, normalized, weights, redundancy, iterations,
                 converged) -> GHResult:
     """One scan's share of a larger adjustment (a position's, a joint one) as a
-    :class:`GHResult` for :func:`finish_scan_fit`; its misclosures are not kept (zero). The
-    per-point arrays go to the device by ``device_put``: ``jnp.asarray`` and ``jnp.zeros``
-    compile a program for every new length (10-25 ms each, 36 per 12-scan fit of a new
-    recording)."""
-    v, misclosure, normalized, weights = jax.device_put(
-        (np.asarray(v), np.zeros(len(v)), np.asarray(normalized), np.asarray(weights, float)))
-    return GHResult(x=jnp.asarray(x), cov=jnp.asarray(cov), N=jnp.asarray(N),
-                    sigma0=jnp.asarray(sigma0), v=v, misclosure=misclosure,
-                    normalized=normalized, weights=weights, redundancy=jnp.asarray(redundancy),
-                    iterations=jnp.asarray(iterations), converged=jnp.asarray(converged))
+    :class:`GHResult` for :func:`finish_scan_fit`; its misclosures are not kept (zero). Put on
+    the device by :func:`..solver._ghm.host_result` (``jnp.asarray`` and ``jnp.zeros`` compiled a
+    program for every new length: 10-25 ms each, 36 per 12-scan fit of a new recording)."""
+    return host_result(x=x, cov=cov, N=N, sigma0=sigma0, v=v, misclosure=np.zeros(len(v)),
+                       normalized=normalized, weights=np.asarray(weights, float),
+                       redundancy=redundancy, iterations=iterations, converged=converged)
 
 
 def finish_scan_fit(

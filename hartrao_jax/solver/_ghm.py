@@ -37,6 +37,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ._kernel import (
     REJECT_BELOW,
     gh_one_pass,
+    host_sum,
     linearize_rev,
     newton_step,
     next_rate,
@@ -99,6 +100,13 @@ class GHResult(AbstractAdjustment):
     redundancy: Int[Array, ""]
     iterations: Int[Array, ""]
     converged: Bool[Array, ""]
+
+
+def host_result(**fields) -> GHResult:
+    """A :class:`GHResult` of host values (NumPy arrays, Python numbers; its fields by name)
+    put on the device by ``device_put``: ``jnp.asarray`` lowers and loads a program per shape
+    and dtype in every process (10-25 ms each)."""
+    return GHResult(**jax.device_put({k: np.asarray(v) for k, v in fields.items()}))
 
 
 def _linearize(condition: Condition, l0, x, c):
@@ -249,12 +257,11 @@ def _gauss_helmert_split(condition, l, x0, sigma_l, consts, weights, v0, tol, *,
             om = each(lambda i, p: part_omega(condition, p["l"], p["c"], p["s"], stores[i], dx,
                                               on, chunk=p["chunk"]))
             red = max(int(sum(int(o[1]) for o in om)) - u, 1)
-            limit = np.asarray(robust_k * robust_k * sum(np.asarray(o[0]) for o in om) / red)
+            limit = np.asarray(robust_k * robust_k * host_sum([o[0] for o in om]) / red)
         outs = each(lambda i, p: part_pass(
             (condition, p["l"], p["c"], p["s"], x, dx, limit, on, p["chunk"]), stores[i]))
         stores = [o[2] for o in outs]
-        N = sum(np.asarray(o[0]) for o in outs[1:]) + np.asarray(outs[0][0])
-        nv = sum(np.asarray(o[1]) for o in outs[1:]) + np.asarray(outs[0][1])
+        N, nv = (host_sum([o[j] for o in outs]) for j in (0, 1))
         n_bad = int(sum(int(o[3]) for o in outs))
         judged = judge or not robust or rounds >= max_rounds
         rounds += n_bad > 0
@@ -268,17 +275,17 @@ def _gauss_helmert_split(condition, l, x0, sigma_l, consts, weights, v0, tol, *,
     fins = each(lambda i, p: part_final(condition, p["l"], p["c"], p["s"], stores[i], x, dx, on,
                                         chunk=p["chunk"]))
     stores = None
-    omega = sum(np.asarray(fp[0]) for fp in fins[1:]) + np.asarray(fins[0][0])
+    omega = host_sum([fp[0] for fp in fins])
     V, K, M, F0, W = (np.concatenate([np.asarray(fp[j]) for fp in fins]) for j in range(1, 6))
     if not robust:
         W = np.asarray(weights, f)
     red = np.sum(W > 0) - u
     sigma0 = np.sqrt(omega / np.maximum(red, 1).astype(f))
     Ninv = np.asarray(Ninv)
-    return GHResult(**jax.device_put(dict(
+    return host_result(
         x=x, cov=sigma0**2 * Ninv, N=N, sigma0=sigma0, v=V, misclosure=F0,
-        normalized=np.abs(K) * np.sqrt(M) / sigma0, weights=W, redundancy=red,
-        iterations=np.asarray(it), converged=np.asarray(done))))
+        normalized=np.abs(K) * np.sqrt(M) / sigma0, weights=W, redundancy=red, iterations=it,
+        converged=done)
 
 
 def _host_inputs(l, consts, weights, v0):

@@ -342,6 +342,16 @@ def array_namespace(*args):
     return jnp if traced else np
 
 
+def host_sum(values):
+    """The parts' values (device or host arrays of one shape) added on the host in NumPy, in
+    their order: the same additions as XLA's, without a program per shape to lower and load
+    in every process."""
+    total = np.asarray(values[0])
+    for v in values[1:]:
+        total = total + np.asarray(v)
+    return total
+
+
 def remaining_error(step, rate):
     """The error left in a solution after a Gauss-Newton step of ``step`` sigmas (largest
     ``|dx_j| / sigma_j``) when the iteration contracts by ``rate`` per step (the ratio of two

@@ -59,6 +59,7 @@ from ._kernel import (
     THREADS_ENV,  # noqa: F401
     _materialize,
     array_namespace,
+    host_sum,
     materialize_trig,
     next_rate,
     pass_threads,
@@ -702,11 +703,7 @@ def _solve_parts(condition, cfg: _Settings, parts: list[dict], x0, U0, var0, rid
             return jax.block_until_ready(_part_pass(*args) if old is None else
                                          _part_pass_over(args, old[i]))
         outs = list(pool.map(one, range(len(parts))))
-        # the parts' sums added on the host (NumPy: the same additions, without a JAX program
-        # per shape to lower and load in every process)
-        sums = tuple(np.asarray(t) for t in outs[0][0])
-        for o in outs[1:]:
-            sums = tuple(s + np.asarray(t) for s, t in zip(sums, o[0]))
+        sums = tuple(host_sum(t) for t in zip(*(o[0] for o in outs)))
         return sums, [o[1] for o in outs], np.asarray(sum(int(o[2]) for o in outs))
 
     def update(sums, var, x, U, n_used):

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._config import thread_pool
+from .._config import BLOCK_ROWS, thread_pool
 from ..model._model import ParaboloidModel
 from ..solver._kernel import _materialize, materialize_trig
 
@@ -44,15 +44,12 @@ def hit_points_and_residuals(model: ParaboloidModel, l, x, c, sigma_l, kappa_rad
     return _by_blocks(model, l, x, c, sigma_l, kappa_rad, True)
 
 
-#: Rows per call of a per-point program on a large table (:func:`by_row_blocks`): its
-#: temporaries (derivatives, sines, projected observations: 150 B per point for
-#: :func:`_hit_points`) then take a block's memory, reused by the next block, instead of new
-#: pages for the whole table (1.26e7 points: 1.9 GB, 630,000 page faults).
-BLOCK_ROWS = 2**18
-
-
 def by_row_blocks(fn, rows: tuple, block: int = BLOCK_ROWS) -> tuple:
-    """``fn(*rows)`` for a per-point ``fn`` (row ``i`` of each output depends on row ``i`` of
+    """(:data:`.._config.BLOCK_ROWS`: a program's temporaries, 150 B per point for
+    :func:`_hit_points`, take a block's memory, reused by the next block, instead of new pages
+    for the whole table; 1.26e7 points: 1.9 GB, 630,000 page faults.)
+
+    ``fn(*rows)`` for a per-point ``fn`` (row ``i`` of each output depends on row ``i`` of
     each input alone) of arrays ``rows`` with a common first axis: a table of more than
     ``block`` rows a block at a time into NumPy arrays (every block of that size, the last
     one ending at the table's end, so that it is one program; two blocks at a time, one's

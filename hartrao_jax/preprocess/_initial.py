@@ -24,6 +24,7 @@ import jax
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._config import row_blocks
 from ..campaign._format import Campaign, ScanData, ScanMeta
 from ..geometry._geometry import (
     decompose_zyx,
@@ -365,9 +366,17 @@ def initial_distance(
     Used as the geometry-derived window that removes gross outliers (cone, legs, background)
     before the rigorous adjustment.
     """
-    a, b, c = polar_components(np.asarray(r, float), np.asarray(phi, float),
-                               np.asarray(theta, float), xp=np)
+    r, phi, theta = (np.asarray(a, float) for a in (r, phi, theta))
     R = scanner_rotation(x["rx"], x["ry"])
+    out = np.empty(r.shape)
+    for rows in row_blocks(len(out)):  # a block's temporaries reused, not fresh pages
+        out[rows] = _distance(R, x, r[rows], phi[rows], theta[rows])
+    return out
+
+
+def _distance(R: np.ndarray, x: dict[str, float], r, phi, theta) -> np.ndarray:
+    """:func:`initial_distance` of some points with the scanner's rotation ``R``."""
+    a, b, c = polar_components(r, phi, theta, xp=np)
     X = R[0, 0] * a + R[0, 1] * b + R[0, 2] * c + x["tx"]
     Y = R[1, 0] * a + R[1, 1] * b + R[1, 2] * c + x["ty"]
     Z = R[2, 0] * a + R[2, 1] * b + R[2, 2] * c + x["tz"]
@@ -385,9 +394,18 @@ def geometry_window(
     r: np.ndarray, phi: np.ndarray, theta: np.ndarray, x: dict[str, float], window_m: float
 ) -> np.ndarray:
     """Points to adjust: within ``window_m`` (vertical, m) of the initial paraboloid and not
-    within :data:`POLE_EXCLUSION_RAD` of the scanner's pole."""
-    near = np.abs(initial_distance(r, phi, theta, x)) < window_m
-    return near & (np.abs(np.sin(np.asarray(theta, float))) > POLE_EXCLUSION_RAD)
+    within :data:`POLE_EXCLUSION_RAD` of the scanner's pole.
+
+    A block of rows at a time (:func:`.._config.row_blocks`): the fifteen temporaries of whole
+    columns were fresh pages each (6.3e6 points: 1.0 s, 0.76 s of it system time)."""
+    r, phi, theta = (np.asarray(a, float) for a in (r, phi, theta))
+    R = scanner_rotation(x["rx"], x["ry"])
+    out = np.empty(r.shape, bool)
+    for rows in row_blocks(len(out)):
+        th = theta[rows]
+        near = np.abs(_distance(R, x, r[rows], phi[rows], th)) < window_m
+        out[rows] = near & (np.abs(np.sin(th)) > POLE_EXCLUSION_RAD)
+    return out
 
 
 # --------------------------------------------------------------------------------------------

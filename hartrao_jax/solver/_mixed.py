@@ -70,6 +70,14 @@ from ._kernel import (
     thread_pool,
 )
 
+#: dtype of the per-point derivatives a pass keeps (``a = dF/dx``, ``b = dF/dl``, ``d = e D``):
+#: as the white kernel's store (:func:`._kernel.gh_one_pass`), they only enter the correction
+#: ``a.dx + d.du`` (-> 0 at convergence), ``v = Sigma b k`` (to 1e-7 relative, ~1e-10 m) and
+#: the rejected points' share of the sums (:func:`_dropped_sums`, 1e-7 of a few points' share);
+#: the sums themselves are made in float64. 60 of the 136 bytes per point (1.26e7 points: 0.75
+#: GB less at the footprint's peak).
+STORE_DTYPE = jnp.float32
+
 #: Smallest variance a component may take (relative to its start value): a component the data do
 #: not support tends to zero, which the iteration reaches only asymptotically.
 _FLOOR = 1e-8
@@ -218,7 +226,8 @@ def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U
         d = jnp.where((ok & live)[:, None], e[:, None] * dm, 0.0)
         # the points come sorted by cell (cell-less last): a sorted segment sum
         add = _point_sums(a, d, q, wm0, jnp.where(live, g, n_cells), n_cells, is_sorted=True)
-        keep = (v, e0, w8) if robust is not None else (a, b, d, wm, m, dev)
+        keep = (v, e0, w8) if robust is not None else (
+            a.astype(STORE_DTYPE), b.astype(STORE_DTYPE), d.astype(STORE_DTYPE), wm, m, dev)
         return (*(s + t for s, t in zip((N, nv, S, sg, tg, wmw), add)), *used), keep
 
     f = x.dtype
@@ -351,7 +360,9 @@ def _point_residuals(lin, up, groups):
 def _residual_k(a, d, wm, m, dx, dU, groups):
     gi = jnp.where(groups >= 0, groups, 0)
     du_pt = jnp.where(groups >= 0, jnp.sum(d * dU[gi], axis=-1), 0.0)
-    return -(a @ dx + du_pt + wm) / jnp.where(m > 0, m, 1.0)
+    # a product and a sum, not ``a @ dx``: XLA fuses the float32 store's conversion into them,
+    # where a dot would take a float64 copy of ``a`` (900 MB for 1.26e7 points)
+    return -(jnp.sum(a * dx, axis=-1) + du_pt + wm) / jnp.where(m > 0, m, 1.0)
 
 
 def _rejected(kk, m, W, se2, judge, robust_k):
@@ -449,8 +460,9 @@ def _blank_step(n: int, x0, U0, var0):
     (the loop's carry before its first step)."""
     u, (g, k) = x0.shape[0], U0.shape
     z = partial(jnp.zeros, dtype=x0.dtype)
+    zs = partial(jnp.zeros, dtype=STORE_DTYPE)
     lin = _Linearization(z((u, u)), z((u,)), z((g, k, k)), z((g, k, u)), z((g, k)), z(()),
-                         z((n, u)), z((n, 3)), z((n, k)), z((n,)), z((n,)))
+                         zs((n, u)), zs((n, 3)), zs((n, k)), z((n,)), z((n,)))
     return lin, (z((u,)), z((g, k)), _zero_update(x0, U0, var0))
 
 

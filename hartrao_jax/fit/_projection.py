@@ -45,15 +45,15 @@ def hit_points_and_residuals(model: ParaboloidModel, l, x, c, sigma_l, kappa_rad
 
 
 def by_row_blocks(fn, rows: tuple, block: int = BLOCK_ROWS) -> tuple:
-    """(:data:`.._config.BLOCK_ROWS`: a program's temporaries, 150 B per point for
-    :func:`_hit_points`, take a block's memory, reused by the next block, instead of new pages
-    for the whole table; 1.26e7 points: 1.9 GB, 630,000 page faults.)
-
-    ``fn(*rows)`` for a per-point ``fn`` (row ``i`` of each output depends on row ``i`` of
+    """``fn(*rows)`` for a per-point ``fn`` (row ``i`` of each output depends on row ``i`` of
     each input alone) of arrays ``rows`` with a common first axis: a table of more than
     ``block`` rows a block at a time into NumPy arrays (every block of that size, the last
     one ending at the table's end, so that it is one program; two blocks at a time, one's
-    copies while the other computes); a smaller one in one call. A tuple of the outputs."""
+    copies while the other computes); a smaller one in one call. A tuple of the outputs.
+
+    With :data:`.._config.BLOCK_ROWS` rows a block, a program's temporaries (150 B per point
+    for :func:`_hit_points`) take a block's memory, reused by the next block, instead of new
+    pages for the whole table (1.26e7 points: 1.9 GB, 630,000 page faults)."""
     n = rows[0].shape[0]
     if n <= block:
         return tuple(fn(*rows))

@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._config import release_compiled_programs
+from .._config import BLOCK_ROWS, release_compiled_programs
 from ..campaign._campaign import Campaign, ScanData, ScanMeta, read_scan
 from ..campaign._campaign import _concat as concat_scans
 from ..geometry._geometry import (
@@ -68,7 +68,6 @@ from ._identify import (
     unidentifiable_calibration,
 )
 from ._projection import (
-    BLOCK_ROWS,
     by_row_blocks,
     hit_points,
     hit_points_and_residuals,

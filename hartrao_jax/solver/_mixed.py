@@ -777,7 +777,7 @@ def _solve_parts(condition, cfg: _Settings, parts: list[dict], x0, U0, var0, rid
         for k in ("L", "C", "DM", "MZ"):
             p[k] = None
     u = x.shape[0]
-    sigma0 = jnp.sqrt((sum(fp[4] for fp in fin[1:]) + fin[0][4]) / jnp.maximum(n_used - u, 1))
+    sigma0 = jax.device_put(np.sqrt(host_sum([fp[4] for fp in fin]) / max(int(n_used) - u, 1)))
     ridge_fixed, ridge_fixed_cov, response = _part_stats(sums, var, x_lin, U_lin, up.Qxx,
                                                           ridge_idx, cfg.n_ridge_groups)
 

@@ -73,8 +73,11 @@ def write_table(table, path, **kwargs) -> None:
     pq.write_table(table, path, **{**PARQUET_WRITE_OPTIONS, **kwargs})
 
 
-#: Rows per row group of :func:`write_columns` (pyarrow's default for ``write_table``).
-ROW_GROUP_ROWS = 1 << 20
+#: Rows per row group of :func:`write_columns`. A quarter of pyarrow's default for
+#: ``write_table``: a writer holds about a row group's table and its encoding, 33 MiB instead of
+#: 141 MiB for a 16-column residual table (two written at once at the end of a large
+#: position), in the same time (0.76-1.13 s for 6.3e6 rows either way) and the same size.
+ROW_GROUP_ROWS = 1 << 18
 
 
 def write_columns(columns: Mapping[str, np.ndarray], path, *,

@@ -9,6 +9,7 @@ variances are in :mod:`._surface_effect`, the files (``fit.json``, schema ``hart
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Callable, Iterable, Sequence
@@ -19,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._config import BLOCK_ROWS, release_compiled_programs
+from .._config import BLOCK_ROWS, release_compiled_programs, row_blocks
 from ..campaign._campaign import Campaign, ScanData, ScanMeta, read_scan
 from ..campaign._campaign import _concat as concat_scans
 from ..geometry._geometry import (
@@ -117,6 +118,19 @@ def scan_arrays(*datas: ScanData, n_pad: int | None = None) -> tuple[np.ndarray,
         at += len(d)
     l[n:] = l[0] if n else 0.0
     return l, c
+
+
+def columns_in(datas: Sequence[ScanData], l: np.ndarray, c: np.ndarray) -> list[ScanData]:
+    """``datas`` with their observation and time columns the rows of :func:`scan_arrays`'
+    ``l`` and ``c`` (views: the same values, not a second copy of them; 32 B per point). The
+    tables must not be written to while the scans are in use."""
+    out, at = [], 0
+    for d in datas:
+        rows = slice(at, at + len(d))
+        at += len(d)
+        out.append(dataclasses.replace(d, range_m=l[rows, 0], phi_rad=l[rows, 1],
+                                       theta_rad=l[rows, 2], time_s=c[rows, 0]))
+    return out
 
 
 def sigma_vector(campaign: Campaign) -> np.ndarray:
@@ -222,23 +236,40 @@ def _fitted_points(mdl: ParaboloidModel, data: ScanData, x, f: float):
     time). The observations are made at the bucket's size (:func:`scan_arrays`), not copied
     with a padding on the way to the device: a 6.3e6-point scan 0.51 -> 0.33 s at the first
     call in a process (fresh pages), 0.35 -> 0.33 s after. A scan of more than
-    :data:`BLOCK_ROWS` points is taken a block at a time (:func:`by_row_blocks`)."""
+    :data:`BLOCK_ROWS` points is taken a block at a time (:func:`by_row_blocks`), each block's
+    observations made from the scan's columns (not a copy of the whole scan's: 240 MiB per
+    6.3e6 points)."""
     n = len(data)
-    l, c = scan_arrays(data, n_pad=bucket_size(n) if n <= BLOCK_ROWS else n)
     x, f, on = jnp.asarray(x), jnp.asarray(f, jnp.float64), jnp.ones((), bool)
-    X, dev = by_row_blocks(lambda l_, c_: _fitted_points_jit(mdl, l_, x, c_, f, on), (l, c))
-    return np.asarray(X)[:n], np.asarray(dev)[:n]
+    if n <= BLOCK_ROWS:
+        l, c = scan_arrays(data, n_pad=bucket_size(n))
+        X, dev = _fitted_points_jit(mdl, l, x, c, f, on)
+        return np.asarray(X)[:n], np.asarray(dev)[:n]
+
+    def block(r, phi, theta, t):  # a block's l and c (as scan_arrays'), not the whole scan's
+        c = np.zeros((len(r), N_CONSTS))
+        c[:, 0] = t
+        return _fitted_points_jit(mdl, np.column_stack([r, phi, theta]), x, c, f, on)
+
+    return by_row_blocks(block, (data.range_m, data.phi_rad, data.theta_rad, data.time_s))
 
 
 def scan_result(*, x, cov, N, sigma0, v, normalized, weights, redundancy, iterations,
                 converged) -> GHResult:
     """One scan's share of a larger adjustment (a position's, a joint one) as a
-    :class:`GHResult` for :func:`finish_scan_fit`; its misclosures are not kept (zero). Put on
-    the device by :func:`..solver._ghm.host_result` (``jnp.asarray`` and ``jnp.zeros`` compiled a
-    program for every new length: 10-25 ms each, 36 per 12-scan fit of a new recording)."""
-    return host_result(x=x, cov=cov, N=N, sigma0=sigma0, v=v, misclosure=np.zeros(len(v)),
-                       normalized=normalized, weights=np.asarray(weights, float),
-                       redundancy=redundancy, iterations=iterations, converged=converged)
+    :class:`GHResult` for :func:`finish_scan_fit`; its misclosures are not kept (zero). The
+    small fields are put on the device by :func:`..solver._ghm.host_result` (``jnp.asarray``
+    and ``jnp.zeros`` compiled a program for every new length: 10-25 ms each, 36 per 12-scan
+    fit of a new recording); the per-point arrays stay the host's (NumPy, which is all
+    :func:`finish_scan_fit` reads): a device copy of each took 240 MiB per 6.3e6-point scan
+    at the end of a large position, beside the originals."""
+    res = host_result(x=x, cov=cov, N=N, sigma0=sigma0, v=np.zeros((0, 3)),
+                      misclosure=np.zeros(0), normalized=np.zeros(0), weights=np.zeros(0),
+                      redundancy=redundancy, iterations=iterations, converged=converged)
+    n = len(v)
+    return eqx.tree_at(lambda r: (r.v, r.misclosure, r.normalized, r.weights), res,
+                       (np.asarray(v), np.broadcast_to(0.0, (n,)), np.asarray(normalized),
+                        np.asarray(weights, float)))
 
 
 def finish_scan_fit(
@@ -260,7 +291,12 @@ def finish_scan_fit(
         rho_range_m=(max(tel.cone_radius_m, 0.25 * rim) , 0.92 * rim),
         heading_hint_rad=heading_hint_rad,
     )
-    X_tel = X_fit @ np.asarray(rot_z(align.kappa_rad)).T
+    # north-aligned in place where X_fit is the host's own, a block at a time (no second
+    # (n, 3) table: 144 MiB per 6.3e6-point scan)
+    X_tel = X_fit if X_fit.flags.writeable else np.array(X_fit)
+    R = np.asarray(rot_z(align.kappa_rad)).T
+    for rows in row_blocks(len(X_tel)):
+        X_tel[rows] = X_tel[rows] @ R
     notes = []
     if not bool(res.converged):
         notes.append(f"not converged after {int(res.iterations)} iterations")
@@ -415,6 +451,9 @@ def fit_position(
     n = int(sum(sizes))
     n_pad = bucket_size(n)
     l, c = scan_arrays(*(p[0] for p in prepared), n_pad=n_pad)  # both faces, one table
+    # the faces' columns from then on the table's rows (the read ones let go: 32 B per point)
+    prepared = [(d,) + p[1:] for d, p in zip(columns_in([p[0] for p in prepared], l, c),
+                                              prepared)]
     w = np.concatenate([p[3] for p in prepared] + [np.zeros(n_pad - n, bool)]).astype(float)
     sig = sigma_vector(campaign)
     aperture = tel.diameter_m / 2
@@ -509,8 +548,13 @@ def fit_position(
                 else square_cells(X_hit[used], cell_m)[2])
         cell, local, n_cells, desc = panel_cells(
             X_hit, tel.ring_edges_m, tel.panels_per_ring, cell_m=cell_m, keys=keys)
-        design = np.column_stack([np.ones(n_pad), local]) * (cell >= 0)[:, None]
-        del local  # in ``design`` (16 B per point less at the random effect's peak)
+        cell = cell.astype(np.int32)  # (the ids fit: 4 B per point less at the peak)
+        # held in float32 (0.1 um of rounding on a panel's local coordinates; the solver takes
+        # its rows in float64): 12 B per point less at the random effect's peak
+        design = np.empty((n_pad, 1 + local.shape[1]), np.float32)
+        design[:, 0] = cell >= 0
+        np.multiply(local, design[:, :1], out=design[:, 1:], casting="same_kind")
+        del local
         if start is None:
             groups = dict(SURFACE_MODE_GROUPS) if tel.offset_m == 0 else {}
             mode_tests: dict[str, tuple] = {}
@@ -527,10 +571,22 @@ def fit_position(
                     "cell_var0": np.maximum(np.asarray(st.var[1]), np.asarray(_CELL_VAR0)),
                     "rate0": st.contraction}
             ridge_var0 = np.maximum(np.asarray(st.var[2], float), _MODE_VAR0)
-        if start is not None and robust_k is not None:
-            # the outliers the white robust adjustment would have rejected, judged at the start
-            used = reject_beyond(v_start, sig, used, robust_k, len(mdl.free))
-        w_mixed = used.astype(float)
+        if start is not None:
+            if robust_k is not None:
+                # the outliers the white robust adjustment would have rejected, judged there
+                used = reject_beyond(v_start, sig, used, robust_k, len(mdl.free))
+            # where the first pass linearises, kept in float32 (a start: 1e-10 m of rounding;
+            # 12 B per point less at the peak)
+            warm["v0"] = v_start = v_start.astype(np.float32)
+        w_mixed = used  # (bool: taken as 0/1 weights, 7 B per point less than float)
+        if not groups:
+            # the hit points again only where smooth modes are carried later (a campaign's
+            # mode variance, ``finish``): not held through the adjustment (24 B per point)
+            X_hit = None
+
+        def hit_points_now():
+            return X_hit if X_hit is not None else np.asarray(
+                hit_points(mdl, l, x_white, c, sig, kappa))
 
         def adjust(groups, x_start, w_, ridge_var0, warm, estimate_variances=True):
             """The random-effect adjustment carrying the smooth modes of ``groups`` (the
@@ -540,7 +596,8 @@ def fit_position(
             ridge = {k_: [mdl2.free.index(f"{ZERNIKE_PREFIX}{j}") for j in g_]
                      for k_, g_ in groups.items()} or None
             # the modes (last in mdl2.free) enter through their columns at the hit points
-            cond, mz = ((model_of(free_of(), kappa), zernike_columns(X_hit, modes, aperture))
+            cond, mz = ((model_of(free_of(), kappa),
+                         zernike_columns(hit_points_now(), modes, aperture))
                         if modes else (mdl2, None))
             rm = gauss_helmert_mixed(
                 cond, l, np.array([x_start.get(n_, 0.0) for n_ in mdl2.free]), sig, c, w_,
@@ -609,8 +666,10 @@ def fit_position(
             mode_idx = [i for i, n_ in enumerate(mdl2.free) if n_.startswith(ZERNIKE_PREFIX)]
             xs = np.asarray(rm.x)
             cov = np.asarray(rm.cov)
-            counts = np.bincount(cell[(cell >= 0) & (np.asarray(rm.weights) > 0)],
-                                 minlength=n_cells)
+            weights = np.asarray(rm.weights)
+            counts = sum(  # a block at a time (a whole int64 copy of the cells was 96 MiB)
+                np.bincount(cell[r][(cell[r] >= 0) & (weights[r] > 0)], minlength=n_cells)
+                for r in row_blocks(len(cell)))
             variances, shares = surface_components(
                 (rm.noise_var, rm.cell_var, rm.ridge_var),
                 (rm.redundancy_noise, rm.redundancy_cells, rm.redundancy_ridge), ridge)
@@ -650,6 +709,13 @@ def fit_position(
                 mdl_final=model_of(free, kappa), surf=surf, mixed=mixed,
                 sigma_white=sigma_white, response=response)
 
+        # what no further adjustment of these points needs let go before the per-scan results
+        # are made (a further one starts from where this one ended, ``resumed``; only one
+        # with the campaign's mode variance adjusts them again): 24 B per point less at the
+        # end of a large position
+        warm = v_start = None
+        if mode_prior_m2 is None and not keep_resume:
+            design = None
         result = finish(mode_prior_m2, notes, rm, groups, modes, mdl2, ridge, cond, mz,
                         confounding)
         if mode_prior_m2 is None and keep_resume and result.takes_campaign_prior:

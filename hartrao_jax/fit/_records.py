@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._config import row_blocks
 from ..campaign._safeio import OutputDir, write_columns, write_file_atomic
 from ..geometry._geometry import face_of
 from ..model._model import parameter_unit
@@ -90,10 +91,13 @@ def write_residuals(path: Path, s: ScanFit) -> None:
     Written to a temporary name and renamed (never a half-written table at ``path``).
     """
     d = s.data
+    face = np.empty(len(d), np.int8)  # a block at a time (no int64 and float64 columns made)
+    for rows in row_blocks(len(d)):
+        face[rows] = face_of(d.theta_rad[rows])
     columns = {
         "row": d.row.astype(np.int64, copy=False),
         "used": s.used,
-        "face": face_of(d.theta_rad).astype(np.int8),
+        "face": face,
         "phi_rad": d.phi_rad,
         "theta_rad": d.theta_rad,
         "range_m": d.range_m,

@@ -52,7 +52,7 @@ from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 from scipy.special import chdtrc  # chi-square survival function (scipy.stats: 0.38 s to import)
 
-from .._config import return_free_heap
+from .._config import lendable_empty, return_free_heap, row_blocks
 from ._ghm import AbstractAdjustment
 from ._kernel import (
     PARALLEL_MIN_POINTS,  # noqa: F401  (re-exported: this module's name since 520202b)
@@ -70,12 +70,14 @@ from ._kernel import (
     thread_pool,
 )
 
-#: dtype of the per-point derivatives a pass keeps (``a = dF/dx``, ``b = dF/dl``, ``d = e D``):
-#: as the white kernel's store (:func:`._kernel.gh_one_pass`), they only enter the correction
-#: ``a.dx + d.du`` (-> 0 at convergence), ``v = Sigma b k`` (to 1e-7 relative, ~1e-10 m) and
-#: the rejected points' share of the sums (:func:`_dropped_sums`, 1e-7 of a few points' share);
-#: the sums themselves are made in float64. 60 of the 136 bytes per point (1.26e7 points: 0.75
-#: GB less at the footprint's peak).
+#: dtype of the per-point terms a pass keeps (``a = dF/dx``, ``b = dF/dl``, ``d = e D``, the
+#: misclosure ``wm`` and its variance ``m``): as the white kernel's store
+#: (:func:`._kernel.gh_one_pass`), they only enter the correction ``k = -(a.dx + d.du + wm) /
+#: m`` (``a.dx + d.du`` -> 0 at convergence), ``v = Sigma b k`` (to 1e-7 relative, ~1e-10 m),
+#: the points' ``omega = k^2 m`` (sigma0 to 1e-7 relative) and the rejected points' share of the
+#: sums (:func:`_dropped_sums`, 1e-7 of a few points' share); the sums themselves are made in
+#: float64. 68 of their 136 bytes per point (9 unknowns; 1.26e7 points: 0.86 GB less at the
+#: footprint's peak).
 STORE_DTYPE = jnp.float32
 
 #: Smallest variance a component may take (relative to its start value): a component the data do
@@ -227,7 +229,7 @@ def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U
         # the points come sorted by cell (cell-less last): a sorted segment sum
         add = _point_sums(a, d, q, wm0, jnp.where(live, g, n_cells), n_cells, is_sorted=True)
         keep = (v, e0, w8) if robust is not None else (
-            a.astype(STORE_DTYPE), b.astype(STORE_DTYPE), d.astype(STORE_DTYPE), wm, m, dev)
+            *(t.astype(STORE_DTYPE) for t in (a, b, d, wm, m)), dev)
         return (*(s + t for s, t in zip((N, nv, S, sg, tg, wmw), add)), *used), keep
 
     f = x.dtype
@@ -357,12 +359,22 @@ def _point_residuals(lin, up, groups):
     return _residual_k(lin.a, lin.d, lin.wm, lin.m, up.dx, up.dU, groups)
 
 
+def _row_dot(A, B):
+    """``sum_j A[..., j] B[..., j]`` written out term by term: one loop fusion with its
+    operands' conversions and gathers. ``jnp.sum(A * B, -1)`` is a reduction XLA's CPU
+    backend gives its own kernel, with the product (and a gather such as ``dU[g]``) made in
+    memory first: 144 MiB per 6.3e6 points for ``d . dU[g]``; ``A @ B`` a float64 copy of a
+    float32 ``A`` (900 MB for ``a`` of 1.26e7 points)."""
+    out = A[..., 0] * B[..., 0]
+    for j in range(1, A.shape[-1]):
+        out = out + A[..., j] * B[..., j]
+    return out
+
+
 def _residual_k(a, d, wm, m, dx, dU, groups):
     gi = jnp.where(groups >= 0, groups, 0)
-    du_pt = jnp.where(groups >= 0, jnp.sum(d * dU[gi], axis=-1), 0.0)
-    # a product and a sum, not ``a @ dx``: XLA fuses the float32 store's conversion into them,
-    # where a dot would take a float64 copy of ``a`` (900 MB for 1.26e7 points)
-    return -(jnp.sum(a * dx, axis=-1) + du_pt + wm) / jnp.where(m > 0, m, 1.0)
+    du_pt = jnp.where(groups >= 0, _row_dot(d, dU[gi]), 0.0)
+    return -(_row_dot(a, dx) + du_pt + wm) / jnp.where(m > 0, m, 1.0)
 
 
 def _rejected(kk, m, W, se2, judge, robust_k):
@@ -462,7 +474,7 @@ def _blank_step(n: int, x0, U0, var0):
     z = partial(jnp.zeros, dtype=x0.dtype)
     zs = partial(jnp.zeros, dtype=STORE_DTYPE)
     lin = _Linearization(z((u, u)), z((u,)), z((g, k, k)), z((g, k, u)), z((g, k)), z(()),
-                         zs((n, u)), zs((n, 3)), zs((n, k)), z((n,)), z((n,)))
+                         zs((n, u)), zs((n, 3)), zs((n, k)), zs((n,)), zs((n,)))
     return lin, (z((u,)), z((g, k)), _zero_update(x0, U0, var0))
 
 
@@ -645,21 +657,36 @@ def _part_update(cfg: _Settings, sums, var, var0, x, U, n_used, ridge_idx, ridge
 
 
 @eqx.filter_jit(donate="all-except-first", keep_unused=True)  # V unused: kept to be reused
-def _part_residuals(args: tuple, V, W):
-    """A part's residuals after the step and, where ``judge``, its robust rejection (as
-    :func:`_solve`): ``(v, weights, rejected count, the rejected points' sums)``, the sums
-    those of its first :data:`DROP_ROWS` rejected points (:func:`_dropped_sums`). ``args =
-    (per, G, S2, dx, dU, se2, judge, robust_k, n_cells)``; the part's last residuals ``V`` and
-    weights ``W`` are donated: the new ones are written over them (no new pages)."""
+def _part_residuals(args: tuple, V):
+    """A part's residuals after the step and, where ``judge``, the points its robust rule
+    rejects (as :func:`_solve`): ``(v, rejected)``. ``args = (per, G, S2, dx, dU, se2, W,
+    judge, robust_k)``; the part's last residuals ``V`` are donated: the new ones are written
+    over them (no new pages). The rejected points are counted and found on the host, and
+    their share taken out by :func:`_part_reject`: a count and a ``nonzero`` in the program
+    took 100 MiB of temporaries per 6.3e6 points, every round, for a few rejections."""
     del V
-    per, G, S2, dx, dU, se2, judge, robust_k, n_cells = args
+    per, G, S2, dx, dU, se2, W, judge, robust_k = args
     a, b, d, wm, m = per
     kk = _residual_k(a, d, wm, m, dx, dU, G)
-    bad = _rejected(kk, m, W, se2, judge, robust_k)
-    idx = lax.cond(jnp.any(bad), lambda: jnp.nonzero(bad, size=DROP_ROWS, fill_value=-1)[0],
-                   lambda: jnp.full((DROP_ROWS,), -1, jnp.int64))
-    return (S2 * b * kk[:, None], jnp.where(bad, 0.0, W), jnp.sum(bad),
-            _dropped_sums(a, d, wm, m, W, G, idx, n_cells))
+    return S2 * b * kk[:, None], _rejected(kk, m, W, se2, judge, robust_k)
+
+
+@eqx.filter_jit(donate="all-except-first")
+def _part_reject(args: tuple, W):
+    """A part's weights ``W`` (donated) without its ``rejected`` points, and the share of its
+    points ``idx`` (the first :data:`DROP_ROWS` rejected ones, -1 padded) of the sums
+    (:func:`_dropped_sums`). ``args = (per, G, rejected, idx, n_cells)``."""
+    per, G, bad, idx, n_cells = args
+    a, _, d, wm, m = per
+    return jnp.where(bad, 0.0, W), _dropped_sums(a, d, wm, m, W, G, idx, n_cells)
+
+
+def _first_rows(bad: np.ndarray) -> tuple[int, np.ndarray]:
+    """``(count, the first DROP_ROWS indices, -1 padded)`` of a part's rejected points."""
+    idx = np.flatnonzero(bad)
+    first = np.full(DROP_ROWS, -1, np.int64)
+    first[:min(len(idx), DROP_ROWS)] = idx[:DROP_ROWS]
+    return len(idx), first
 
 
 @eqx.filter_jit(donate="all-except-first", keep_unused=True)
@@ -674,7 +701,7 @@ def _part_final(args: tuple, per, V):
     ok = (W > 0) & (m > 0)
     omega_pt = jnp.where(ok, kk * kk * jnp.where(m > 0, m, 1.0), 0.0)
     gi = jnp.where(G >= 0, G, 0)
-    dev = jnp.where(G >= 0, jnp.sum(DM * U[gi], axis=-1), 0.0)
+    dev = jnp.where(G >= 0, _row_dot(DM, U[gi]), 0.0)
     return (S2 * b * kk[:, None], jnp.sqrt(omega_pt) / jnp.sqrt(se2), dev, omega_pt,
             jnp.sum(W * omega_pt))
 
@@ -736,15 +763,19 @@ def _solve_parts(condition, cfg: _Settings, parts: list[dict], x0, U0, var0, rid
 
             def judged(i):  # each part in its thread, as its pass
                 p = parts[i]
-                return jax.block_until_ready(_part_residuals(
-                    (pers[i], p["G"], p["S2"], up.dx, up.dU, var[0], judge, robust_k,
-                     cfg.n_cells), p.pop("V"), p.pop("W")))
+                p["V"], bad = jax.block_until_ready(_part_residuals(
+                    (pers[i], p["G"], p["S2"], up.dx, up.dU, var[0], p["W"], judge, robust_k),
+                    p.pop("V")))
+                count, idx = _first_rows(np.asarray(bad))
+                if not count:
+                    return 0, None
+                p["W"], drop = jax.block_until_ready(_part_reject(
+                    (pers[i], p["G"], bad, idx, cfg.n_cells), p.pop("W")))
+                return count, drop
 
             outs = list(pool.map(judged, range(len(parts))))
-            for p, o in zip(parts, outs):
-                p["V"], p["W"] = o[0], o[1]
-            n_bad = sum(int(o[2]) for o in outs)
-            drops = [o[3] for o in outs]
+            n_bad = sum(o[0] for o in outs)
+            drops = [o[1] for o in outs if o[1] is not None]
             outs = None
             pending = n_bad > 0
             if not pending or n_bad > DROP_ROWS or r == DROP_ROUNDS:
@@ -811,23 +842,31 @@ def _solve_split(condition, cfg: _Settings, threads: int, order, pts: dict, x0, 
     def part(idx):
         pad = m - idx.shape[0]
 
-        def take(a, dtype, value=None):
+        def take(a, dtype, value=None, lend=True):
             # gathered on the host (np.take: 2-3x fancy indexing), no device copy of the
-            # caller's whole arrays; each part in its own thread. The gathered array is new
-            # and nobody else's: ``device_put`` lends it to the device without a copy, where
-            # ``jnp.asarray`` made one (for a 384 MiB array: 795 MiB more, against 4 MiB)
-            a = np.take(np.asarray(a), idx, axis=0).astype(dtype, copy=False)
+            # caller's whole arrays; each part in its own thread, a block of rows at a time
+            # into the part's array (a caller's float32 or bool array is converted block by
+            # block, not by a whole copy). The gathered array is new, nobody else's and, where
+            # ``lend``, aligned for the device (lendable_empty): ``device_put`` lends it to the
+            # device without a copy. The residuals and weights are not lent: the programs that
+            # update them write over them (donated), which XLA does only in its own memory (a
+            # lent array's update took new memory at the footprint's peak, the store's time)
+            a = np.asarray(a)
+            out = (lendable_empty if lend else np.empty)((m,) + a.shape[1:], dtype)
+            for rows in row_blocks(idx.shape[0]):
+                out[rows] = np.take(a, idx[rows], axis=0)
             if pad:
-                tail = (np.broadcast_to(a[-1:], (pad,) + a.shape[1:]) if value is None
-                        else np.full((pad,) + a.shape[1:], value, dtype))
-                a = np.concatenate([a, tail])
-            return jax.device_put(a)
+                out[idx.shape[0]:] = out[idx.shape[0] - 1] if value is None else value
+            return jax.device_put(out)
 
         f = np.float64
         S2, V0 = pts["S2"], pts["V"]
+        # the design kept as precise as the caller gave it (float32: half the memory)
+        dm = np.float32 if np.asarray(pts["DM"]).dtype == np.float32 else f
         return {"L": take(pts["L"], f), "C": take(pts["C"], f), "G": take(pts["G"], np.int32, -1),
-                "DM": take(pts["DM"], f), "W": take(pts["W"], f, 0.0), "MZ": take(pts["MZ"], f),
-                "V": jax.device_put(np.zeros((m, 3), f)) if V0 is None else take(V0, f),
+                "DM": take(pts["DM"], dm), "W": take(pts["W"], f, 0.0, lend=False),
+                "MZ": take(pts["MZ"], f),
+                "V": jax.device_put(np.zeros((m, 3), f)) if V0 is None else take(V0, f, lend=False),
                 "S2": take(S2, f) if S2.ndim == 2 else S2}
 
     pool = thread_pool(threads)
@@ -885,7 +924,8 @@ def gauss_helmert_mixed(
         l, x0, sigma_l, consts, weights: as :func:`._ghm.gauss_helmert`.
         groups: surface cell of each point (0 .. n_cells-1; -1: no cell, e.g. the cone).
         design: ``D_i`` (n, k): the deviation of point i per unit of its cell's k parameters
-            (1 for the offset, local radial/tangential coordinates in m for the tilts).
+            (1 for the offset, local radial/tangential coordinates in m for the tilts); a
+            float32 design is kept in float32 (half the memory; 0.1 um on 2-m coordinates).
         cell_var0: start values of the cells' variances (m^2, rad^2), shape (k,).
         ridge: ``{group name: indices into x}``: unknowns that are random effects themselves
             (smooth modes), one variance per group, start ``ridge_var0`` (m^2).
@@ -935,7 +975,8 @@ def gauss_helmert_mixed(
     # sort the points by cell once (cell-less points last): the per-cell sums of every pass are
     # then sorted segment sums; results are returned in the caller's order
     g_np = np.asarray(groups)
-    order = np.argsort(np.where(g_np >= 0, g_np, n_cells), kind="stable")
+    order = np.argsort(np.where(g_np >= 0, g_np, n_cells), kind="stable").astype(
+        np.int32 if n < 2**31 else np.int64)  # (held through the adjustment: 4 B per point)
     threads = mixed_threads(n) if threads is None else max(1, int(threads))
     threads = min(threads, -(-n // chunk))  # whole chunks per part: no empty part
     reject_from = 0 if u0 is not None else 1

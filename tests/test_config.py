@@ -88,3 +88,20 @@ print(before - rss())
                          check=True).stdout.split()[-1]
     if out != "skip":
         assert float(out) > 400.0, out  # MiB given back of the 512 freed
+
+
+def test_lendable_arrays_go_to_the_device_without_a_copy():
+    """``lendable_empty``'s data start on a 64-byte boundary, so ``device_put`` lends them to
+    the CPU device (the same memory); a NumPy array at glibc's 16-byte alignment is copied."""
+    import numpy as np
+
+    from hartrao_jax._config import DEVICE_ALIGN, lendable_empty
+
+    for shape, dtype in (((1000, 3), np.float64), ((4097,), np.float32), ((7, 2), np.int32)):
+        a = lendable_empty(shape, dtype)
+        assert a.shape == shape and a.dtype == dtype and a.flags.c_contiguous
+        assert a.ctypes.data % DEVICE_ALIGN == 0
+        a[...] = 1
+        d = jax.device_put(a)
+        assert d.unsafe_buffer_pointer() == a.ctypes.data
+        np.testing.assert_array_equal(np.asarray(d), a)

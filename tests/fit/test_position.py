@@ -145,6 +145,42 @@ def test_hit_points_by_row_blocks_equal_one_call():
         np.testing.assert_allclose(b, w, rtol=1e-13, atol=1e-18)
 
 
+def test_scan_columns_are_the_tables_rows_and_large_scans_go_by_blocks():
+    """``columns_in``: a position's scans keep their observation and time columns as views of
+    the adjusted table (the same values, no second copy). ``_fitted_points`` of a scan of more
+    than a block of rows goes a block at a time from those columns, as one call would."""
+    from hartrao_jax._config import BLOCK_ROWS
+    from hartrao_jax.campaign._format import ScanData
+    from hartrao_jax.fit._fit import (_fitted_points, _fitted_points_jit, columns_in,
+                                      scan_arrays)
+    from hartrao_jax.model._model import make_model
+    from tests.helpers import F_TRUE, POSE, synthetic_scan
+
+    n = BLOCK_ROWS + 12_345
+    lobs = np.asarray(synthetic_scan(n, seed=8))
+    rng = np.random.default_rng(8)
+    datas = [ScanData(lobs[s, 0], lobs[s, 1], lobs[s, 2], np.ones(len(lobs[s]), np.float32),
+                      rng.random(len(lobs[s])) * 600, np.arange(len(lobs[s])))
+             for s in (slice(0, 1000), slice(1000, n))]
+    l, c = scan_arrays(*datas, n_pad=n + 7)
+    views = columns_in(datas, l, c)
+    for d, v in zip(datas, views):
+        for k in ("range_m", "phi_rad", "theta_rad", "time_s", "intensity", "row"):
+            np.testing.assert_array_equal(getattr(v, k), getattr(d, k))
+        assert all(np.shares_memory(getattr(v, k), l) for k in ("range_m", "phi_rad", "theta_rad"))
+        assert np.shares_memory(v.time_s, c)
+
+    model = make_model(["tx", "ty", "tz", "rx", "ry", "f"])
+    x = np.array([{**POSE, "f": F_TRUE}[k] for k in model.free])
+    X, dev = _fitted_points(model, views[1], x, F_TRUE)
+    lw, cw = scan_arrays(datas[1])
+    Xw, devw = (np.asarray(a) for a in _fitted_points_jit(
+        model, lw, x, cw, np.asarray(F_TRUE), np.ones((), bool)))
+    assert X.shape == (n - 1000, 3) and X.flags.writeable
+    np.testing.assert_allclose(X, Xw, rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(dev, devw, rtol=1e-12, atol=1e-15)
+
+
 def test_panels_do_not_move_the_face_flipping_calibration(tmp_path):
     """x4, x6 and x7 flip sign between the faces; the panels are common to both faces and
     exactly an offset and two tilts each, which the cells carry. So in the two-face adjustment

@@ -151,8 +151,7 @@ def test_scan_columns_are_the_tables_rows_and_large_scans_go_by_blocks():
     than a block of rows goes a block at a time from those columns, as one call would."""
     from hartrao_jax._config import BLOCK_ROWS
     from hartrao_jax.campaign._format import ScanData
-    from hartrao_jax.fit._fit import (_fitted_points, _fitted_points_jit, columns_in,
-                                      scan_arrays)
+    from hartrao_jax.fit._fit import _fitted_points, _fitted_points_jit, columns_in, scan_arrays
     from hartrao_jax.model._model import make_model
     from tests.helpers import F_TRUE, POSE, synthetic_scan
 

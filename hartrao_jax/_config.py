@@ -45,6 +45,20 @@ def lendable_empty(shape: tuple[int, ...], dtype) -> np.ndarray:
     return raw[start:start + nbytes].view(dtype).reshape(shape)
 
 
+def lend_to_device(a, dtype=None) -> jax.Array:
+    """``a`` (as ``dtype``) on the CPU device, sharing the host array's memory where it can
+    (C-contiguous, of that dtype, on a :data:`DEVICE_ALIGN` boundary: :func:`lendable_empty`);
+    else copied once, into a lendable array. The host array must not be written to while the
+    device array is in use."""
+    a = np.asarray(a)
+    dtype = a.dtype if dtype is None else np.dtype(dtype)
+    if not (a.dtype == dtype and a.flags.c_contiguous and a.ctypes.data % DEVICE_ALIGN == 0):
+        b = lendable_empty(a.shape, dtype)
+        b[...] = a
+        a = b
+    return jax.device_put(a)
+
+
 def usable_cores() -> int:
     """The threads this process's work may use: ``$HARTRAO_JAX_THREADS``, else the cores it
     may run on (its CPU affinity on Linux; elsewhere the core count)."""

@@ -105,3 +105,20 @@ def test_lendable_arrays_go_to_the_device_without_a_copy():
         d = jax.device_put(a)
         assert d.unsafe_buffer_pointer() == a.ctypes.data
         np.testing.assert_array_equal(np.asarray(d), a)
+
+
+def test_arrays_are_lent_where_they_can_be_and_copied_once_where_not():
+    """``lend_to_device``: an aligned array of the asked dtype is shared; a misaligned one, a
+    strided one or one of another dtype is copied (once), with the same values."""
+    import numpy as np
+
+    from hartrao_jax._config import lend_to_device, lendable_empty
+
+    a = lendable_empty((500, 3), np.float64)
+    a[...] = np.arange(1500).reshape(500, 3)
+    assert lend_to_device(a).unsafe_buffer_pointer() == a.ctypes.data
+    for b, dtype in ((a[1:], None), (a[:, 1], None), (a, np.float32)):
+        d = lend_to_device(b, dtype)
+        assert d.dtype == (b.dtype if dtype is None else dtype)
+        np.testing.assert_array_equal(np.asarray(d), b.astype(d.dtype))
+        assert d.unsafe_buffer_pointer() != a.ctypes.data

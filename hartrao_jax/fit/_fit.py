@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._config import BLOCK_ROWS, release_compiled_programs, row_blocks
+from .._config import BLOCK_ROWS, lendable_empty, release_compiled_programs, row_blocks
 from ..campaign._campaign import Campaign, ScanData, ScanMeta, read_scan
 from ..campaign._campaign import _concat as concat_scans
 from ..geometry._geometry import (
@@ -104,11 +104,13 @@ def scan_arrays(*datas: ScanData, n_pad: int | None = None) -> tuple[np.ndarray,
     """Observations ``l = (r, phi, theta)`` (n, 3) and constants ``c = (time_s, 0)`` (n, 2) of
     the rows of ``datas`` one after the other; up to ``n_pad`` rows (the padding of a size
     bucket, given weight 0 by the caller) follow as copies of the first row's observations
-    with constants 0. Filled in place: no concatenated or padded table is made on the way."""
+    with constants 0. Filled in place: no concatenated or padded table is made on the way;
+    aligned for the device (``lendable_empty``: the random effect reads them without a copy)."""
     n = sum(len(d) for d in datas)
     n_pad = max(n, n_pad or 0)
-    l = np.empty((n_pad, 3))
-    c = np.zeros((n_pad, N_CONSTS))
+    l = lendable_empty((n_pad, 3), np.float64)
+    c = lendable_empty((n_pad, N_CONSTS), np.float64)
+    c[:] = 0.0
     at = 0
     for d in datas:
         rows = slice(at, at + len(d))
@@ -551,7 +553,7 @@ def fit_position(
         cell = cell.astype(np.int32)  # (the ids fit: 4 B per point less at the peak)
         # held in float32 (0.1 um of rounding on a panel's local coordinates; the solver takes
         # its rows in float64): 12 B per point less at the random effect's peak
-        design = np.empty((n_pad, 1 + local.shape[1]), np.float32)
+        design = lendable_empty((n_pad, 1 + local.shape[1]), np.float32)
         design[:, 0] = cell >= 0
         np.multiply(local, design[:, :1], out=design[:, 1:], casting="same_kind")
         del local

@@ -52,7 +52,7 @@ from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 from scipy.special import chdtrc  # chi-square survival function (scipy.stats: 0.38 s to import)
 
-from .._config import lendable_empty, return_free_heap, row_blocks
+from .._config import lend_to_device, lendable_empty, return_free_heap, row_blocks
 from ._ghm import AbstractAdjustment
 from ._kernel import (
     PARALLEL_MIN_POINTS,  # noqa: F401  (re-exported: this module's name since 520202b)
@@ -163,7 +163,7 @@ def _chunks(arrays, chunk):
 
 
 def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U, MZ=None,
-          robust=None, into=None):
+          robust=None, into=None, rows=None):
     """Linearise every point at ``(l + v, x, c + dev)``; accumulate the normal equations and the
     per-cell sums; keep per point what the residual update needs.
 
@@ -180,19 +180,29 @@ def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U
     same points, whole chunks of them, donated by the caller), written over chunk by chunk and
     returned in their stead (``dev`` is then not kept): XLA gives a scan's stacked outputs new
     memory even where a donated input would do, and 1.7 GB of new pages per pass over 1.26e7
-    points cost a quarter of the pass in page faults."""
+    points cost a quarter of the pass in page faults.
+
+    ``rows`` (n,): the points are rows ``rows`` of the tables ``L``, ``C``, ``DM``, ``MZ`` (the
+    caller's, in its order), each chunk's taken in the loop; ``V``, ``W``, ``S2``, ``G`` are
+    the points' own. The tables are then not copied into the points' order (as a part of a
+    split pass: 52 B per point less, :func:`_solve_split`)."""
     u, k = x.shape[0], U.shape[1]
     if MZ is None:
         MZ = jnp.zeros((L.shape[0], 0), x.dtype)
     u0 = u - MZ.shape[1]
+    n = L.shape[0] if rows is None else rows.shape[0]
     lin = jax.vmap(partial(_linearize, condition, dev_column, on), in_axes=(0, None, 0))
     # the tail is padded with copies of the last point: weight 0 there (never in any sum);
     # S2 is per point (n, 3) or one vector (3,) for all
     per_s2 = S2.ndim == 2
     if V is None:  # computed in the loop (``robust``); a stand-in of no size to chunk
-        V = jnp.zeros((L.shape[0], 0), L.dtype)
-    (Lc, Vc, Cc, Wc, Gc, Dc, Zc, *S2c), pad = _chunks(
-        [L, V, C, W, G, DM, MZ] + ([S2] if per_s2 else []), chunk)
+        V = jnp.zeros((n, 0), L.dtype)
+    if rows is None:
+        (Lc, Vc, Cc, Wc, Gc, Dc, Zc, *S2c), pad = _chunks(
+            [L, V, C, W, G, DM, MZ] + ([S2] if per_s2 else []), chunk)
+    else:  # the rows' numbers in chunks, the tables' rows taken by them in the loop
+        (Lc, Vc, Wc, Gc, *S2c), pad = _chunks([rows, V, W, G] + ([S2] if per_s2 else []), chunk)
+        Cc = Dc = Zc = jnp.zeros((Lc.shape[0], 0), bool)  # stand-ins of no size
     S2c = S2c[0] if per_s2 else jnp.zeros((Lc.shape[0], 0), S2.dtype)
     Wc = Wc.reshape(-1).at[Wc.size - pad:].set(0.0).reshape(Wc.shape) if pad else Wc
     if robust is not None:  # F and dF/dl at the observations
@@ -202,6 +212,8 @@ def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U
     def body(carry, ch):
         N, nv, S, sg, tg, wmw, *used = carry
         l, v, c, w8, s2, g, dm, mz = ch
+        if rows is not None:  # ``l`` holds the chunk's rows of the tables
+            l, c, dm, mz = (t[l] for t in (L, C, DM, MZ))
         s2 = s2 if per_s2 else S2
         live = g >= 0
         gi = jnp.where(live, g, 0)
@@ -248,7 +260,6 @@ def _pass(condition, dev_column, on, n_cells, chunk, L, V, C, W, S2, G, DM, x, U
         nc = Lc.shape[0]
         bufs = tuple(b_.reshape((nc, chunk) + b_.shape[1:]) for b_ in into)
         (sums, per_point), _ = lax.scan(body_into, (init, bufs), (jnp.arange(nc), chunks))
-    n = L.shape[0]
     per_point = tuple(p.reshape((-1,) + p.shape[2:])[:n] for p in per_point)
     return sums, per_point
 
@@ -512,7 +523,7 @@ def _pass_of(condition, cfg: _Settings, on, pts: dict, x, U, V=None, W=None, int
     where given)."""
     return _pass(condition, cfg.dev_column, on, cfg.n_cells, cfg.chunk, pts["L"],
                  pts["V"] if V is None else V, pts["C"], pts["W"] if W is None else W,
-                 pts["S2"], pts["G"], pts["DM"], x, U, pts["MZ"], into=into)
+                 pts["S2"], pts["G"], pts["DM"], x, U, pts["MZ"], into=into, rows=pts.get("R"))
 
 
 @eqx.filter_jit
@@ -692,16 +703,17 @@ def _first_rows(bad: np.ndarray) -> tuple[int, np.ndarray]:
 @eqx.filter_jit(donate="all-except-first", keep_unused=True)
 def _part_final(args: tuple, per, V):
     """A part's per-point statistics at the solution (as :func:`_solve`); ``args = (G, S2, W,
-    DM, U, dx, dU, se2)``. Its last per-point terms ``per`` and residuals ``V`` are donated:
-    the statistics are written over them."""
+    DM, R, U, dx, dU, se2)``, ``R`` the part's rows of the design table ``DM`` (None: ``DM``
+    is the part's own). Its last per-point terms ``per`` and residuals ``V`` are donated: the
+    statistics are written over them."""
     del V
-    G, S2, W, DM, U, dx, dU, se2 = args
+    G, S2, W, DM, R, U, dx, dU, se2 = args
     a, b, d, wm, m = per
     kk = _residual_k(a, d, wm, m, dx, dU, G)
     ok = (W > 0) & (m > 0)
     omega_pt = jnp.where(ok, kk * kk * jnp.where(m > 0, m, 1.0), 0.0)
     gi = jnp.where(G >= 0, G, 0)
-    dev = jnp.where(G >= 0, _row_dot(DM, U[gi]), 0.0)
+    dev = jnp.where(G >= 0, _row_dot(DM if R is None else DM[R], U[gi]), 0.0)
     return (S2 * b * kk[:, None], jnp.sqrt(omega_pt) / jnp.sqrt(se2), dev, omega_pt,
             jnp.sum(W * omega_pt))
 
@@ -802,10 +814,10 @@ def _solve_parts(condition, cfg: _Settings, parts: list[dict], x0, U0, var0, rid
     fin = []
     for i, p in enumerate(parts):
         per, pers[i] = pers[i], None
-        fin.append(list(_part_final((p["G"], p["S2"], p["W"], p["DM"], U, up.dx, up.dU, se2),
-                                    per, p.pop("V"))))
+        fin.append(list(_part_final((p["G"], p["S2"], p["W"], p["DM"], p.get("R"), U, up.dx,
+                                     up.dU, se2), per, p.pop("V"))))
         per = None
-        for k in ("L", "C", "DM", "MZ"):
+        for k in ("L", "C", "DM", "MZ", "R"):
             p[k] = None
     u = x.shape[0]
     sigma0 = jax.device_put(np.sqrt(host_sum([fp[4] for fp in fin]) / max(int(n_used) - u, 1)))
@@ -833,11 +845,21 @@ def _solve_split(condition, cfg: _Settings, threads: int, order, pts: dict, x0, 
     """The points in cell order (``order``) cut into ``threads`` equal parts (whole chunks;
     the last part's tail padded with copies of its last point at weight 0, outside every
     cell), each part gathered straight from the caller's arrays ``pts`` (:data:`POINT_KEYS`,
-    in the caller's order; ``V`` None: zeros); :func:`_solve_parts`; the per-point results in
-    the caller's order."""
+    in the caller's order; ``V`` None: zeros) but for the tables ``L``, ``C``, ``DM``, ``MZ``,
+    which the parts read by their rows' numbers ``R``; :func:`_solve_parts`; the per-point
+    results in the caller's order."""
     n = pts["L"].shape[0]
     m = -(-n // (threads * cfg.chunk)) * cfg.chunk
     pieces = [order[i * m:(i + 1) * m] for i in range(threads)]
+
+    # the tables every pass reads (observations, constants, the designs) stay the caller's, in
+    # its order, lent to the device (no copy where they are aligned, ``lend_to_device``): each
+    # part holds the numbers of its rows instead (``R``; :func:`_pass` takes each chunk's rows
+    # in its loop), 52 B per point less than a copy in cell order (1.26e7 points: 0.6 GiB)
+    f = np.float64
+    dm = np.float32 if np.asarray(pts["DM"]).dtype == np.float32 else f  # (as given)
+    tables = {"L": lend_to_device(pts["L"], f), "C": lend_to_device(pts["C"], f),
+              "DM": lend_to_device(pts["DM"], dm), "MZ": lend_to_device(pts["MZ"], f)}
 
     def part(idx):
         pad = m - idx.shape[0]
@@ -859,13 +881,12 @@ def _solve_split(condition, cfg: _Settings, threads: int, order, pts: dict, x0, 
                 out[idx.shape[0]:] = out[idx.shape[0] - 1] if value is None else value
             return jax.device_put(out)
 
-        f = np.float64
+        R = lendable_empty((m,), idx.dtype)  # the tail: the last row again (weight 0 there)
+        R[:idx.shape[0]] = idx
+        R[idx.shape[0]:] = idx[-1]
         S2, V0 = pts["S2"], pts["V"]
-        # the design kept as precise as the caller gave it (float32: half the memory)
-        dm = np.float32 if np.asarray(pts["DM"]).dtype == np.float32 else f
-        return {"L": take(pts["L"], f), "C": take(pts["C"], f), "G": take(pts["G"], np.int32, -1),
-                "DM": take(pts["DM"], dm), "W": take(pts["W"], f, 0.0, lend=False),
-                "MZ": take(pts["MZ"], f),
+        return {**tables, "R": jax.device_put(R), "G": take(pts["G"], np.int32, -1),
+                "W": take(pts["W"], f, 0.0, lend=False),
                 "V": jax.device_put(np.zeros((m, 3), f)) if V0 is None else take(V0, f, lend=False),
                 "S2": take(S2, f) if S2.ndim == 2 else S2}
 

@@ -200,11 +200,17 @@ def _segment(keys: np.ndarray, occ: np.ndarray, max_pp: int):
     sorted point, ``counts``/``starts`` per patch.
     """
     remap = (np.cumsum(occ > 0) - 1).astype(np.int32)  # dense key -> compact patch id
-    order = np.argsort(keys, kind="stable")
+    # sorted by the compact ids (in the keys' order): where they fit 16 bits, NumPy's stable
+    # sort is a radix sort, the same order 3x faster than a merge sort of the keys (6.3e6
+    # points: 0.12 -> 0.04 s)
+    compact = remap[keys]
+    fits16 = len(remap) == 0 or remap[-1] < 1 << 16
+    order = np.argsort(compact.astype(np.uint16) if fits16 else compact, kind="stable")
     counts = occ[occ > 0]
     pid = np.empty(len(keys), np.int32)
     for s, e in _blocks(len(keys)):
-        pid[s:e] = remap[keys[order[s:e]]]
+        pid[s:e] = compact[order[s:e]]
+    del compact
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
     nsub = -(-counts // max_pp)
     if np.any(nsub > 1):

@@ -996,8 +996,11 @@ def gauss_helmert_mixed(
     # sort the points by cell once (cell-less points last): the per-cell sums of every pass are
     # then sorted segment sums; results are returned in the caller's order
     g_np = np.asarray(groups)
-    order = np.argsort(np.where(g_np >= 0, g_np, n_cells), kind="stable").astype(
-        np.int32 if n < 2**31 else np.int64)  # (held through the adjustment: 4 B per point)
+    # (a radix sort on 16-bit keys, as mixed_chunk's: 1.26e7 points 0.2 -> 0.03 s; the order
+    # held through the adjustment in 4 B per point)
+    key = np.where(g_np >= 0, g_np, n_cells).astype(np.int16 if n_cells < 2**15 else np.int32)
+    order = np.argsort(key, kind="stable").astype(np.int32 if n < 2**31 else np.int64)
+    del key
     threads = mixed_threads(n) if threads is None else max(1, int(threads))
     threads = min(threads, -(-n // chunk))  # whole chunks per part: no empty part
     reject_from = 0 if u0 is not None else 1

@@ -90,6 +90,12 @@ def write_residuals(path: Path, s: ScanFit) -> None:
 
     Written to a temporary name and renamed (never a half-written table at ``path``).
     """
+    write_file_atomic(path, lambda t: write_residual_table(t, s), durable=False)
+
+
+def write_residual_table(path: Path, s: ScanFit) -> None:
+    """The table of :func:`write_residuals` written at ``path`` itself (a temporary name
+    given by the caller: :class:`..campaign._safeio.OutputDir`)."""
     d = s.data
     face = np.empty(len(d), np.int8)  # a block at a time (no int64 and float64 columns made)
     for rows in row_blocks(len(d)):
@@ -112,7 +118,7 @@ def write_residuals(path: Path, s: ScanFit) -> None:
         "Y_m": s.X_tel[:, 1],
         "Z_m": s.X_tel[:, 2],
     }
-    write_file_atomic(path, lambda t: write_columns(columns, t), durable=False)
+    write_columns(columns, path)
 
 
 def write_fit(out_dir: str | Path, cf: CampaignFit, *, residuals: bool = True) -> Path:
@@ -135,8 +141,9 @@ def write_fit_dir(out_dir, doc: dict, scans: Sequence[ScanFit] = ()) -> Path:
     """``residuals/<scan>.parquet`` of ``scans`` under temporary names, then ``fit.json``
     (``doc``, strict, with the ``"files"`` manifest) last: the one commit of every fit."""
     with OutputDir(out_dir, "fit.json") as od:
-        od.write_each([(f"residuals/{s.meta.id}.parquet", lambda t, s=s: write_residuals(t, s))
-                       for s in scans], threads=usable_cores())
+        od.write_each([(f"residuals/{s.meta.id}.parquet",
+                        lambda t, s=s: write_residual_table(t, s)) for s in scans],
+                      threads=usable_cores())
         return od.commit(doc)
 
 

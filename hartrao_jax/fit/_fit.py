@@ -581,10 +581,11 @@ def fit_position(
             # 12 B per point less at the peak)
             warm["v0"] = v_start = v_start.astype(np.float32)
         w_mixed = used  # (bool: taken as 0/1 weights, 7 B per point less than float)
-        if not groups:
-            # the hit points again only where smooth modes are carried later (a campaign's
-            # mode variance, ``finish``): not held through the adjustment (24 B per point)
-            X_hit = None
+        # the hit points are held only for the smooth modes' columns, as their x and y in
+        # float32 (1e-6 m of rounding; the columns are float32 themselves): 16 B per point less
+        # at the peak where modes are carried; where none is, not at all (made again if a
+        # later adjustment carries them: a campaign's mode variance, ``finish``)
+        X_hit = X_hit[:, :2].astype(np.float32) if groups else None
 
         def hit_points_now():
             return X_hit if X_hit is not None else np.asarray(
@@ -599,7 +600,7 @@ def fit_position(
                      for k_, g_ in groups.items()} or None
             # the modes (last in mdl2.free) enter through their columns at the hit points
             cond, mz = ((model_of(free_of(), kappa),
-                         zernike_columns(hit_points_now(), modes, aperture))
+                         zernike_columns(hit_points_now(), modes, aperture, np.float32))
                         if modes else (mdl2, None))
             rm = gauss_helmert_mixed(
                 cond, l, np.array([x_start.get(n_, 0.0) for n_ in mdl2.free]), sig, c, w_,

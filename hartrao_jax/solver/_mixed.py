@@ -857,9 +857,12 @@ def _solve_split(condition, cfg: _Settings, threads: int, order, pts: dict, x0, 
     # part holds the numbers of its rows instead (``R``; :func:`_pass` takes each chunk's rows
     # in its loop), 52 B per point less than a copy in cell order (1.26e7 points: 0.6 GiB)
     f = np.float64
-    dm = np.float32 if np.asarray(pts["DM"]).dtype == np.float32 else f  # (as given)
+
+    def designs(a):  # the designs kept as precise as the caller gave them
+        return lend_to_device(a, np.float32 if np.asarray(a).dtype == np.float32 else f)
+
     tables = {"L": lend_to_device(pts["L"], f), "C": lend_to_device(pts["C"], f),
-              "DM": lend_to_device(pts["DM"], dm), "MZ": lend_to_device(pts["MZ"], f)}
+              "DM": designs(pts["DM"]), "MZ": designs(pts["MZ"])}
 
     def part(idx):
         pad = m - idx.shape[0]
@@ -964,9 +967,10 @@ def gauss_helmert_mixed(
             component changed by less than 0.5 %.
         threads: parts each pass over the points is split into, one thread each (None:
             :func:`mixed_threads`); the estimates do not depend on it beyond round-off.
-        mode_design: ``(n, r)``: the last ``r`` unknowns of ``x`` are coefficients (m) of
-            deviations known per point, ``dev_i += mode_design_i . x[u - r:]`` (e.g. Zernike
-            modes at each point's aperture coordinates); ``condition`` then takes the first
+        mode_design: ``(n, r)`` (float32 kept in float32): the last ``r`` unknowns of ``x``
+            are coefficients (m) of deviations known per point, ``dev_i += mode_design_i .
+            x[u - r:]`` (e.g. Zernike modes at each point's aperture coordinates); ``condition``
+            then takes the first
             ``u - r`` unknowns. The same model as a condition that evaluates the modes at the
             observed point itself, when the columns are evaluated where the observations are
             (their hit points on the fitted surface: estimates within 0.02 sigma, sigmas
@@ -984,8 +988,9 @@ def gauss_helmert_mixed(
     """
     n = np.shape(l)[0]
     max_iter = max(int(max_iter), 1)
-    MZ = (np.zeros((n, 0)) if mode_design is None
-          else np.asarray(mode_design, float).reshape(n, -1))
+    MZ = (np.zeros((n, 0)) if mode_design is None  # (a float32 design kept in float32)
+          else np.asarray(mode_design, np.float32 if np.asarray(mode_design).dtype == np.float32
+                          else float).reshape(n, -1))
     f = jnp.float64
     k = design.shape[1]
     ridge_idx, ridge_group, n_groups = ridge_indices(ridge)

@@ -970,13 +970,13 @@ def gauss_helmert_mixed(
         mode_design: ``(n, r)`` (float32 kept in float32): the last ``r`` unknowns of ``x``
             are coefficients (m) of deviations known per point, ``dev_i += mode_design_i .
             x[u - r:]`` (e.g. Zernike modes at each point's aperture coordinates); ``condition``
-            then takes the first
-            ``u - r`` unknowns. The same model as a condition that evaluates the modes at the
-            observed point itself, when the columns are evaluated where the observations are
-            (their hit points on the fitted surface: estimates within 0.02 sigma, sigmas
-            within 0.5 %, ``tests/solver/test_mixed.py``; at the points' true positions 0.05
-            sigma, as range noise moves an observation across the surface by up to 15 mm),
-            at half the cost of the pass (the derivatives of seven Zernike terms doubled it).
+            then takes the first ``u - r`` unknowns. The same model as a condition that
+            evaluates the modes at the observed point itself, when the columns are evaluated
+            where the observations are (their hit points on the fitted surface: estimates
+            within 0.02 sigma, sigmas within 0.5 %, ``tests/solver/test_mixed.py``; at the
+            points' true positions 0.05 sigma, as range noise moves an observation across the
+            surface by up to 15 mm), at half the cost of the pass (the derivatives of seven
+            Zernike terms doubled it).
         rate0: the contraction of the iteration on this problem where known (the
             ``contraction`` of an adjustment of the same model and points, or of a sample of
             them, that this one starts from); until it measures its own, a step is converged

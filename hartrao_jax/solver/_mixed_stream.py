@@ -16,7 +16,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from ._kernel import step_sigmas
-from ._mixed import _Linearization, _pass, _ridge_args, _update, _vce, cell_order
+from ._mixed import _Linearization, _ridge_args, _update, _vce
+from ._mixed_pass import _pass, cell_order
 
 
 class MixedSums(eqx.Module):

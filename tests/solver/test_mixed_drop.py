@@ -1,5 +1,5 @@
 """A step's robust rejections leave the random-effect adjustment's normal-equation sums at the
-same linearisation (``solver._mixed._dropped_sums``): no pass over the points of their own."""
+same linearisation (``solver._mixed_pass._dropped_sums``): no pass over the points of their own."""
 
 from __future__ import annotations
 
@@ -12,7 +12,8 @@ from test_mixed import COUNTS, EDGES, two_face_scan
 
 from hartrao_jax.geometry._geometry import panel_cells
 from hartrao_jax.model._model import make_model
-from hartrao_jax.solver._mixed import _dropped_sums, _pass, gauss_helmert_mixed
+from hartrao_jax.solver._mixed import gauss_helmert_mixed
+from hartrao_jax.solver._mixed_pass import _dropped_sums, _pass
 
 NAMES = ["tx", "ty", "tz", "rx", "ry", "f"]
 

@@ -113,13 +113,18 @@ def scan_arrays(*datas: ScanData, n_pad: int | None = None) -> tuple[np.ndarray,
     c[:] = 0.0
     at = 0
     for d in datas:
-        rows = slice(at, at + len(d))
-        for j, col in enumerate((d.range_m, d.phi_rad, d.theta_rad)):
-            l[rows, j] = col
-        c[rows, 0] = d.time_s
+        _put_rows(l, c, slice(at, at + len(d)), d.range_m, d.phi_rad, d.theta_rad, d.time_s)
         at += len(d)
     l[n:] = l[0] if n else 0.0
     return l, c
+
+
+def _put_rows(l, c, rows, range_m, phi_rad, theta_rad, time_s) -> None:
+    """Rows ``rows`` of the tables ``l`` and ``c`` (constants other than the time left as they
+    are) from a scan's columns: the layout of :func:`scan_arrays`."""
+    for j, col in enumerate((range_m, phi_rad, theta_rad)):
+        l[rows, j] = col
+    c[rows, 0] = time_s
 
 
 def columns_in(datas: Sequence[ScanData], l: np.ndarray, c: np.ndarray) -> list[ScanData]:
@@ -248,10 +253,10 @@ def _fitted_points(mdl: ParaboloidModel, data: ScanData, x, f: float):
         X, dev = _fitted_points_jit(mdl, l, x, c, f, on)
         return np.asarray(X)[:n], np.asarray(dev)[:n]
 
-    def block(r, phi, theta, t):  # a block's l and c (as scan_arrays'), not the whole scan's
-        c = np.zeros((len(r), N_CONSTS))
-        c[:, 0] = t
-        return _fitted_points_jit(mdl, np.column_stack([r, phi, theta]), x, c, f, on)
+    def block(*cols):  # a block's l and c (as scan_arrays'), not the whole scan's
+        l, c = np.empty((len(cols[0]), 3)), np.zeros((len(cols[0]), N_CONSTS))
+        _put_rows(l, c, slice(None), *cols)
+        return _fitted_points_jit(mdl, l, x, c, f, on)
 
     return by_row_blocks(block, (data.range_m, data.phi_rad, data.theta_rad, data.time_s))
 
@@ -265,13 +270,11 @@ def scan_result(*, x, cov, N, sigma0, v, normalized, weights, redundancy, iterat
     fit of a new recording); the per-point arrays stay the host's (NumPy, which is all
     :func:`finish_scan_fit` reads): a device copy of each took 240 MiB per 6.3e6-point scan
     at the end of a large position, beside the originals."""
-    res = host_result(x=x, cov=cov, N=N, sigma0=sigma0, v=np.zeros((0, 3)),
-                      misclosure=np.zeros(0), normalized=np.zeros(0), weights=np.zeros(0),
-                      redundancy=redundancy, iterations=iterations, converged=converged)
-    n = len(v)
-    return eqx.tree_at(lambda r: (r.v, r.misclosure, r.normalized, r.weights), res,
-                       (np.asarray(v), np.broadcast_to(0.0, (n,)), np.asarray(normalized),
-                        np.asarray(weights, float)))
+    return host_result(x=x, cov=cov, N=N, sigma0=sigma0, v=v,
+                       misclosure=np.broadcast_to(0.0, (len(v),)), normalized=normalized,
+                       weights=np.asarray(weights, float), redundancy=redundancy,
+                       iterations=iterations, converged=converged,
+                       keep_host=("v", "misclosure", "normalized", "weights"))
 
 
 def finish_scan_fit(

@@ -102,11 +102,14 @@ class GHResult(AbstractAdjustment):
     converged: Bool[Array, ""]
 
 
-def host_result(**fields) -> GHResult:
+def host_result(*, keep_host: tuple[str, ...] = (), **fields) -> GHResult:
     """A :class:`GHResult` of host values (NumPy arrays, Python numbers; its fields by name)
     put on the device by ``device_put``: ``jnp.asarray`` lowers and loads a program per shape
-    and dtype in every process (10-25 ms each)."""
-    return GHResult(**jax.device_put({k: np.asarray(v) for k, v in fields.items()}))
+    and dtype in every process (10-25 ms each). The fields named in ``keep_host`` stay the
+    host's NumPy arrays (no device copy beside them)."""
+    fields = {k: np.asarray(v) for k, v in fields.items()}
+    host = {k: fields.pop(k) for k in keep_host}
+    return GHResult(**jax.device_put(fields), **host)
 
 
 def _linearize(condition: Condition, l0, x, c):

@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 
+from .._config import small_key_order
 from ._types import _blocks
 
 
@@ -200,12 +201,10 @@ def _segment(keys: np.ndarray, occ: np.ndarray, max_pp: int):
     sorted point, ``counts``/``starts`` per patch.
     """
     remap = (np.cumsum(occ > 0) - 1).astype(np.int32)  # dense key -> compact patch id
-    # sorted by the compact ids (in the keys' order): where they fit 16 bits, NumPy's stable
-    # sort is a radix sort, the same order 3x faster than a merge sort of the keys (6.3e6
-    # points: 0.12 -> 0.04 s)
+    # sorted by the compact ids (in the keys' order; small_key_order: a radix sort where they
+    # fit 16 bits, 6.3e6 points 0.12 -> 0.04 s)
     compact = remap[keys]
-    fits16 = len(remap) == 0 or remap[-1] < 1 << 16
-    order = np.argsort(compact.astype(np.uint16) if fits16 else compact, kind="stable")
+    order = small_key_order(compact, int(remap[-1]) + 1 if len(remap) else 0)
     counts = occ[occ > 0]
     pid = np.empty(len(keys), np.int32)
     for s, e in _blocks(len(keys)):

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from .._config import row_blocks
 from ._initial import InitialValues
 
 PREPROCESS_SCHEMA = "hartrao-preprocess/1"
@@ -183,6 +184,6 @@ operation: on the 2-core test VM a fresh 100-MB temporary cost ~0.5 s, more than
 
 
 def _blocks(n: int, size: int = CHUNK):
-    for s in range(0, n, size):
-        yield s, min(s + size, n)
+    """``(start, stop)`` of the blocks of :func:`.._config.row_blocks` (of ``size`` rows)."""
+    return ((rows.start, rows.stop) for rows in row_blocks(n, size))
 

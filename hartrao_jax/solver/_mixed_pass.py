@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from .._config import small_key_order
 from ._kernel import _materialize, materialize_trig, point_weights
 
 #: dtype of the per-point terms a pass keeps (``a = dF/dx``, ``b = dF/dl``, ``d = e D``, the
@@ -231,12 +232,12 @@ def _point_sums(a, d, q, wm0, seg, n_cells: int, *, is_sorted: bool):
 
 def cell_order(groups, n_cells: int) -> np.ndarray:
     """The points' indices sorted by cell, stable, cell-less points (-1) last: the order in
-    which a pass's per-cell sums are sorted segment sums. NumPy's stable sort on 16-bit keys
-    is a radix sort (0.016 s per 1e6 points, where XLA's CPU argsort took 0.15 s and a merge
-    sort of wider keys 0.07 s); int32 indices below 2^31 points (held through an adjustment)."""
+    which a pass's per-cell sums are sorted segment sums. On the host (a radix sort where the
+    cells fit 16 bits, :func:`.._config.small_key_order`: 0.016 s per 1e6 points, where XLA's
+    CPU argsort took 0.15 s); int32 indices below 2^31 points (held through an adjustment)."""
     g = np.asarray(groups)
-    key = np.where(g >= 0, g, n_cells).astype(np.int16 if n_cells < 2**15 else np.int32)
-    return np.argsort(key, kind="stable").astype(np.int32 if len(g) < 2**31 else np.int64)
+    order = small_key_order(np.where(g >= 0, g, n_cells), n_cells + 1)
+    return order.astype(np.int32 if len(g) < 2**31 else np.int64)
 
 
 def design_dtype(a):

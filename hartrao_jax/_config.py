@@ -12,6 +12,8 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from ._programs import clear_programs, set_program_dir
+
 #: Threads this process's work may use (default: the cores it may run on).
 THREADS_ENV = "HARTRAO_JAX_THREADS"
 _POOLS: dict[tuple[str, int], ThreadPoolExecutor] = {}
@@ -91,7 +93,9 @@ def enable_x64() -> None:
 
 
 def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
-    """Persistent XLA compilation cache, so a second CLI run does not compile again.
+    """Persistent XLA compilation cache, so a second CLI run does not compile again; its
+    ``programs`` folder keeps :func:`._programs.cached_jit`'s programs, so that it does not
+    trace them again either.
 
     Default location ``$HARTRAO_JAX_CACHE`` or ``~/.cache/hartrao-jax/xla``; every compiled
     program is cached (minimum compile time 0 s). Unbounded: JAX's bounded (LRU) cache scans
@@ -105,6 +109,7 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     jax.config.update("jax_compilation_cache_dir", str(p))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    set_program_dir(p / "programs")  # and the traced programs themselves (._programs)
     return p
 
 
@@ -230,6 +235,7 @@ def release_compiled_programs(fraction: float = MAPS_FRACTION) -> bool:
     if m is None or m[0] <= fraction * m[1]:
         return False
     jax.clear_caches()
+    clear_programs()
     return True
 
 

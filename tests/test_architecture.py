@@ -5,8 +5,8 @@
     campaign -> geometry -> physics -> model -> solver -> preprocess -> fit -> surface
     -> diagnose -> simulate -> {prove, sensitivity} -> report -> cli
 
-``_config`` is a base module every layer may import; the top-level ``__init__`` gathers the
-public API and may import anything. Checked here: no upward import, no import between two
+``_programs`` (compiled programs kept on disk) and ``_config`` are base modules every layer may
+import; the top-level ``__init__`` gathers the public API and may import anything. Checked here: no upward import, no import between two
 subpackages of the same rank, no cycle between subpackages or between modules, and no
 function-local import of a package module (those hid cycles; optional heavy third-party
 dependencies such as dask, matplotlib and pyarrow may stay lazy, they are not package modules).
@@ -20,6 +20,7 @@ import pathlib
 PKG = pathlib.Path(__file__).resolve().parents[1] / "hartrao_jax"
 
 LAYERS: list[tuple[str, ...]] = [
+    ("_programs",),
     ("_config",),
     ("campaign",),
     ("geometry",),

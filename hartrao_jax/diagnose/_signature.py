@@ -10,17 +10,17 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._programs import cached_jit
 from ..solver._kernel import materialize_trig
 from ._find import COVARIATES, _covariate_values
 from ._state import _Context, _fixed, _npad, _pad, _Scan, _scan_model, _Spec
 
 
-@eqx.filter_jit
+@cached_jit
 def _columns(model, l, x, c, idx, on):
     """Per point derivatives of the condition w.r.t. the free parameters ``idx``; ``on`` a
     runtime True (each distinct sine and cosine evaluated once, :func:`materialize_trig`)."""

@@ -10,11 +10,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._programs import cached_jit
 from ..campaign._campaign import Campaign, ScanData, ScanMeta
 from ..geometry._geometry import panel_geometry
 from ..model._model import (
@@ -209,7 +209,7 @@ def _scan_model(sc: _Scan, spec: _Spec, aperture: float, extra: Sequence[str] = 
                       kappa_rad=sc.kappa, aperture_radius_m=aperture, check_separable=False)
 
 
-@eqx.filter_jit
+@cached_jit
 def _pointwise(model, probe, l, x, xp, c, s2, on):
     """Per point: the misclosure ``F``, ``m = b Sigma b^T``, ``dF/dr`` and the probe derivatives
     (translation, rotation); one program and one pass over the points for all four. ``on``: a

@@ -15,12 +15,12 @@ import math
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._config import BLOCK_ROWS, lendable_empty, release_compiled_programs, row_blocks
+from .._programs import cached_jit
 from ..campaign._campaign import Campaign, ScanData, ScanMeta, read_scan
 from ..campaign._campaign import _concat as concat_scans
 from ..geometry._geometry import (
@@ -228,7 +228,7 @@ def fit_scan(
     return fit
 
 
-@eqx.filter_jit
+@cached_jit
 def _fitted_points_jit(mdl: ParaboloidModel, l, x, c, f, on):
     # each distinct sin/cos evaluated once (materialize_trig): 6.3e6 points 0.34 -> 0.20 s
     point = materialize_trig(mdl.telescope_point, on)

@@ -37,10 +37,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from .._programs import cached_jit
 from ..campaign._campaign import Campaign, ScanMeta
 from ..model._model import parameter_unit
 from ..physics._catalog import CALIBRATION, OBJECT_PARAMETERS, two_face_parameters
@@ -69,7 +69,7 @@ GROUPS = ("night", "campaign")
 # --------------------------------------------------------------------------------------------
 
 
-@eqx.filter_jit
+@cached_jit
 def _residual_pass(condition, l, x, s2, consts, weights, v, dx, chunk_size):
     n_pts = l.shape[0]
     (L, C, W, S2, V), n = _chunked([l, consts, weights, s2, v], chunk_size)

@@ -9,12 +9,12 @@ linearises), and the points that correction shows to be outliers (:func:`reject_
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._config import BLOCK_ROWS, thread_pool
+from .._programs import cached_jit
 from ..model._model import ParaboloidModel
 from ..solver._kernel import _materialize, materialize_trig
 
@@ -82,7 +82,7 @@ def _by_blocks(model, l, x, c, sigma_l, kappa_rad, with_v: bool):
     return out if with_v else out[0]
 
 
-@eqx.filter_jit
+@cached_jit
 def _hit_points(model, l, x, c, sigma_l, kappa_rad, on, with_v: bool):
     s2 = jnp.broadcast_to(sigma_l**2, (3,))
     cond = materialize_trig(model, on)

@@ -60,11 +60,10 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._programs import cached_jit
 from ..campaign._campaign import Campaign, ScanMeta, iter_scan_chunks
 from ..campaign._campaign import _concat as concat_scans
 from ..campaign._format import CampaignError
@@ -122,10 +121,10 @@ def _chunk_pass_impl(model, obs, c, w, sig, a, b, wm, m, x, dx_prev, reject, sig
 
 # every array argument but the model is a fresh buffer per call: donated, so the new store
 # is written in place of the old one (no copy of the chunk's store)
-_chunk_pass = eqx.filter_jit(_chunk_pass_impl, donate="all-except-first")
+_chunk_pass = cached_jit(_chunk_pass_impl, donate="all-except-first")
 
 
-@eqx.filter_jit
+@cached_jit
 def _chunk_residuals(sig, a, b, wm, m, dx, sigma0):
     """Residuals ``v`` and ``e = |k| sqrt(m) / sigma0`` from a stored chunk (no linearisation)."""
     f = wm.dtype
@@ -262,7 +261,7 @@ def _sample(campaign, meta, rows_per_chunk: int, n_rows: int, n_sample: int, see
                          for ch in iter_scan_chunks(campaign, meta, rows_per_chunk)])
 
 
-@jax.jit
+@cached_jit
 def _solve_step(N, nv, wmw):
     """``dx = -N^-1 n`` (as :func:`._kernel.gh_one_pass`), ``N^-1``, the convergence measure
     ``max |dx_j| / sqrt((N^-1)_jj)`` and the weighted square sum after the step."""

@@ -13,15 +13,15 @@ Everything differentiable is written in ``jax.numpy``; panel bookkeeping is NumP
 
 from __future__ import annotations
 
-from functools import lru_cache, partial
+from functools import lru_cache
 from math import factorial
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from .._config import row_blocks, thread_pool, usable_cores
+from .._programs import cached_jit
 from ..campaign._format import cartesian_to_raw  # noqa: F401  (the recording's face rule)
 
 # --------------------------------------------------------------------------------------------
@@ -137,14 +137,15 @@ def _pointing(mount: str, a: float, b: float, lat: float) -> tuple[np.ndarray, n
     rotations take ~15 ms a call, and every scan asks for its pointing several times
     (preprocessing, initial values, fit, alignment) with the same values. The arrays are
     read-only; the public functions return copies."""
-    F, g, el = (np.asarray(v) for v in _pointing_program(mount, a, b, lat))
+    F, g, el = (np.asarray(v) for v in _pointing_program(  # (the angles traced: one program)
+        mount, np.float64(a), np.float64(b), np.float64(lat)))
     el = float(np.degrees(el))
     F.setflags(write=False)
     g.setflags(write=False)
     return F, g, el
 
 
-@partial(jax.jit, static_argnums=0)
+@cached_jit
 def _pointing_program(mount: str, a, b, lat):
     """Axes, gravity vector and elevation (rad) of a pointing as one compiled program: each
     eager operation was a program of its own to lower and load in every process (25, 0.1 s)."""
@@ -444,7 +445,7 @@ def zernike_columns(X: Float[ArrayLike, "n d"], modes, aperture_radius_m: float,
                                        jnp.asarray(aperture_radius_m, float), np.dtype(dtype)))
 
 
-@partial(jax.jit, static_argnums=(1, 3))
+@cached_jit
 def _zernike_columns(xy, modes: tuple[int, ...], aperture_radius_m, dtype):
     u = jnp.hypot(xy[:, 0], xy[:, 1]) / aperture_radius_m
     psi = jnp.arctan2(xy[:, 1], xy[:, 0])

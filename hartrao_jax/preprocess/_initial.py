@@ -20,11 +20,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import jax
 import numpy as np
 from jaxtyping import Array, Float
 
 from .._config import row_blocks
+from .._programs import cached_jit
 from ..campaign._format import Campaign, ScanData, ScanMeta
 from ..geometry._geometry import (
     decompose_zyx,
@@ -116,7 +116,7 @@ class _Basis:
         return tuple(coef @ self.m[i] for i in range(3))
 
 
-@jax.jit
+@cached_jit
 def _pose_of_heading(Ra: Float[Array, "3 3"], heading: Float[Array, ""],
                      t: Float[Array, " 3"]) -> tuple[Array, Array, Array, Float[Array, " 3"]]:
     """``(kappa, ry, rx, t_fit)`` (rad, m) of the frame ``Ra Rz(heading)`` and its translation

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._programs import cached_jit
 from ..geometry._geometry import (
     polar_to_cartesian,
 )
@@ -139,7 +140,7 @@ def _patch_fit(pts, n, eps, u, *, n_refine: int, f32: bool, n_score: int):
     return inl, normal.astype(f64), d0.astype(f64), cen.astype(f64), n_in, rms.astype(f64), n_ransac
 
 
-@eqx.filter_jit
+@cached_jit
 def _fit_patches(pts, n, eps, u, *, n_refine: int, f32: bool, n_score: int, batch_size: int):
     """Padded patches: ``lax.map`` over chunks of ``batch_size`` vmapped :func:`_patch_fit`."""
     return jax.lax.map(

@@ -48,13 +48,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 from jax import lax
 
+from .._programs import cached_jit
 from ..campaign._safeio import write_file_atomic, write_json_atomic
 from ..fit._fit import scan_arrays, sigma_vector
 from ..fit._joint import ScanProblem, bucket_size, chunk_for, condition_number
@@ -88,7 +88,7 @@ def solve_columns(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return np.asarray(sol)
 
 
-@eqx.filter_jit
+@cached_jit
 def _deviation_jvp(model, l, c, xp, T, f_index):
     """``d dev_i / d xp . T`` for every point: (n, q) (m per unit of the tangent columns)."""
 
@@ -307,7 +307,7 @@ def _position_arrays(campaign, pf, model):
     return l, c, w, cell, design, sig, n
 
 
-@eqx.filter_jit
+@cached_jit
 def _exact_sums(model, l, c, w, s2, cell, design, x, U, n_cells: int, chunk: int = 4096):
     """Half-Hessians of the objective ``sum_i w_i F_i^2 / (b_i Sigma b_i^T)`` (the points'
     ``v^T Sigma^-1 v`` to first order; the cells' prior is added by the caller) at

@@ -40,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from .._programs import cached_jit
 from ..campaign._campaign import Campaign, ScanData, ScanMeta, default_campaign, write_campaign
 from ..campaign._safeio import write_json_atomic, write_table
 from ..campaign._schedule import CAMPAIGN_STEP_RAD, PRESET_TOURS, plan_positions
@@ -536,7 +537,7 @@ def _surface(tel, refl: Reflector, kappa: float, zern: np.ndarray, extra) -> _Su
                     tuple(refl.zernike_modes[i] for i in keep), extra)
 
 
-@eqx.filter_jit
+@cached_jit
 def _solve_rays(model: ParaboloidModel, surface: _Surface, start: Array, phi, theta, time,
                 n_outer: int, n_inner: int):
     """Newton on the raw range of every ray so that the truth model's condition is zero.

@@ -34,6 +34,7 @@ import lineax as lx
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .._programs import cached_jit
 from ._kernel import (
     REJECT_BELOW,
     gh_one_pass,
@@ -452,7 +453,7 @@ class NormalEquations(eqx.Module):
         return N, n, wMw
 
 
-@eqx.filter_jit
+@cached_jit
 def _normal_equations(condition, l, x, s2, consts, weights, v, groups, n_groups, chunk_size,
                       offset_derivative):
     u = x.shape[0]

@@ -20,7 +20,6 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -29,6 +28,7 @@ from jax.extend import core as jcore
 
 from .._config import THREADS_ENV, usable_cores  # noqa: F401  (this module's names before)
 from .._config import thread_pool as _config_pool
+from .._programs import cached_jit
 
 # --------------------------------------------------------------------------------------------
 # sin/cos computed once: custom-JVP sincos materialised behind a runtime lax.cond
@@ -379,7 +379,7 @@ def next_rate(rate, previous, step, restarted):
     return xp.where(restarted | ~has, rate, step / xp.where(has, previous, 1.0))
 
 
-@eqx.filter_jit
+@cached_jit
 def gh_one_pass(condition, l, x0, sigma_l, consts, weights, v0, on, tol=1e-6, *, lin,
                 chunk=4096, max_iter=30, store_dtype=jnp.float32, trig=True, robust_k=None,
                 max_rounds=6, reject_below=REJECT_BELOW):
@@ -522,7 +522,7 @@ def thread_pool(threads: int) -> ThreadPoolExecutor:
     return _config_pool(threads, "mixed")
 
 
-@eqx.filter_jit
+@cached_jit
 def part_start(condition, l, consts, weights, sigma_l, v0, on, *, u, chunk):
     """A part's start store with its weights (the layout of :func:`make_pass`)."""
     _, _, store0, _ = make_pass(condition, l, consts, weights, sigma_l, on, lin=linearize_rev,
@@ -540,10 +540,10 @@ def _part_pass(args, store):
 #: A part's pass (:func:`make_pass` with the rejection at ``limit``):
 #: ``part_pass((condition, l, consts, sigma_l, x, dx_prev, limit, on, chunk), store)`` ->
 #: ``(N, n, store, rejected)``; the store is donated (updated in place, no copy).
-part_pass = eqx.filter_jit(_part_pass, donate="all-except-first")
+part_pass = cached_jit(_part_pass, donate="all-except-first")
 
 
-@eqx.filter_jit
+@cached_jit
 def part_omega(condition, l, consts, sigma_l, store, dx, on, *, chunk):
     """A part's ``(sum w k^2 m, points used)`` at the solution ``x + dx`` (:func:`store_omega`)."""
     _, residuals, _, _ = make_pass(condition, l, consts, None, sigma_l, on, lin=linearize_rev,
@@ -551,7 +551,7 @@ def part_omega(condition, l, consts, sigma_l, store, dx, on, *, chunk):
     return store_omega(residuals, store, dx), jnp.sum(store[4] > 0)
 
 
-@eqx.filter_jit
+@cached_jit
 def part_final(condition, l, consts, sigma_l, store, x, dx, on, *, chunk):
     """A part's :func:`final_sweep`."""
     _, residuals, _, _ = make_pass(condition, l, consts, None, sigma_l, on, lin=linearize_rev,
@@ -567,7 +567,7 @@ def step_sigmas(dx, Q):
     return jnp.max(jnp.abs(dx) / jnp.sqrt(jnp.where(q > 0, q, 1.0)))
 
 
-@jax.jit
+@cached_jit
 def newton_step(N, nv):
     """``dx = -N^-1 n``, ``N^-1`` and the convergence measure ``max |dx_j| / sqrt((N^-1)_jj)``
     (as one step of :func:`gh_one_pass`)."""

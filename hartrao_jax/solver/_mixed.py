@@ -58,6 +58,7 @@ from jaxtyping import Array, Bool, Float, Int
 from scipy.special import chdtrc  # chi-square survival function (scipy.stats: 0.38 s to import)
 
 from .._config import lend_to_device, lendable_empty, return_free_heap, row_blocks
+from .._programs import cached_jit
 from ._ghm import AbstractAdjustment
 from ._kernel import (
     PARALLEL_MIN_POINTS,  # noqa: F401  (re-exported: this module's name since 520202b)
@@ -344,7 +345,7 @@ def _pass_of(condition, cfg: _Settings, on, pts: dict, x, U, V=None, W=None, int
                  pts["S2"], pts["G"], pts["DM"], x, U, pts["MZ"], into=into, rows=pts.get("R"))
 
 
-@eqx.filter_jit
+@cached_jit
 def _solve(condition, cfg: _Settings, pts: dict, x0, U0, var0, ridge_idx, ridge_group,
            robust_k, on, reject_from, rate0):
     """The adjustment as one compiled loop (:func:`gauss_helmert_mixed`; ``pts`` the points
@@ -456,21 +457,21 @@ TRIM_ROWS = 2**20
 mixed_threads = pass_threads
 
 
-@eqx.filter_jit
+@cached_jit
 def _part_pass(condition, cfg: _Settings, on, p: dict, x, U, into=None):
     """A part's pass: its sums, its per-point terms ``(a, b, d, wm, m)``, its points in use."""
     sums, per = _pass_of(condition, cfg, on, p, x, U, into=into)
     return sums, tuple(per[:5]), jnp.sum(p["W"] > 0)
 
 
-@eqx.filter_jit(donate="all-except-first")
+@cached_jit(donate="all-except-first")
 def _part_pass_over(args: tuple, store):
     """:func:`_part_pass` of ``args``, its per-point terms written over the last pass's
     ``store`` (donated: the same memory again instead of new pages from the kernel)."""
     return _part_pass(*args, into=store)
 
 
-@eqx.filter_jit
+@cached_jit
 def _part_update(cfg: _Settings, sums, var, var0, x, U, n_used, ridge_idx, ridge_group):
     """Variance components (Foerstner) and the step from the added sums, as one step of
     :func:`_solve`."""
@@ -482,7 +483,7 @@ def _part_update(cfg: _Settings, sums, var, var0, x, U, n_used, ridge_idx, ridge
     return var, up, step_sigmas(up.dx, up.Qxx)
 
 
-@eqx.filter_jit(donate="all-except-first", keep_unused=True)  # V unused: kept to be reused
+@cached_jit(donate="all-except-first", keep_unused=True)  # V unused: kept to be reused
 def _part_residuals(args: tuple, V):
     """A part's residuals after the step and, where ``judge``, the points its robust rule
     rejects (as :func:`_solve`): ``(v, rejected)``. ``args = (per, G, S2, dx, dU, se2, W,
@@ -497,7 +498,7 @@ def _part_residuals(args: tuple, V):
     return S2 * b * kk[:, None], _rejected(kk, m, W, se2, judge, robust_k)
 
 
-@eqx.filter_jit(donate="all-except-first")
+@cached_jit(donate="all-except-first")
 def _part_reject(args: tuple, W):
     """A part's weights ``W`` (donated) without its ``rejected`` points, and the share of its
     points ``idx`` (the first :data:`DROP_ROWS` rejected ones, -1 padded) of the sums
@@ -515,7 +516,7 @@ def _first_rows(bad: np.ndarray) -> tuple[int, np.ndarray]:
     return len(idx), first
 
 
-@eqx.filter_jit(donate="all-except-first", keep_unused=True)
+@cached_jit(donate="all-except-first", keep_unused=True)
 def _part_final(args: tuple, per, V):
     """A part's per-point statistics at the solution (as :func:`_solve`); ``args = (G, S2, W,
     DM, R, U, dx, dU, se2)``, ``R`` the part's rows of the design table ``DM`` (None: ``DM``
@@ -529,7 +530,7 @@ def _part_final(args: tuple, per, V):
             jnp.sum(W * omega_pt))
 
 
-@eqx.filter_jit
+@cached_jit
 def _part_stats(sums, var, x, U, Qxx, ridge_idx, n_ridge_groups):
     """The modes as fixed effects and the cells' responses (as :func:`_solve`)."""
     f = x.dtype

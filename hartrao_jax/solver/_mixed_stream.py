@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+from .._programs import cached_jit
 from ._kernel import step_sigmas
 from ._mixed import _Linearization, _ridge_args, _update, _vce
 from ._mixed_pass import _pass, cell_order
@@ -96,7 +97,7 @@ def mixed_chunk(
                         dev_column=dev_column, chunk=chunk)
 
 
-@eqx.filter_jit
+@cached_jit
 def _mixed_chunk(condition, l, consts, weights, s2, groups, design, x, U, noise_var, robust_k,
                  on, MZ, order, *, dev_column, chunk):
     n_cells = U.shape[0]
@@ -127,7 +128,7 @@ class MixedStep(eqx.Module):
     ratio: Array
 
 
-@eqx.filter_jit
+@cached_jit
 def mixed_step(
     sums: MixedSums, var: tuple, var0: tuple, x: Float[Array, " u"], U: Float[Array, "g k"],
     ridge_idx: Int[Array, " r"], ridge_group: Int[Array, " r"], n_ridge_groups: int,

@@ -13,11 +13,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._programs import cached_jit
 from ..campaign._campaign import load_campaign
 from ..campaign._safeio import verify_result_dir
 from ..fit._fit import scan_arrays, sigma_vector
@@ -145,7 +145,7 @@ def _linearize_dev(model, L, x, C, s2):
     return jax.vmap(one)(L, C, s2)
 
 
-_linearize_dev_jit = eqx.filter_jit(_linearize_dev)
+_linearize_dev_jit = cached_jit(_linearize_dev)
 
 
 def _linear_response(model, obs: np.ndarray, v: np.ndarray, consts: np.ndarray,

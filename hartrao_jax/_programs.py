@@ -14,12 +14,13 @@ it was written with equals the key of the call (not only its digest):
 * the function (module and qualified name) and the digest of the whole package's source;
 * every argument: an array by its shape, dtype and weak type; anything else by value (numbers,
   strings, tuples, lists, dicts, dtypes, enums, dataclasses such as ``eqx.Module`` field by
-  field, functions and classes defined at module level by their qualified name,
-  ``functools.partial``);
+  field, functions and classes defined at module level by their qualified name and, outside
+  the package and the libraries, the digest of their module's file; ``functools.partial``);
 * the package's module constants (upper-case names: a test may change one);
-* the versions of Python, jax, jaxlib, equinox and NumPy; JAX's configuration; the backend's
-  platform, its version and the CPU's model and features; the environment variables of the
-  package, of XLA and of JAX; the cores the process may use.
+* the versions of Python, jax, jaxlib, equinox and NumPy; JAX's configuration (but for its
+  logging, caches and tracebacks: :data:`QUIET_OPTIONS`); the backend's platform, its version
+  and the CPU's model and features; the environment variables of the package, of XLA and of
+  JAX; the cores the process may use.
 
 A call the key cannot state exactly (a closure, an object that is neither a dataclass nor a plain
 value, an array held in a static field, a call from inside another trace) is an ordinary
@@ -58,6 +59,11 @@ PROGRAMS_ENV = "HARTRAO_JAX_PROGRAMS"
 FORMAT = 1
 #: Prefixes of the environment variables that are part of every key.
 ENV_PREFIXES = ("HARTRAO", "XLA", "JAX", "TF_", "OMP_", "MKL_", "OPENBLAS")
+
+#: JAX options left out of the key (words of their names): logging, caches, tracebacks; they do
+#: not change what a program computes (``jax_log_compiles`` would otherwise compile every
+#: program again for a process that only wants to see its compilations).
+QUIET_OPTIONS = ("log", "cache", "traceback", "explain")
 
 _PACKAGE = __name__.rsplit(".", 1)[0]
 _state: dict[str, Any] = {"dir": None, "process": None}
@@ -257,7 +263,8 @@ def _now_key() -> str:
     """What shapes programs and may change while a process runs: JAX's configuration, the
     environment, the usable cores and the package's module constants."""
     cfg = sorted((k, v) for k, v in jax.config.values.items()
-                 if isinstance(v, (bool, int, float, str, type(None))))
+                 if isinstance(v, (bool, int, float, str, type(None)))
+                 and not any(w in k for w in QUIET_OPTIONS))
     env = sorted((k, v) for k, v in os.environ.items() if k.startswith(ENV_PREFIXES))
     affinity = getattr(os, "sched_getaffinity", None)
     cores = len(affinity(0)) if affinity else os.cpu_count()
@@ -294,11 +301,25 @@ class _Program:
     compiled: Any
     out_tree: Any
     out_leaves: tuple  # a _Slot for each array output, the value of every other leaf
+    trying: list = dataclasses.field(default_factory=list)  # a loaded one's marker until it ran
 
     def __call__(self, dyn):
         outs = self.compiled(*dyn)
+        if self.trying:  # its first run from a file has ended: the file is good
+            jax.block_until_ready(outs)
+            try:
+                _unlink(self.trying.pop())
+            except IndexError:  # (another thread's run of it removed the marker)
+                pass
         return jax.tree.unflatten(self.out_tree, [outs[x.i] if isinstance(x, _Slot) else x
                                                  for x in self.out_leaves])
+
+
+def _unlink(path: Path) -> None:
+    try:
+        path.unlink()
+    except OSError:
+        pass
 
 
 def _skeleton(out_tree, out_leaves):
@@ -353,10 +374,21 @@ class CachedJit:
         except Uncacheable:
             path = None
         if path is not None:
-            prog = _load(path, full)
-            if prog is not None:
-                _counts["loaded"] += 1
-                return prog
+            # a marker beside the file until the loaded program has run once: one left behind
+            # by a process that died loading or running it (a crash inside XLA) condemns the
+            # file, which is then compiled and written again
+            trying = path.with_name(f"{path.name}.trying")
+            if trying.exists():
+                _unlink(path)
+                _unlink(trying)
+            elif path.exists():
+                _write(trying, b"")
+                prog = _load(path, full)
+                if prog is not None:
+                    _counts["loaded"] += 1
+                    prog.trying.append(trying)
+                    return prog
+                _unlink(trying)
         _counts["compiled"] += 1
         is_dyn = [_is_array(x) for x in leaves]
         n_first = sum(_is_array(x) for x in jax.tree.leaves(args[:1]))
@@ -479,15 +511,16 @@ def _blob(full: str, prog: _Program) -> bytes | None:
 
 def _write(path: Path, blob: bytes) -> None:
     """Write ``blob`` to ``path``, whole or not at all (a temporary file renamed)."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
         with open(tmp, "wb") as fh:
             fh.write(blob)
         os.replace(tmp, path)
-        _counts["written"] += 1
     except OSError:
-        pass
+        _unlink(tmp)
+        return
+    _counts["written"] += blob != b""
 
 
 def cached_jit(fn: Callable | None = None, *,

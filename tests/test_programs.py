@@ -126,6 +126,23 @@ def test_a_damaged_or_foreign_file_is_compiled_again(programs):
     assert P.program_counts()["compiled"] == counts["compiled"] + 2
 
 
+def test_a_file_whose_first_run_never_ended_is_condemned(programs):
+    """The marker a loaded program keeps until its first run has ended: one left behind (a
+    process that died inside XLA) makes the next process compile and write it again."""
+    first = _f(*_args(), k=3)
+    (path,) = programs.glob("*.bin")
+    P.clear_programs()
+    counts = P.program_counts()
+    _same(_f(*_args(), k=3), first)  # loaded, run: no marker left
+    assert P.program_counts()["loaded"] == counts["loaded"] + 1
+    assert not list(programs.glob("*.trying"))
+    path.with_name(path.name + ".trying").write_bytes(b"")  # as if that run had crashed
+    P.clear_programs()
+    _same(_f(*_args(), k=3), first)
+    assert P.program_counts()["compiled"] == counts["compiled"] + 1
+    assert path.exists() and not list(programs.glob("*.trying"))
+
+
 def test_off_by_environment(programs, monkeypatch):
     monkeypatch.setenv(P.PROGRAMS_ENV, "0")
     _f(*_args(), k=3)

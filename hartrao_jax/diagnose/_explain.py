@@ -4,6 +4,7 @@ augmented by candidate columns, score tests with their p-values, separability of
 from __future__ import annotations
 
 import functools
+import hashlib
 import logging
 import math
 import time
@@ -15,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import special
 
+from .._programs import Uncacheable, spec
 from ..model._model import (
     DRIFT,
     OSCILLATION,
@@ -117,9 +119,19 @@ def _cell_sums(ctx: _Context, sc: _Scan, model, x: np.ndarray, w: np.ndarray,
             jnp.asarray(_pad(cell, npad, -1)), jnp.asarray(_pad(design, npad, 0.0)))
 
     def sums_of(m, x_m):
+        # the same scan, model, solution and cells as a joint system before (the last step's
+        # and the final estimates' first, 0.2 s a scan): its sums again
+        key = _sums_key(m, x_m, args, U)
+        if key is not None and key in ctx.sums_memo:
+            return ctx.sums_memo[key]
         s, _ = mixed_chunk(m, *args, jnp.asarray(x_m, float), jnp.asarray(U), jnp.asarray(1.0),
                            jnp.asarray(np.inf), dev_column=1)
-        return jax.tree.map(np.asarray, s)
+        s = jax.tree.map(np.asarray, s)
+        if key is not None:
+            while len(ctx.sums_memo) >= SUMS_MEMO:
+                ctx.sums_memo.pop(next(iter(ctx.sums_memo)))
+            ctx.sums_memo[key] = s
+        return s
 
     # by the widest model of the scan that gives the same values (one program for the
     # successive joint systems, :class:`._state._Supersets`), its rows of ``model``'s unknowns
@@ -132,6 +144,25 @@ def _cell_sums(ctx: _Context, sc: _Scan, model, x: np.ndarray, w: np.ndarray,
                          sg=sums.sg[:, :, idx], tg=sums.tg, wMw=sums.wMw, n_used=sums.n_used,
                          omega=sums.omega)
     return sums
+
+
+#: Joint systems' sums of one scan kept for reuse (:func:`_cell_sums`; a scan's are a few MB).
+SUMS_MEMO = 8
+
+
+def _sums_key(model, x, args, U) -> str | None:
+    """A digest of everything :func:`._explain._cell_sums`' sums of a scan depend on: the
+    model's static fields and every array (its own, the unknowns, the points' rows, the
+    cells' values); None where the model cannot be stated (:func:`.._programs.spec`)."""
+    try:
+        h = hashlib.sha1(repr(spec(model)).encode())
+    except Uncacheable:
+        return None
+    for a in (*jax.tree.leaves(model), x, *args, U):
+        a = np.ascontiguousarray(np.asarray(a))
+        h.update(repr((a.shape, a.dtype.str)).encode())
+        h.update(a.data)
+    return h.hexdigest()
 
 
 def _jacobi_scale(K: np.ndarray) -> np.ndarray:

@@ -235,6 +235,7 @@ class _Context:
     def __init__(self, campaign: Campaign, config: DiagnoseConfig):
         self.campaign = campaign
         self.config = config
+        self.sums_memo: dict[str, object] = {}  # scans' joint-system sums (._explain._cell_sums)
         tel = campaign.telescope
         self.aperture = tel.diameter_m / 2
         s = campaign.scanner

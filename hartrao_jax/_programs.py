@@ -16,11 +16,15 @@ it was written with equals the key of the call (not only its digest):
   strings, tuples, lists, dicts, dtypes, enums, dataclasses such as ``eqx.Module`` field by
   field, functions and classes defined at module level by their qualified name and, outside
   the package and the libraries, the digest of their module's file; ``functools.partial``);
-* the package's module constants (upper-case names: a test may change one);
 * the versions of Python, jax, jaxlib, equinox and NumPy; JAX's configuration (but for its
   logging, caches and tracebacks: :data:`QUIET_OPTIONS`); the backend's platform, its version
   and the CPU's model and features; the environment variables of the package, of XLA and of
   JAX; the cores the process may use.
+
+The package's module constants are part of its source. A test that rebinds one (or replaces a
+function) changes what a program computes without changing its key, so the test suite keeps no
+programs on disk (``tests/conftest.py`` sets ``$HARTRAO_JAX_PROGRAMS=0``;
+``tests/test_programs.py`` turns it on for itself).
 
 A call the key cannot state exactly (a closure, an object that is neither a dataclass nor a plain
 value, an array held in a static field, a call from inside another trace) is an ordinary
@@ -233,42 +237,16 @@ def _process_key() -> str:
     return _state["process"]
 
 
-_constants_seen: dict[str, Any] = {"modules": None, "objects": (), "digest": ""}
-
-
-def _constants() -> str:
-    """The digest of the package's module constants (upper-case names: a test may rebind one;
-    one that is not a plain value by its type only). Walked again only when a module was
-    loaded or a constant rebound since the last time (4 ms a walk)."""
-    names = sorted(m for m in sys.modules if m == _PACKAGE or m.startswith(_PACKAGE + "."))
-    seen = _constants_seen
-    if seen["modules"] == names and all(vars(m).get(k) is v for m, k, v in seen["objects"]):
-        return seen["digest"]
-    objects, out = [], []
-    for name in names:
-        module = sys.modules[name]
-        for k, v in sorted(vars(module).items()):
-            if k.isupper() and not k.startswith("_"):
-                objects.append((module, k, v))
-                try:
-                    out.append((name, k, spec(v, True)))
-                except Uncacheable:
-                    out.append((name, k, type(v).__name__))
-    seen.update(modules=names, objects=tuple(objects),
-                digest=hashlib.sha256(repr(out).encode()).hexdigest())
-    return seen["digest"]
-
-
 def _now_key() -> str:
     """What shapes programs and may change while a process runs: JAX's configuration, the
-    environment, the usable cores and the package's module constants."""
+    environment and the usable cores."""
     cfg = sorted((k, v) for k, v in jax.config.values.items()
                  if isinstance(v, (bool, int, float, str, type(None)))
                  and not any(w in k for w in QUIET_OPTIONS))
     env = sorted((k, v) for k, v in os.environ.items() if k.startswith(ENV_PREFIXES))
     affinity = getattr(os, "sched_getaffinity", None)
     cores = len(affinity(0)) if affinity else os.cpu_count()
-    return repr((cfg, env, cores, _constants()))
+    return repr((cfg, env, cores))
 
 
 # --------------------------------------------------------------------------------------------

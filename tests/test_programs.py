@@ -4,6 +4,7 @@ tracing; the key states every argument by value or nothing is kept."""
 from __future__ import annotations
 
 import functools
+import json
 import os
 import pickle
 import subprocess
@@ -191,10 +192,32 @@ def test_a_later_process_loads_linear_algebra_programs(tmp_path):
                               str(tmp_path / programs)], env=env, capture_output=True,
                              text=True, timeout=300)
         assert out.returncode == 0, out.stderr[-2000:]
-        return __import__("json").loads(out.stdout.strip().splitlines()[-1])
+        return json.loads(out.stdout.strip().splitlines()[-1])
 
     runs = [run("a"), run("a"), run("b"), run("b")]
     assert [(r["compiled"], r["loaded"], r["written"]) for r in runs] == [
         (1, 0, 1), (0, 1, 0), (1, 0, 1), (0, 1, 0)]
     for r in runs[1:]:
         assert r["dx"] == runs[0]["dx"] and r["r"] == runs[0]["r"]
+
+
+def test_a_whole_fit_from_loaded_programs_is_the_same(programs, tmp_path):
+    """A two-face position adjusted with its programs compiled (and written), then again from
+    the written programs alone (nothing traced): the same fit.json."""
+    from hartrao_jax.campaign._campaign import load_campaign
+    from hartrao_jax.fit._fit import fit_campaign
+    from hartrao_jax.fit._records import fit_json
+    from hartrao_jax.simulate._simulate import simulate_campaign
+
+    camp = load_campaign(simulate_campaign(
+        tmp_path / "camp", preset="demo", effects={"x4": 1.5e-4, "panel_offset": 1.5e-4},
+        seed=5, step_rad=0.03, positions=[("r23", -35.0, -64.0)]).root)
+    first = fit_json(fit_campaign(camp, "extended", progress=False))
+    assert P.program_counts()["written"] > 0
+    P.clear_programs()
+    jax.clear_caches()
+    counts = P.program_counts()
+    again = fit_json(fit_campaign(camp, "extended", progress=False))
+    assert P.program_counts()["compiled"] == counts["compiled"]  # every program loaded
+    assert P.program_counts()["loaded"] > counts["loaded"]
+    assert json.dumps(again, sort_keys=True) == json.dumps(first, sort_keys=True)

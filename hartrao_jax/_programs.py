@@ -113,9 +113,9 @@ def clear_programs() -> None:
 _PLAIN = (type(None), bool, int, str, bytes)
 
 
-#: Libraries whose code is part of every key by their versions (:func:`_process_key`).
-LIBRARIES = ("builtins", "jax", "jaxlib", "equinox", "numpy", "lineax", "optimistix", "math",
-             "operator", "functools")
+#: Libraries whose code is part of every key by their versions (:func:`_process_key`; the
+#: standard library's by Python's); any other module's functions by their file's digest.
+LIBRARIES = ("builtins", "jax", "jaxlib", "equinox", "numpy", "math", "operator", "functools")
 _file_digests: dict[str, str] = {}
 
 

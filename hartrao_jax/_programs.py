@@ -104,6 +104,7 @@ def clear_programs() -> None:
     with _lock:
         for c in _instances:
             c._memory.clear()
+            c._locks.clear()
 
 
 # --------------------------------------------------------------------------------------------
@@ -319,6 +320,7 @@ class CachedJit:
         self._jit = eqx.filter_jit(fn, donate=donate, keep_unused=keep_unused) if keep_unused \
             else eqx.filter_jit(fn, donate=donate)
         self._memory: dict = {}
+        self._locks: dict = {}
         with _lock:
             _instances.append(self)
 
@@ -335,7 +337,11 @@ class CachedJit:
         except (Uncacheable, TypeError):
             return self._jit(*args, **kwargs)
         if prog is None:
+            # one lock per program: threads wanting the same one wait for its compilation,
+            # threads wanting different ones compile at the same time (the parts of a pass)
             with _lock:
+                lock = self._locks.setdefault(key, threading.Lock())
+            with lock:
                 prog = self._memory.get(key)
                 if prog is None:
                     prog = self._memory[key] = self._program(key, args, leaves, treedef, dyn)

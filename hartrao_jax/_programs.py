@@ -295,6 +295,7 @@ class _Program:
 
 
 def _unlink(path: Path) -> None:
+    """Remove ``path`` if it is there (another process may have removed it first)."""
     try:
         path.unlink()
     except OSError:
@@ -302,6 +303,7 @@ def _unlink(path: Path) -> None:
 
 
 def _skeleton(out_tree, out_leaves):
+    """The function's output with each array's place (a :class:`_Slot`) instead of the array."""
     return jax.tree.unflatten(out_tree, list(out_leaves))
 
 
@@ -317,8 +319,7 @@ class CachedJit:
         self._signature = inspect.signature(fn)
         self._donate = donate
         self._keep_unused = keep_unused
-        self._jit = eqx.filter_jit(fn, donate=donate, keep_unused=keep_unused) if keep_unused \
-            else eqx.filter_jit(fn, donate=donate)
+        self._jit = eqx.filter_jit(fn, donate=donate, keep_unused=keep_unused)
         self._memory: dict = {}
         self._locks: dict = {}
         with _lock:

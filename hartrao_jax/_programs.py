@@ -57,6 +57,8 @@ import equinox as eqx
 import jax
 import numpy as np
 
+from ._files import unlink, write_via_temp
+
 #: ``$HARTRAO_JAX_PROGRAMS=0``: compiled programs are neither read from nor written to disk.
 PROGRAMS_ENV = "HARTRAO_JAX_PROGRAMS"
 #: The format of a program file (part of its key).
@@ -295,11 +297,9 @@ class _Program:
 
 
 def _unlink(path: Path) -> None:
-    """Remove ``path`` if it is there (another process may have removed it first)."""
-    try:
-        path.unlink()
-    except OSError:
-        pass
+    """Remove ``path`` if it can be (another process may have removed it first, the folder
+    may be read-only)."""
+    unlink(path, ignore=(OSError,))
 
 
 def _skeleton(out_tree, out_leaves):
@@ -495,15 +495,12 @@ def _blob(full: str, prog: _Program) -> bytes | None:
 
 
 def _write(path: Path, blob: bytes) -> None:
-    """Write ``blob`` to ``path``, whole or not at all (a temporary file renamed)."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+    """Write ``blob`` to ``path``, whole or not at all (:func:`._files.write_via_temp`, not
+    flushed to the disk: a lost program is compiled again); a folder that cannot be written
+    keeps none."""
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(tmp, "wb") as fh:
-            fh.write(blob)
-        os.replace(tmp, path)
+        write_via_temp(path, lambda t: t.write_bytes(blob), durable=False)
     except OSError:
-        _unlink(tmp)
         return
     _counts["written"] += blob != b""
 

@@ -5,12 +5,12 @@
     campaign -> geometry -> physics -> model -> solver -> preprocess -> fit -> surface
     -> diagnose -> simulate -> {prove, sensitivity} -> report -> cli
 
-``_programs`` (compiled programs kept on disk) and ``_config`` are base modules every layer may
-import; the top-level ``__init__`` gathers the public API and may import anything. Checked here:
-no upward import, no import between two subpackages of the same rank, no cycle between
-subpackages or between modules, and no function-local import of a package module (those hid
-cycles; optional heavy third-party dependencies such as dask, matplotlib and pyarrow may stay
-lazy, they are not package modules).
+``_files`` (files written whole), ``_programs`` (compiled programs kept on disk) and ``_config``
+are base modules every layer may import; the top-level ``__init__`` gathers the public API and
+may import anything. Checked here: no upward import, no import between two subpackages of the
+same rank, no cycle between subpackages or between modules, and no function-local import of a
+package module (those hid cycles; optional heavy third-party dependencies such as dask,
+matplotlib and pyarrow may stay lazy, they are not package modules).
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import pathlib
 PKG = pathlib.Path(__file__).resolve().parents[1] / "hartrao_jax"
 
 LAYERS: list[tuple[str, ...]] = [
+    ("_files",),
     ("_programs",),
     ("_config",),
     ("campaign",),

@@ -41,13 +41,17 @@ import math
 import os
 import pathlib
 import re
-import secrets
 import time
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 import numpy as np
 
+from .._files import fsync_dir as _fsync_dir
+from .._files import fsync_file as _fsync_file
+from .._files import tmp_name as _tmp_name
+from .._files import unlink as _unlink
+from .._files import write_via_temp as _write_via_temp
 from ._format import CampaignError
 
 #: Fault-injection hook of the crash tests: with ``HARTRAO_JAX_SAFEIO_PAUSE_S=<seconds>`` in
@@ -183,32 +187,6 @@ def loads_strict(text: str | bytes) -> Any:
 # ----------------------------------------------------------------------------- atomic files
 
 
-def _tmp_name(final: pathlib.Path) -> pathlib.Path:
-    return final.with_name(f".{final.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
-
-
-def _fsync_file(path: pathlib.Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _fsync_dir(path: pathlib.Path) -> None:
-    with contextlib.suppress(OSError):  # not every file system lets a directory be synced
-        fd = os.open(path, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
-def _unlink(path: pathlib.Path) -> None:
-    with contextlib.suppress(FileNotFoundError):
-        path.unlink()
-
-
 def _pause() -> None:
     t = os.environ.get(PAUSE_ENV)
     if t:
@@ -241,23 +219,6 @@ def remove_stale_temporaries(directory: str | os.PathLike) -> int:
             _unlink(p)
             n += 1
     return n
-
-
-def _write_via_temp(final: pathlib.Path, write: Callable[[pathlib.Path], Any], *,
-                    durable: bool = True) -> pathlib.Path:
-    final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _tmp_name(final)
-    try:
-        write(tmp)
-        if durable:
-            _fsync_file(tmp)
-        os.replace(tmp, final)
-    except BaseException:
-        _unlink(tmp)
-        raise
-    if durable:
-        _fsync_dir(final.parent)
-    return final
 
 
 def write_file_atomic(path: str | os.PathLike, writer: Callable[[pathlib.Path], Any], *,

@@ -56,6 +56,7 @@ from typing import Any, Literal
 import equinox as eqx
 import jax
 import numpy as np
+from jax.experimental.serialize_executable import deserialize_and_load, serialize
 
 from ._files import unlink, write_via_temp
 
@@ -454,8 +455,6 @@ def _ensure_handlers() -> None:
 def _load(path: Path, full: str) -> _Program | None:
     """The program kept at ``path`` if it was written with the key ``full``; None where there is
     none, it was written with another key or cannot be read (then it is written again)."""
-    from jax.experimental.serialize_executable import deserialize_and_load
-
     try:
         _ensure_handlers()
         with open(path, "rb") as fh:
@@ -465,9 +464,7 @@ def _load(path: Path, full: str) -> _Program | None:
         compiled = deserialize_and_load(kept["exe"], kept["in_tree"], kept["out_tree"])
         leaves, tree = jax.tree.flatten(kept["skeleton"], is_leaf=lambda x: isinstance(x, _Slot))
         return _Program(compiled, tree, tuple(leaves))
-    except FileNotFoundError:
-        return None
-    except Exception:  # noqa: BLE001  (a damaged or foreign file: compiled and written again)
+    except Exception:  # noqa: BLE001  (a damaged, foreign or vanished file: compiled again)
         return None
 
 
@@ -475,8 +472,6 @@ def _blob(full: str, prog: _Program) -> bytes | None:
     """``prog`` as the bytes of its file, None where it cannot be kept: it calls back into
     Python or has effects, cannot be serialised, or its output structure does not come back
     from the file as it is."""
-    from jax.experimental.serialize_executable import serialize
-
     try:
         unloaded = prog.compiled._executable._unloaded_executable
         if (unloaded.host_callbacks or unloaded.keepalive or unloaded.ordered_effects

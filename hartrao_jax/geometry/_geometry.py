@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from .._config import row_blocks, thread_pool, usable_cores
+from .._config import lend_to_device, row_blocks, thread_pool, usable_cores
 from .._programs import cached_jit
 from ..campaign._format import cartesian_to_raw  # noqa: F401  (the recording's face rule)
 
@@ -437,11 +437,13 @@ def zernike_columns(X: Float[ArrayLike, "n d"], modes, aperture_radius_m: float,
     integer powers as products, one fusion; 0.09 s per 1e6 points and 7 modes against 0.21 s
     in NumPy). ``dtype``: of the columns (evaluated in float64 either way; float32 halves a
     large design's memory, 6e-8 of rounding on values within +-sqrt(2 (n + 1)))."""
-    X = np.asarray(X, float)
+    X = np.asarray(X)
     modes = tuple(int(j) for j in modes)
     if not len(X) or not modes:
         return np.zeros((len(X), len(modes)), dtype)
-    return np.asarray(_zernike_columns(jnp.asarray(X[:, :2]), modes,
+    # x, y as float64 in one copy the device shares (not a float64 copy of every column,
+    # then another of two of them: 200 MB of the 1.26e7 float32 hit points of a large position)
+    return np.asarray(_zernike_columns(lend_to_device(X[:, :2], np.float64), modes,
                                        jnp.asarray(aperture_radius_m, float), np.dtype(dtype)))
 
 

@@ -47,6 +47,7 @@ from typing import Any
 
 import numpy as np
 
+from .._files import FileDigest, HashingFile
 from .._files import fsync_dir as _fsync_dir
 from .._files import fsync_file as _fsync_file
 from .._files import tmp_name as _tmp_name
@@ -85,8 +86,10 @@ ROW_GROUP_ROWS = 1 << 18
 
 
 def write_columns(columns: Mapping[str, np.ndarray], path, *,
-                  row_group_rows: int = ROW_GROUP_ROWS) -> None:
-    """Write equal-length NumPy columns as Parquet, one row group at a time.
+                  row_group_rows: int = ROW_GROUP_ROWS) -> FileDigest:
+    """Write equal-length NumPy columns as Parquet, one row group at a time; returns the
+    file's manifest entry, taken as it was written (:class:`.._files.HashingFile`: an
+    :class:`OutputDir` does not read it again).
 
     The file :func:`write_table` would write from ``pa.table(columns)``, but a strided column
     (``v[:, 0]`` of an ``(n, 3)`` array) is copied one row group at a time instead of whole:
@@ -101,10 +104,12 @@ def write_columns(columns: Mapping[str, np.ndarray], path, *,
         return pa.table({k: np.ascontiguousarray(v[a:b]) for k, v in columns.items()})
 
     first = rows(0, min(n, row_group_rows))
-    with pq.ParquetWriter(path, first.schema, **PARQUET_WRITE_OPTIONS) as w:
-        w.write_table(first, row_group_size=row_group_rows)
-        for a in range(row_group_rows, n, row_group_rows):
-            w.write_table(rows(a, min(n, a + row_group_rows)), row_group_size=row_group_rows)
+    with HashingFile(path) as sink:
+        with pq.ParquetWriter(sink, first.schema, **PARQUET_WRITE_OPTIONS) as w:
+            w.write_table(first, row_group_size=row_group_rows)
+            for a in range(row_group_rows, n, row_group_rows):
+                w.write_table(rows(a, min(n, a + row_group_rows)), row_group_size=row_group_rows)
+    return sink.digest
 
 
 # ----------------------------------------------------------------------------- strict JSON
@@ -343,7 +348,9 @@ class OutputDir:
                    threads: int = 1) -> list[pathlib.Path]:
         """:meth:`write_with` for every ``(rel, writer)`` of ``items``, ``threads`` at a time;
         each file is flushed (``durable``) and hashed for the manifest by the thread that
-        wrote it, while it is still in the page cache. Returns the final paths in order.
+        wrote it, while it is still in the page cache, or, where its writer returns the
+        :class:`.._files.FileDigest` it took while writing (:func:`write_columns`), that one.
+        Returns the final paths in order.
 
         For writers that release the GIL (Parquet encoding and compression; ``savefig`` does
         not): the two 6.3e6-row residual tables of a full-resolution position are written in
@@ -355,10 +362,10 @@ class OutputDir:
 
         def one(k: int) -> dict[str, Any]:
             rel, writer = items[k]
-            writer(tmps[k])
+            got = writer(tmps[k])
             if not tmps[k].is_file():
                 raise RuntimeError(f"{rel}: the writer wrote no file")
-            return self._seal(tmps[k])
+            return self._seal(tmps[k], got if isinstance(got, FileDigest) else None)
 
         try:
             if threads <= 1 or len(items) <= 1:
@@ -379,10 +386,14 @@ class OutputDir:
             _pause()
         return [self.final_path(rel) for rel, _ in items]
 
-    def _seal(self, path: pathlib.Path) -> dict[str, Any]:
-        """Flush a finished file to disk (``durable``) and return its manifest entry."""
+    def _seal(self, path: pathlib.Path, digest: FileDigest | None = None) -> dict[str, Any]:
+        """Flush a finished file to disk (``durable``) and return its manifest entry: the
+        ``digest`` its writer took as it wrote it (:class:`.._files.HashingFile`), where
+        given and of the file's size, else read from the file."""
         if self.durable:
             _fsync_file(path)
+        if digest is not None and digest.bytes == path.stat().st_size:
+            return digest.entry()
         return file_digest(path)
 
     def write_bytes(self, rel: str, data: bytes) -> pathlib.Path:

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .._config import row_blocks
+from .._files import FileDigest
 from ..campaign._safeio import OutputDir, write_columns, write_file_atomic
 from ..geometry._geometry import face_of
 from ..model._model import parameter_unit
@@ -93,9 +94,9 @@ def write_residuals(path: Path, s: ScanFit) -> None:
     write_file_atomic(path, lambda t: write_residual_table(t, s), durable=False)
 
 
-def write_residual_table(path: Path, s: ScanFit) -> None:
+def write_residual_table(path: Path, s: ScanFit) -> FileDigest:
     """The table of :func:`write_residuals` written at ``path`` itself (a temporary name
-    given by the caller: :class:`..campaign._safeio.OutputDir`)."""
+    given by the caller: :class:`..campaign._safeio.OutputDir`); its manifest entry."""
     d = s.data
     face = np.empty(len(d), np.int8)  # a block at a time (no int64 and float64 columns made)
     for rows in row_blocks(len(d)):
@@ -118,7 +119,7 @@ def write_residual_table(path: Path, s: ScanFit) -> None:
         "Y_m": s.X_tel[:, 1],
         "Z_m": s.X_tel[:, 2],
     }
-    write_columns(columns, path)
+    return write_columns(columns, path)
 
 
 def write_fit(out_dir: str | Path, cf: CampaignFit, *, residuals: bool = True) -> Path:

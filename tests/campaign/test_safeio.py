@@ -16,9 +16,11 @@ from hartrao_jax.campaign._safeio import (
     OutputDir,
     check_output_path,
     dumps_strict,
+    file_digest,
     loads_strict,
     strict_json,
     verify_result_dir,
+    write_columns,
     write_json_atomic,
 )
 
@@ -101,6 +103,37 @@ def test_output_dir_write_each_in_threads(tmp_path):
                           threads=2)
     assert verify_result_dir(root, "main.json")["files"] == docs[1]  # the old result stands
     assert not temporaries(root)
+
+
+def test_digest_taken_while_writing(tmp_path, monkeypatch):
+    """A Parquet table hashed as it is written (``_files.HashingFile``, its pages handed to
+    the writeback every few bytes here) has the manifest entry of the file read back, reads
+    back whole, and an :class:`OutputDir` lists it; a writer's digest that does not match
+    the file's size is not trusted (the file is read)."""
+    import pyarrow.parquet as pq
+
+    from hartrao_jax import _files
+
+    monkeypatch.setattr(_files, "WRITEBACK_BYTES", 4096)
+    rng = np.random.default_rng(0)
+    cols = {"a": rng.normal(size=(50_000, 3))[:, 1], "b": np.arange(50_000)}
+    got = write_columns(cols, tmp_path / "t.parquet", row_group_rows=8192)
+    assert got.entry() == file_digest(tmp_path / "t.parquet")
+    back = pq.read_table(tmp_path / "t.parquet")
+    assert np.array_equal(back.column("a").to_numpy(), cols["a"])
+    assert np.array_equal(back.column("b").to_numpy(), cols["b"])
+
+    def lying(t):
+        t.write_bytes(b"abc")
+        return _files.FileDigest(4, "0" * 64)
+
+    with OutputDir(tmp_path / "r", "main.json") as od:
+        od.write_each([("t.parquet", lambda t: write_columns(cols, t, row_group_rows=8192)),
+                       ("x.bin", lying)])
+        od.commit({"schema": "t/1"})
+    files = verify_result_dir(tmp_path / "r", "main.json")["files"]
+    assert files["t.parquet"] == got.entry()
+    assert files["x.bin"] == {"bytes": 3, "sha256": hashlib.sha256(b"abc").hexdigest()}
 
 
 def test_output_dir_abort_keeps_the_previous_result(tmp_path):

@@ -373,7 +373,7 @@ def _sample_start(campaign: Campaign, metas: Sequence[ScanMeta], model, prepared
         masks[m.id] = mask
     start = fit_position(campaign, metas, model, datas=datas, keep=lambda m, d: masks[m.id],
                          fixed=fixed, robust_k=robust_k, window_m=window_m,
-                         heading_hint_rad=heading_hint_rad, max_iter=max_iter)
+                         heading_hint_rad=heading_hint_rad, max_iter=max_iter, as_start=True)
     return start if start.mixed is not None else None
 
 
@@ -398,6 +398,7 @@ def fit_position(
     max_iter: int = 30,
     mode_prior_m2: float | None = None,
     keep_resume: bool = False,
+    as_start: bool = False,
 ) -> PositionFit:
     """Adjust the scans of one position together: one pose, one f, one set of calibration.
 
@@ -423,6 +424,12 @@ def fit_position(
     that would take such a variance (none given) keeps ``resume(mode_prior_m2)``, the same
     adjustment with it from where this one ended (its arrays held until then), so that a
     campaign does not adjust it from its points twice.
+
+    ``as_start``: this adjustment is only the start of one of more of the same points (a
+    sample's, :func:`_sample_start`). Its loop over the smooth modes ends at their first
+    verdict: the groups the data do not show are marked not carried (``surface.mode_tests``,
+    what the fixed effects take up without them in ``surface.mode_confounding``) but are not
+    adjusted away here; the larger adjustment starts without them.
     """
 
     metas = list(metas)
@@ -568,14 +575,18 @@ def fit_position(
             warm: dict = {"v0": np.asarray(res.v), "cell_var0": np.asarray(_CELL_VAR0)}
             ridge_var0 = np.full(len(groups), _MODE_VAR0)
         else:  # the sample's verdicts on the modes and its random effect as the start
-            groups = {k_: SURFACE_MODE_GROUPS[k_] for k_ in (st.ridge or {})}
+            # (the groups the sample shows: :func:`_sample_start` leaves the others in its
+            # result, marked not carried, instead of adjusting it again without them)
+            groups = {k_: SURFACE_MODE_GROUPS[k_] for k_ in (st.ridge or {})
+                      if start.surface.mode_tests.get(k_, {"carried": True})["carried"]}
             mode_tests = dict(start.surface.mode_tests)
             confounding = dict(start.surface.mode_confounding)
             x_start = {n_: float(v_) for n_, v_ in zip(st.model.free, st.x)}
             warm = {"v0": v_start, "u0": np.asarray(st.u), "noise_var0": float(st.var[0]),
                     "cell_var0": np.maximum(np.asarray(st.var[1]), np.asarray(_CELL_VAR0)),
                     "rate0": st.contraction}
-            ridge_var0 = np.maximum(np.asarray(st.var[2], float), _MODE_VAR0)
+            ridge_var0 = np.maximum(np.array([v_ for k_, v_ in zip(st.ridge or {}, np.asarray(
+                st.var[2], float)) if k_ in groups]), _MODE_VAR0)
         if start is not None:
             if robust_k is not None:
                 # the outliers the white robust adjustment would have rejected, judged there
@@ -630,6 +641,8 @@ def fit_position(
             if not confounding:  # what the fixed effects take up once the modes are dropped
                 confounding = mode_confounding(np.asarray(rm.Qxx), mdl2.free, ridge,
                                                np.asarray(rm.ridge_var), float(rm.noise_var))
+            if as_start:  # the verdicts are in; the larger adjustment starts without them
+                break
             ridge_var0 = np.array([v_ for k_, v_ in zip(groups, np.asarray(rm.ridge_var))
                                    if k_ not in absent])
             for k_ in absent:  # the data do not show them: not carried (see _absent_modes)
@@ -684,7 +697,7 @@ def fit_position(
                 variances=variances, redundancy=shares,
                 modes={mdl2.free[i]: (float(xs[i]), float(np.sqrt(cov[i, i]))) for i in mode_idx},
                 mode_tests=mode_tests, mode_prior=mode_prior(cov, mdl2.free, ridge, rm.ridge_var),
-                mode_confounding=confounding if not ridge else {})
+                mode_confounding=confounding if not ridge or as_start else {})
             line = mode_prior_note(surf.mode_prior, surf.modes,
                                    math.sqrt(variances.get("modes_m2", 0.0)))
             if line:

@@ -328,7 +328,7 @@ SAMPLE_START_POINTS = 4_000_000
 #: 0.054 with 2.5e5 (panels: medians 0.022, 0.030 and 0.025 of theirs), and the sizes' means
 #: differ by 0.041 and 0.054 sigma, within that spread: the start decides the cells'
 #: alignment and the rejections at a few hundredths of a sigma whatever its size (a variance
-#: of 0.7 % of the sigmas' squares at most). 5e5 points: about 0.6 s less than 1e6 (the
+#: of 0.7 % of the sigmas' squares at most). 5e5 points: 0.7 s less than 1e6 (12.3 -> 11.6 s; the
 #: streamed position starts from 3e5 per face, :mod:`._stream_position`).
 SAMPLE_POINTS = 500_000
 #: The most points of positions a process keeps in memory for their adjustment with a

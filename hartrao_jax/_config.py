@@ -31,6 +31,36 @@ def row_blocks(n: int, rows: int = BLOCK_ROWS) -> list[slice]:
     return [slice(s, min(s + rows, n)) for s in range(0, n, rows)]
 
 
+def by_row_blocks(fn, rows: tuple, block: int = BLOCK_ROWS) -> tuple:
+    """``fn(*rows)`` for a per-point ``fn`` (row ``i`` of each output depends on row ``i`` of
+    each input alone) of arrays ``rows`` with a common first axis: a table of more than
+    ``block`` rows a block at a time into NumPy arrays (every block of that size, the last
+    one ending at the table's end, so that it is one program; two blocks at a time, one's
+    copies while the other computes); a smaller one in one call. A tuple of the outputs.
+
+    With :data:`BLOCK_ROWS` rows a block, a program's temporaries (150 B per point for
+    :func:`.fit._projection.hit_points`) take a block's memory, reused by the next block,
+    instead of new pages for the whole table (1.26e7 points: 1.9 GB, 630,000 page faults)."""
+    n = rows[0].shape[0]
+    if n <= block:
+        return tuple(fn(*rows))
+    rows = tuple(np.asarray(r) for r in rows)
+    out: list[np.ndarray] = []
+
+    def one(start):
+        s = min(start, n - block)
+        got = fn(*(r[s:s + block] for r in rows))
+        for o, g in zip(out, got):
+            o[s:s + block] = np.asarray(g)  # (nothing returned: the block's arrays let go)
+
+    first = fn(*(r[:block] for r in rows))
+    out.extend(np.empty((n,) + g.shape[1:], g.dtype) for g in first)
+    for o, g in zip(out, first):
+        o[:block] = np.asarray(g)
+    list(thread_pool(2, "row_blocks").map(one, range(block, n, block)))
+    return tuple(out)
+
+
 def small_key_order(keys: np.ndarray, n_keys: int) -> np.ndarray:
     """Indices sorting ``keys`` (integers in ``0 .. n_keys - 1``), stable. Where they fit 16
     bits NumPy's stable sort is a radix sort: 5-10x a merge sort of wider keys (1.26e7

@@ -19,7 +19,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._config import BLOCK_ROWS, lendable_empty, release_compiled_programs, row_blocks
+from .._config import (
+    BLOCK_ROWS,
+    by_row_blocks,
+    lendable_empty,
+    release_compiled_programs,
+    row_blocks,
+)
 from .._programs import cached_jit
 from ..campaign._campaign import Campaign, ScanData, ScanMeta, read_scan
 from ..campaign._campaign import _concat as concat_scans
@@ -68,12 +74,7 @@ from ._identify import (
     undetermined_parameters,
     unidentifiable_calibration,
 )
-from ._projection import (
-    by_row_blocks,
-    hit_points,
-    hit_points_and_residuals,
-    reject_beyond,
-)
+from ._projection import hit_points, hit_points_and_residuals, reject_beyond
 from ._results import (
     CampaignFit,
     MixedState,
@@ -567,7 +568,7 @@ def fit_position(
                 else square_cells(X_hit[used], cell_m)[2])
         cell, local, n_cells, desc = panel_cells(
             X_hit, tel.ring_edges_m, tel.panels_per_ring, cell_m=cell_m, keys=keys)
-        cell = cell.astype(np.int32)  # (the ids fit: 4 B per point less at the peak)
+        cell = cell.astype(np.int32, copy=False)  # (the ids fit: 4 B per point less at the peak)
         # held in float32 (0.1 um of rounding on a panel's local coordinates; the solver takes
         # its rows in float64): 12 B per point less at the random effect's peak
         design = lendable_empty((n_pad, 1 + local.shape[1]), np.float32)

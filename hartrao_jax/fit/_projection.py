@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._config import BLOCK_ROWS, thread_pool
+from .._config import by_row_blocks
 from .._programs import cached_jit
 from ..model._model import ParaboloidModel
 from ..solver._kernel import _materialize, materialize_trig
@@ -42,36 +42,6 @@ def hit_points_and_residuals(model: ParaboloidModel, l, x, c, sigma_l, kappa_rad
     observations' corrections onto the surface at ``x`` (a Gauss-Helmert adjustment's
     linearisation point when it starts at ``x``)."""
     return _by_blocks(model, l, x, c, sigma_l, kappa_rad, True)
-
-
-def by_row_blocks(fn, rows: tuple, block: int = BLOCK_ROWS) -> tuple:
-    """``fn(*rows)`` for a per-point ``fn`` (row ``i`` of each output depends on row ``i`` of
-    each input alone) of arrays ``rows`` with a common first axis: a table of more than
-    ``block`` rows a block at a time into NumPy arrays (every block of that size, the last
-    one ending at the table's end, so that it is one program; two blocks at a time, one's
-    copies while the other computes); a smaller one in one call. A tuple of the outputs.
-
-    With :data:`.._config.BLOCK_ROWS` rows a block, a program's temporaries (150 B per point
-    for :func:`_hit_points`) take a block's memory, reused by the next block, instead of new
-    pages for the whole table (1.26e7 points: 1.9 GB, 630,000 page faults)."""
-    n = rows[0].shape[0]
-    if n <= block:
-        return tuple(fn(*rows))
-    rows = tuple(np.asarray(r) for r in rows)
-    out: list[np.ndarray] = []
-
-    def one(start):
-        s = min(start, n - block)
-        got = fn(*(r[s:s + block] for r in rows))
-        for o, g in zip(out, got):
-            o[s:s + block] = np.asarray(g)  # (nothing returned: the block's arrays let go)
-
-    first = fn(*(r[:block] for r in rows))
-    out.extend(np.empty((n,) + g.shape[1:], g.dtype) for g in first)
-    for o, g in zip(out, first):
-        o[:block] = np.asarray(g)
-    list(thread_pool(2, "row_blocks").map(one, range(block, n, block)))
-    return tuple(out)
 
 
 def _by_blocks(model, l, x, c, sigma_l, kappa_rad, with_v: bool):

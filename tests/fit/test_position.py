@@ -124,7 +124,8 @@ def test_hit_points_by_row_blocks_equal_one_call():
     (:func:`by_row_blocks`: the last block ends at the table's end, overlapping the one before;
     two blocks at a time): every row written, each equal to the one-call result (to the last
     bits a different vector lane may give a sine)."""
-    from hartrao_jax.fit._projection import _hit_points, by_row_blocks
+    from hartrao_jax._config import by_row_blocks
+    from hartrao_jax.fit._projection import _hit_points
     from hartrao_jax.model._model import make_model
     from tests.helpers import F_TRUE, POSE, SIGMA, synthetic_scan
 

@@ -93,6 +93,26 @@ def test_panel_ids_numbering_and_count():
     assert panel_ids(np.array([12.0]), np.array([0.01]), EDGES, PANELS)[0] == 255 - 60
 
 
+def test_panel_cells_compiled_by_blocks_equal_numpy(monkeypatch):
+    """Above ``BLOCK_ROWS`` points the panel cells are compiled and taken a block at a time
+    (the last block overlapping): the same panels as NumPy's one call, local coordinates
+    within 1e-12 m; points outside the panelled annulus get -1 and zeros either way."""
+    import hartrao_jax.geometry._geometry as G
+
+    rng = np.random.default_rng(4)
+    n = 5000
+    rho = rng.uniform(0.0, 13.5, n)
+    psi = rng.uniform(-np.pi, np.pi, n)
+    X = np.stack([rho * np.cos(psi), rho * np.sin(psi), rng.normal(size=n)], 1)
+    ref_ids, ref_local, nc, _ = G.panel_cells(X, EDGES, PANELS)
+    monkeypatch.setattr(G, "BLOCK_ROWS", 1024)
+    ids, local, nc2, _ = G.panel_cells(X, EDGES, PANELS)
+    np.testing.assert_array_equal(ids, ref_ids)
+    np.testing.assert_allclose(local, ref_local, atol=1e-12)
+    assert nc == nc2 == 255 and ids.dtype == np.int64
+    assert np.all(local[ids < 0] == 0.0) and np.any(ids < 0)
+
+
 def test_paraboloid_deviation_exact_and_signed():
     f = 10.9816
     rng = np.random.default_rng(1)

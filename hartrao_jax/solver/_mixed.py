@@ -80,7 +80,6 @@ from ._mixed_pass import (
     _pass,
     _rejected,
     _residual_k,
-    cell_order,
     design_dtype,
 )
 
@@ -330,8 +329,8 @@ class _Settings(eqx.Module):
     n_ridge_groups: int
 
 
-#: The per-point arrays of an adjustment (the points in cell order) or of one of its parts,
-#: a dict with these keys: observations ``L`` (n, 3), their residuals ``V`` (n, 3), constants
+#: The per-point arrays of an adjustment or of one of its parts, a dict with these keys:
+#: observations ``L`` (n, 3), their residuals ``V`` (n, 3), constants
 #: ``C`` (n, c), weights ``W`` (n,), variances ``S2`` (n, 3) or (3,) for all, cells ``G`` (n,),
 #: the cell design ``DM`` (n, k) and the smooth modes' design ``MZ`` (n, r).
 POINT_KEYS = ("L", "V", "C", "W", "S2", "G", "DM", "MZ")
@@ -348,8 +347,8 @@ def _pass_of(condition, cfg: _Settings, on, pts: dict, x, U, V=None, W=None, int
 @cached_jit
 def _solve(condition, cfg: _Settings, pts: dict, x0, U0, var0, ridge_idx, ridge_group,
            robust_k, on, reject_from, rate0):
-    """The adjustment as one compiled loop (:func:`gauss_helmert_mixed`; ``pts`` the points
-    in cell order, :data:`POINT_KEYS`)."""
+    """The adjustment as one compiled loop (:func:`gauss_helmert_mixed`; ``pts`` the points,
+    :data:`POINT_KEYS`)."""
     f = pts["L"].dtype
     s2, groups = pts["S2"], pts["G"]
     n_cells, tol = cfg.n_cells, cfg.tol
@@ -652,49 +651,51 @@ def _solve_parts(condition, cfg: _Settings, parts: list[dict], x0, U0, var0, rid
         contraction=jnp.asarray(rate))
 
 
-def _solve_split(condition, cfg: _Settings, threads: int, order, pts: dict, x0, U0, var0,
+def _solve_split(condition, cfg: _Settings, threads: int, pts: dict, x0, U0, var0,
                  ridge_idx, ridge_group, robust_k, reject_from: int, rate0: float):
-    """The points in cell order (``order``) cut into ``threads`` equal parts (whole chunks;
-    the last part's tail padded with copies of its last point at weight 0, outside every
-    cell), each part gathered straight from the caller's arrays ``pts`` (:data:`POINT_KEYS`,
-    in the caller's order; ``V`` None: zeros) but for the tables ``L``, ``C``, ``DM``, ``MZ``,
-    which the parts read by their rows' numbers ``R``; :func:`_solve_parts`; the per-point
-    results in the caller's order."""
+    """The points cut into ``threads`` consecutive parts of equal length (whole chunks; the
+    last part's tail padded with copies of its last point at weight 0, outside every cell),
+    each part copied from the caller's arrays ``pts`` (:data:`POINT_KEYS`; ``V`` None: zeros)
+    but for the tables ``L``, ``C``, ``DM``, ``MZ``, which the parts read by their rows'
+    numbers ``R``; :func:`_solve_parts`; the per-point results in the caller's order."""
     n = pts["L"].shape[0]
     m = -(-n // (threads * cfg.chunk)) * cfg.chunk
-    pieces = [order[i * m:(i + 1) * m] for i in range(threads)]
+    spans = [(min(i * m, n), min((i + 1) * m, n)) for i in range(threads)]
 
-    # the tables every pass reads (observations, constants, the designs) stay the caller's, in
-    # its order, lent to the device (no copy where they are aligned, ``lend_to_device``): each
-    # part holds the numbers of its rows instead (``R``; :func:`_pass` takes each chunk's rows
-    # in its loop), 52 B per point less than a copy in cell order (1.26e7 points: 0.6 GiB)
+    # the tables every pass reads (observations, constants, the designs) stay the caller's,
+    # lent to the device (no copy where they are aligned, ``lend_to_device``): each part holds
+    # the numbers of its rows instead (``R``; :func:`_pass` takes each chunk's rows in its
+    # loop, at no cost measured against a part's own copy), 52 B per point less than copies
     f = np.float64
     tables = {"L": lend_to_device(pts["L"], f), "C": lend_to_device(pts["C"], f),
               **{k: lend_to_device(pts[k], design_dtype(pts[k])) for k in ("DM", "MZ")}}
 
-    def part(idx):
-        pad = m - idx.shape[0]
+    def part(span):
+        start, stop = span
+        size = stop - start
+        pad = m - size
 
         def take(a, dtype, value=None, lend=True):
-            # gathered on the host (np.take: 2-3x fancy indexing), no device copy of the
-            # caller's whole arrays; each part in its own thread, a block of rows at a time
-            # into the part's array (a caller's float32 or bool array is converted block by
-            # block, not by a whole copy). The gathered array is new, nobody else's and, where
-            # ``lend``, aligned for the device (lendable_empty): ``device_put`` lends it to the
-            # device without a copy. The residuals and weights are not lent: the programs that
-            # update them write over them (donated), which XLA does only in its own memory (a
-            # lent array's update took new memory at the footprint's peak, the store's time)
+            # copied on the host, no device copy of the caller's whole arrays; each part in its
+            # own thread, a block of rows at a time into the part's array (a caller's float32
+            # or bool array is converted block by block, not by a whole copy). The copy is new,
+            # nobody else's and, where ``lend``, aligned for the device (lendable_empty):
+            # ``device_put`` lends it to the device without a copy. The residuals and weights
+            # are not lent: the programs that update them write over them (donated), which XLA
+            # does only in its own memory (a lent array's update took new memory at the
+            # footprint's peak, the store's time)
             a = np.asarray(a)
             out = (lendable_empty if lend else np.empty)((m,) + a.shape[1:], dtype)
-            for rows in row_blocks(idx.shape[0]):
-                out[rows] = np.take(a, idx[rows], axis=0)
+            for rows in row_blocks(size):
+                out[rows] = a[start + rows.start:start + rows.stop]
             if pad:
-                out[idx.shape[0]:] = out[idx.shape[0] - 1] if value is None else value
+                out[size:] = out[size - 1] if value is None else value
             return jax.device_put(out)
 
-        R = lendable_empty((m,), idx.dtype)  # the tail: the last row again (weight 0 there)
-        R[:idx.shape[0]] = idx
-        R[idx.shape[0]:] = idx[-1]
+        idx = np.int32 if n < 2**31 else np.int64
+        R = lendable_empty((m,), idx)  # the tail: the last row again (weight 0 there)
+        R[:size] = np.arange(start, stop, dtype=idx)
+        R[size:] = stop - 1
         S2, V0 = pts["S2"], pts["V"]
         return {**tables, "R": jax.device_put(R), "G": take(pts["G"], np.int32, -1),
                 "W": take(pts["W"], f, 0.0, lend=False),
@@ -702,16 +703,17 @@ def _solve_split(condition, cfg: _Settings, threads: int, order, pts: dict, x0, 
                 "S2": take(S2, f) if S2.ndim == 2 else S2}
 
     pool = thread_pool(threads)
-    parts = list(pool.map(part, pieces))
+    parts = list(pool.map(part, spans))
 
     def back(arrays):
-        """The parts' rows scattered to where they came from in the caller's order (the
-        padding rows are never written), on the host, each part in its thread."""
+        """The parts' rows put back in one array of the caller's rows (the padding rows
+        left out), on the host, each part in its thread."""
         arrays = [np.asarray(a) for a in arrays]
         out = np.empty((n,) + arrays[0].shape[1:], arrays[0].dtype)
 
         def one(i):
-            out[pieces[i]] = arrays[i][:len(pieces[i])]
+            start, stop = spans[i]
+            out[start:stop] = arrays[i][:stop - start]
 
         list(pool.map(one, range(threads)))
         return out
@@ -805,10 +807,7 @@ def gauss_helmert_mixed(
             jnp.broadcast_to(jnp.asarray(ridge_var0, f), (n_groups,)))
     U0 = jnp.zeros((n_cells, k), f) if u0 is None else jnp.asarray(u0, f)
     chunk = int(min(chunk_size, max(256, 1 << int(np.ceil(np.log2(max(n, 1)))))))
-    # sort the points by cell once (cell-less points last): the per-cell sums of every pass are
-    # then sorted segment sums; results are returned in the caller's order
     g_np = np.asarray(groups)
-    order = cell_order(g_np, n_cells)
     threads = mixed_threads(n) if threads is None else max(1, int(threads))
     threads = min(threads, -(-n // chunk))  # whole chunks per part: no empty part
     reject_from = 0 if u0 is not None else 1
@@ -822,24 +821,16 @@ def gauss_helmert_mixed(
         pts = {"L": l, "V": v0, "C": consts, "W": weights,
                "S2": sig2 if sig2.ndim == 2 else jnp.broadcast_to(sig2, (3,)), "G": g_np,
                "DM": design, "MZ": MZ}
-        return _solve_split(condition, cfg, threads, order, pts, x0, U0, var0, ridge_idx,
+        return _solve_split(condition, cfg, threads, pts, x0, U0, var0, ridge_idx,
                             ridge_group, k_rob, reject_from, float(rate0))
-    inv = np.empty_like(order)
-    inv[order] = np.arange(n)
-    o = jnp.asarray(order)
     l = jnp.asarray(l, f)
-    V0 = jnp.zeros_like(l) if v0 is None else jnp.asarray(v0, f)
-    pts = {"L": l[o], "V": V0[o], "C": jnp.asarray(consts, f)[o],
-           "W": jnp.asarray(weights, f)[o],
-           "S2": jnp.broadcast_to(jnp.asarray(sigma_l, f) ** 2, l.shape)[o],
-           "G": jnp.asarray(g_np[order], jnp.int32), "DM": jnp.asarray(design, f)[o],
-           "MZ": jnp.asarray(MZ, f)[o]}
-    res = _solve(condition, cfg, pts, x0, U0, var0, ridge_idx, ridge_group, k_rob,
-                 jnp.ones((), bool), jnp.asarray(reject_from), jnp.asarray(rate0, f))
-    back = jnp.asarray(inv)
-    return eqx.tree_at(lambda r: (r.v, r.normalized, r.dev, r.omega_point, r.weights), res,
-                       (res.v[back], res.normalized[back], res.dev[back],
-                        res.omega_point[back], res.weights[back]))
+    pts = {"L": l, "V": jnp.zeros_like(l) if v0 is None else jnp.asarray(v0, f),
+           "C": jnp.asarray(consts, f), "W": jnp.asarray(weights, f),
+           "S2": jnp.broadcast_to(jnp.asarray(sigma_l, f) ** 2, l.shape),
+           "G": jnp.asarray(g_np, jnp.int32), "DM": jnp.asarray(design, f),
+           "MZ": jnp.asarray(MZ, f)}
+    return _solve(condition, cfg, pts, x0, U0, var0, ridge_idx, ridge_group, k_rob,
+                  jnp.ones((), bool), jnp.asarray(reject_from), jnp.asarray(rate0, f))
 
 
 def ridge_chi2(result: MixedResult, ridge: dict[str, list[int]] | None) -> dict[str, tuple]:

@@ -18,7 +18,7 @@ from jaxtyping import Array, Float, Int
 from .._programs import cached_jit
 from ._kernel import step_sigmas
 from ._mixed import _Linearization, _ridge_args, _update, _vce
-from ._mixed_pass import _pass, cell_order
+from ._mixed_pass import _pass
 
 
 class MixedSums(eqx.Module):
@@ -88,28 +88,21 @@ def mixed_chunk(
     """
     MZ = (jnp.zeros((l.shape[0], 0), x.dtype) if mode_design is None
           else jnp.asarray(mode_design, x.dtype))
-    order = cell_order(groups, U.shape[0])  # (on the host: see cell_order)
     # ``on`` enters the compiled program as an argument: a constant True would let XLA fold
     # the materialising cond of the pass away and recompute the derivatives in every consumer
     # (10x the time with the 30 unknowns of the diagnosis' candidates: 2.1 s for 2.6e5 points)
     return _mixed_chunk(condition, l, consts, weights, s2, groups, design, x, U, noise_var,
-                        robust_k, jnp.ones((), bool), MZ, order,
-                        dev_column=dev_column, chunk=chunk)
+                        robust_k, jnp.ones((), bool), MZ, dev_column=dev_column, chunk=chunk)
 
 
 @cached_jit
 def _mixed_chunk(condition, l, consts, weights, s2, groups, design, x, U, noise_var, robust_k,
-                 on, MZ, order, *, dev_column, chunk):
-    n_cells = U.shape[0]
-    f = l.dtype
-    L, C, W, G, DM, Z = (a[order] for a in (l, consts, weights, groups, design, MZ))
-    S2 = s2[order] if s2.ndim == 2 else s2
+                 on, MZ, *, dev_column, chunk):
     (N, nv, S, sg, tg, wmw, n_used, omega), (V, e, W) = _pass(
-        condition, dev_column, on, n_cells, chunk, L, None, C, W, S2, G, DM, x, U, Z,
-        robust=(noise_var, robust_k))
-    sums = MixedSums(N, nv, S, sg, tg, wmw, n_used.astype(f), omega)
-    back = jnp.zeros_like(order).at[order].set(jnp.arange(order.shape[0], dtype=order.dtype))
-    return sums, MixedChunk(V[back], e[back], W[back])
+        condition, dev_column, on, U.shape[0], chunk, l, None, consts, weights, s2, groups,
+        design, x, U, MZ, robust=(noise_var, robust_k))
+    sums = MixedSums(N, nv, S, sg, tg, wmw, n_used.astype(l.dtype), omega)
+    return sums, MixedChunk(V, e, W)
 
 
 class MixedStep(eqx.Module):

@@ -36,7 +36,10 @@ def test_split_passes_equal_one_part():
                      "v", "normalized", "dev", "omega_point", "x_response", "ridge_fixed",
                      "ridge_fixed_cov", "redundancy_noise", "redundancy_cells"):
             a, b = np.asarray(getattr(r, name)), np.asarray(getattr(ref, name))
-            np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9 * np.max(np.abs(b)),
+            # the per-point statistics come from the pass's terms kept in float32
+            # (STORE_DTYPE): a last bit of a point's terms may round the other way
+            rtol = 1e-6 if name in ("v", "normalized", "omega_point") else 1e-9
+            np.testing.assert_allclose(a, b, rtol=rtol, atol=1e-9 * np.max(np.abs(b)),
                                        err_msg=name)
 
 

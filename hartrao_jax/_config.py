@@ -36,7 +36,8 @@ def by_row_blocks(fn, rows: tuple, block: int = BLOCK_ROWS) -> tuple:
     each input alone) of arrays ``rows`` with a common first axis: a table of more than
     ``block`` rows a block at a time into NumPy arrays (every block of that size, the last
     one ending at the table's end, so that it is one program; two blocks at a time, one's
-    copies while the other computes); a smaller one in one call. A tuple of the outputs.
+    copies while the other computes); a smaller one in one call. A tuple of the outputs
+    (aligned for the device where blocked: :func:`lendable_empty`).
 
     With :data:`BLOCK_ROWS` rows a block, a program's temporaries (150 B per point for
     :func:`.fit._projection.hit_points`) take a block's memory, reused by the next block,
@@ -54,7 +55,7 @@ def by_row_blocks(fn, rows: tuple, block: int = BLOCK_ROWS) -> tuple:
             o[s:s + block] = np.asarray(g)  # (nothing returned: the block's arrays let go)
 
     first = fn(*(r[:block] for r in rows))
-    out.extend(np.empty((n,) + g.shape[1:], g.dtype) for g in first)
+    out.extend(lendable_empty((n,) + g.shape[1:], g.dtype) for g in first)
     for o, g in zip(out, first):
         o[:block] = np.asarray(g)
     list(thread_pool(2, "row_blocks").map(one, range(block, n, block)))

@@ -74,7 +74,7 @@ from ._identify import (
     undetermined_parameters,
     unidentifiable_calibration,
 )
-from ._projection import hit_points, hit_points_and_residuals, reject_beyond
+from ._projection import hit_cells, hit_points, hit_points_and_residuals, reject_beyond
 from ._results import (
     CampaignFit,
     MixedState,
@@ -559,23 +559,6 @@ def fit_position(
         del w  # (the random effect's weights are ``used``'s; 8 B per point less at its peak)
         cell_m = float(tel.extra.get("panel_cell_m", 2.0)) if tel.extra else 2.0
         if start is None:
-            X_hit = np.asarray(hit_points(mdl, l, x_white, c, sig, kappa))
-        else:  # and the start's residuals, where the random effect linearises first
-            X_hit, v_start = (np.asarray(a) for a in hit_points_and_residuals(
-                mdl, l, x_white, c, sig, kappa))
-        keys = (None if tel.ring_edges_m is not None and tel.panels_per_ring is not None
-                else start.mixed.cell_keys if start is not None
-                else square_cells(X_hit[used], cell_m)[2])
-        cell, local, n_cells, desc = panel_cells(
-            X_hit, tel.ring_edges_m, tel.panels_per_ring, cell_m=cell_m, keys=keys)
-        cell = cell.astype(np.int32, copy=False)  # (the ids fit: 4 B per point less at the peak)
-        # held in float32 (0.1 um of rounding on a panel's local coordinates; the solver takes
-        # its rows in float64): 12 B per point less at the random effect's peak
-        design = lendable_empty((n_pad, 1 + local.shape[1]), np.float32)
-        design[:, 0] = cell >= 0
-        np.multiply(local, design[:, :1], out=design[:, 1:], casting="same_kind")
-        del local
-        if start is None:
             groups = dict(SURFACE_MODE_GROUPS) if tel.offset_m == 0 else {}
             mode_tests: dict[str, tuple] = {}
             confounding: dict = {}
@@ -590,24 +573,52 @@ def fit_position(
             mode_tests = dict(start.surface.mode_tests)
             confounding = dict(start.surface.mode_confounding)
             x_start = {n_: float(v_) for n_, v_ in zip(st.model.free, st.x)}
-            warm = {"v0": v_start, "u0": np.asarray(st.u), "noise_var0": float(st.var[0]),
+            warm = {"u0": np.asarray(st.u), "noise_var0": float(st.var[0]),
                     "cell_var0": np.maximum(np.asarray(st.var[1]), np.asarray(_CELL_VAR0)),
                     "rate0": st.contraction}
             ridge_var0 = np.maximum(np.array([v_ for k_, v_ in zip(st.ridge or {}, np.asarray(
                 st.var[2], float)) if k_ in groups]), _MODE_VAR0)
+        # each point's cell (its panel) where its beam hit the reflector, and its local
+        # coordinates there, as the random effect's design: held in float32 (0.1 um of
+        # rounding on a panel's local coordinates; the solver takes its rows in float64), 12 B
+        # per point less at its peak. The hit points are held only for the smooth modes'
+        # columns, as their x and y in float32 (1e-6 m of rounding; the columns are float32
+        # themselves): 16 B per point less at the peak where modes are carried; where none
+        # is, not at all (made again if a later adjustment carries them: a campaign's mode
+        # variance, ``finish``). A large position also takes the start's residuals, where the
+        # random effect linearises first (in float32: a start, 1e-10 m of rounding)
+        if tel.ring_edges_m is not None and tel.panels_per_ring is not None:
+            cell, design, *rest = hit_cells(
+                mdl, l, x_white, c, sig, kappa, tel.ring_edges_m, tel.panels_per_ring,
+                with_v=start is not None, with_xy=bool(groups))
+            n_cells = int(sum(tel.panels_per_ring))
+            desc = f"panels ({n_cells} in {len(tel.panels_per_ring)} rings)"
+            keys = None
+        else:  # square cells: those the used points occupy, or the start's
+            X_hit, *rest = (np.asarray(a) for a in (
+                hit_points_and_residuals(mdl, l, x_white, c, sig, kappa) if start is not None
+                else (hit_points(mdl, l, x_white, c, sig, kappa),)))
+            keys = (start.mixed.cell_keys if start is not None
+                    else square_cells(X_hit[used], cell_m)[2])
+            cell, local, n_cells, desc = panel_cells(X_hit, cell_m=cell_m, keys=keys)
+            cell = cell.astype(np.int32)  # (the ids fit: 4 B per point less at the peak)
+            design = lendable_empty((n_pad, 1 + local.shape[1]), np.float32)
+            design[:, 0] = cell >= 0
+            np.multiply(local, design[:, :1], out=design[:, 1:], casting="same_kind")
+            del local
+            if start is not None:
+                rest[0] = rest[0].astype(np.float32)
+            if groups:
+                rest.append(X_hit[:, :2].astype(np.float32))
+            del X_hit
         if start is not None:
+            v_start = rest.pop(0)
             if robust_k is not None:
                 # the outliers the white robust adjustment would have rejected, judged there
                 used = reject_beyond(v_start, sig, used, robust_k, len(mdl.free))
-            # where the first pass linearises, kept in float32 (a start: 1e-10 m of rounding;
-            # 12 B per point less at the peak)
-            warm["v0"] = v_start = v_start.astype(np.float32)
+            warm["v0"] = v_start
+        X_hit = rest.pop(0) if groups else None
         w_mixed = used  # (bool: taken as 0/1 weights, 7 B per point less than float)
-        # the hit points are held only for the smooth modes' columns, as their x and y in
-        # float32 (1e-6 m of rounding; the columns are float32 themselves): 16 B per point less
-        # at the peak where modes are carried; where none is, not at all (made again if a
-        # later adjustment carries them: a campaign's mode variance, ``finish``)
-        X_hit = X_hit[:, :2].astype(np.float32) if groups else None
 
         def hit_points_now():
             return X_hit if X_hit is not None else np.asarray(

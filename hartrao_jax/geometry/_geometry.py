@@ -300,16 +300,16 @@ def panel_cells(
             ids, local = by_row_blocks(lambda X_: _ring_cells_compiled(X_, edges, counts), (X,),
                                        block=BLOCK_ROWS)
         else:
-            ids, local = _ring_cells(X, edges, counts, geo)
+            ids, local = ring_cells(X, edges, counts, geo)
         return ids.astype(np.int64, copy=False), local, int(len(geo["ring"])), (
             f"panels ({len(geo['ring'])} in {len(panels_per_ring)} rings)")
     cell, local, keys = square_cells(X, cell_m, keys)
     return cell, local, int(len(keys)), f"square cells of {cell_m:g} m (no panel layout)"
 
 
-def _ring_cells(X, ring_edges_m, panels_per_ring, geo, xp=np):
+def ring_cells(X, ring_edges_m, panels_per_ring, geo, xp=np):
     """Panel ids and local ``(radial, tangential)`` coordinates (m) of points ``X`` (n, 3)
-    (``xp``: NumPy, or ``jax.numpy`` in :func:`_ring_cells_compiled`)."""
+    (``xp``: NumPy, or ``jax.numpy`` inside a compiled program)."""
     rho = xp.hypot(X[:, 0], X[:, 1])
     psi = xp.mod(xp.arctan2(X[:, 1], X[:, 0]), 2 * np.pi)
     ids = panel_ids(rho, psi, ring_edges_m, panels_per_ring, xp=xp)
@@ -323,8 +323,8 @@ def _ring_cells(X, ring_edges_m, panels_per_ring, geo, xp=np):
 
 @cached_jit
 def _ring_cells_compiled(X, ring_edges_m: tuple, panels_per_ring: tuple):
-    """:func:`_ring_cells` of a block of points, compiled (int32 ids)."""
-    ids, local = _ring_cells(X, ring_edges_m, panels_per_ring,
+    """:func:`ring_cells` of a block of points, compiled (int32 ids)."""
+    ids, local = ring_cells(X, ring_edges_m, panels_per_ring,
                              panel_geometry(ring_edges_m, panels_per_ring), xp=jnp)
     return ids.astype(jnp.int32), local
 

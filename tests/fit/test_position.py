@@ -146,6 +146,38 @@ def test_hit_points_by_row_blocks_equal_one_call():
         np.testing.assert_allclose(b, w, rtol=1e-13, atol=1e-18)
 
 
+def test_hit_cells_equal_hit_points_then_panel_cells():
+    """``hit_cells`` (the hit points' panels in the same program): the cells, the float32
+    design ``(1, radial, tangential)``, the float32 residuals and hit points' ``x, y`` of
+    ``hit_points_and_residuals`` followed by ``panel_cells`` (the cells identical; the rest
+    to float32 rounding)."""
+    from hartrao_jax.fit._projection import hit_cells, hit_points_and_residuals
+    from hartrao_jax.geometry._geometry import panel_cells
+    from hartrao_jax.model._model import make_model
+    from tests.helpers import F_TRUE, POSE, SIGMA, synthetic_scan
+
+    # no panels inside 3.2 m: points outside every panel as well
+    edges, counts = (3.2, 4.8, 6.4, 8.0, 9.6, 11.2, 12.95), (24, 30, 36, 42, 48, 60)
+    n = 20_000
+    lobs = np.asarray(synthetic_scan(n, seed=3))
+    model = make_model(["tx", "ty", "tz", "rx", "ry", "f"])
+    x = np.array([{**POSE, "f": F_TRUE}[k] for k in model.free])
+    c = np.zeros((n, 2))
+    X, v = (np.asarray(a) for a in hit_points_and_residuals(model, lobs, x, c, SIGMA, 0.3))
+    cell, local, _, _ = panel_cells(X, edges, counts)
+    got_cell, design, got_v, xy = hit_cells(model, lobs, x, c, SIGMA, 0.3, edges, counts,
+                                            with_v=True, with_xy=True)
+    assert got_cell.dtype == np.int32 and design.dtype == got_v.dtype == xy.dtype == np.float32
+    np.testing.assert_array_equal(got_cell, cell)
+    assert np.any(cell < 0) and np.all(design[cell < 0] == 0.0)
+    np.testing.assert_array_equal(design[:, 0], (cell >= 0).astype(np.float32))
+    np.testing.assert_allclose(design[:, 1:], local, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(got_v, v, rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(xy, X[:, :2], rtol=1e-6, atol=1e-5)
+    assert len(hit_cells(model, lobs, x, c, SIGMA, 0.3, edges, counts, with_v=False,
+                         with_xy=False)) == 2
+
+
 def test_scan_columns_are_the_tables_rows_and_large_scans_go_by_blocks():
     """``columns_in``: a position's scans keep their observation and time columns as views of
     the adjusted table (the same values, no second copy). ``_fitted_points`` of a scan of more

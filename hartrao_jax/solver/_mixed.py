@@ -653,14 +653,15 @@ def _solve_parts(condition, cfg: _Settings, parts: list[dict], x0, U0, var0, rid
 
 def _solve_split(condition, cfg: _Settings, threads: int, pts: dict, x0, U0, var0,
                  ridge_idx, ridge_group, robust_k, reject_from: int, rate0: float):
-    """The points cut into ``threads`` consecutive parts of equal length (whole chunks; the
-    last part's tail padded with copies of its last point at weight 0, outside every cell),
+    """The points cut into at most ``threads`` consecutive parts of equal length (whole
+    chunks; the last part's tail padded with copies of its last point at weight 0, outside every cell),
     each part copied from the caller's arrays ``pts`` (:data:`POINT_KEYS`; ``V`` None: zeros)
     but for the tables ``L``, ``C``, ``DM``, ``MZ``, which the parts read by their rows'
     numbers ``R``; :func:`_solve_parts`; the per-point results in the caller's order."""
     n = pts["L"].shape[0]
     m = -(-n // (threads * cfg.chunk)) * cfg.chunk
-    spans = [(min(i * m, n), min((i + 1) * m, n)) for i in range(threads)]
+    # (a part would be empty where whole chunks run out first, e.g. 4 chunks in 3 parts)
+    spans = [(i * m, min((i + 1) * m, n)) for i in range(threads) if i * m < n]
 
     # the tables every pass reads (observations, constants, the designs) stay the caller's,
     # lent to the device (no copy where they are aligned, ``lend_to_device``): each part holds
@@ -702,7 +703,7 @@ def _solve_split(condition, cfg: _Settings, threads: int, pts: dict, x0, U0, var
                 "V": jax.device_put(np.zeros((m, 3), f)) if V0 is None else take(V0, f, lend=False),
                 "S2": take(S2, f) if S2.ndim == 2 else S2}
 
-    pool = thread_pool(threads)
+    pool = thread_pool(len(spans))
     parts = list(pool.map(part, spans))
 
     def back(arrays):
@@ -715,7 +716,7 @@ def _solve_split(condition, cfg: _Settings, threads: int, pts: dict, x0, U0, var
             start, stop = spans[i]
             out[start:stop] = arrays[i][:stop - start]
 
-        list(pool.map(one, range(threads)))
+        list(pool.map(one, range(len(spans))))
         return out
 
     return _solve_parts(condition, cfg, parts, x0, U0, var0, ridge_idx, ridge_group, robust_k,

@@ -43,6 +43,23 @@ def test_split_passes_equal_one_part():
                                        err_msg=name)
 
 
+def test_parts_never_empty():
+    """Four chunks asked for in three parts make two (a third would hold no point): the
+    one-part result."""
+    model = make_model(["tx", "ty", "tz", "rx", "ry", "f"])
+    lobs, X = two_face_scan(4, n=4096)
+    x0 = np.array([{**POSE, "f": F_TRUE}.get(k, 0.0) for k in model.free])
+    cell, local, n_cells, _ = panel_cells(X, EDGES, COUNTS)
+    design = np.column_stack([np.ones(len(X)), local]) * (cell >= 0)[:, None]
+    one, three = (gauss_helmert_mixed(model, lobs, x0, SIGMA, np.zeros((len(lobs), 2)),
+                                      np.ones(len(lobs)), cell, design, n_cells,
+                                      cell_var0=np.full(3, 1e-8), threads=t, chunk_size=1024)
+                  for t in (1, 3))
+    assert np.all(np.isfinite(np.asarray(three.v)))
+    np.testing.assert_allclose(np.asarray(three.x), np.asarray(one.x), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(three.cov), np.asarray(one.cov), rtol=1e-9)
+
+
 def test_compact_inputs_give_the_same_adjustment():
     """A float32 design, bool weights and a float32 start ``v0``, as a large position gives
     them (a float32 design is kept in float32 by the parts), give the float64 inputs'

@@ -434,10 +434,11 @@ def fit_position(
     campaign does not adjust it from its points twice.
 
     ``as_start``: this adjustment is only the start of the adjustment of more points of the
-    same position (it adjusts a sample of them, :func:`_sample_start`). Its loop over the smooth modes ends at their first
-    verdict: the groups the data do not show are marked not carried (``surface.mode_tests``,
-    what the fixed effects take up without them in ``surface.mode_confounding``) but are not
-    adjusted away here; the larger adjustment starts without them.
+    same position (it adjusts a sample of them, :func:`_sample_start`). Its loop over the
+    smooth modes ends at their first verdict: the groups the data do not show are marked not
+    carried (``surface.mode_tests``, what the fixed effects take up without them in
+    ``surface.mode_confounding``) but are not adjusted away here; the larger adjustment starts
+    without them.
     """
 
     metas = list(metas)

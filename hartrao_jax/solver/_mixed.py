@@ -654,10 +654,11 @@ def _solve_parts(condition, cfg: _Settings, parts: list[dict], x0, U0, var0, rid
 def _solve_split(condition, cfg: _Settings, threads: int, pts: dict, x0, U0, var0,
                  ridge_idx, ridge_group, robust_k, reject_from: int, rate0: float):
     """The points cut into at most ``threads`` consecutive parts of equal length (whole
-    chunks; the last part's tail padded with copies of its last point at weight 0, outside every cell),
-    each part copied from the caller's arrays ``pts`` (:data:`POINT_KEYS`; ``V`` None: zeros)
-    but for the tables ``L``, ``C``, ``DM``, ``MZ``, which the parts read by their rows'
-    numbers ``R``; :func:`_solve_parts`; the per-point results in the caller's order."""
+    chunks; the last part's tail padded with copies of its last point at weight 0, outside
+    every cell), each part copied from the caller's arrays ``pts`` (:data:`POINT_KEYS`; ``V``
+    None: zeros) but for the tables ``L``, ``C``, ``DM``, ``MZ``, which the parts read by
+    their rows' numbers ``R``; :func:`_solve_parts`; the per-point results in the caller's
+    order."""
     n = pts["L"].shape[0]
     m = -(-n // (threads * cfg.chunk)) * cfg.chunk
     # (a part would be empty where whole chunks run out first, e.g. 4 chunks in 3 parts)

@@ -1,4 +1,5 @@
-"""Files written whole or not at all: a temporary name in the same folder, then a rename.
+"""Files written whole or not at all: a temporary name in the same folder, then a rename;
+and files hashed as they are written (their manifest entries, :class:`HashingFile`).
 
 The base of :mod:`.campaign._safeio` (every output of the package) and of :mod:`._programs`
 (compiled programs kept on disk), which both sit on it; nothing of the package below it.

@@ -261,7 +261,7 @@ def file_digest(path: str | os.PathLike) -> dict[str, Any]:
         while block := f.read(_CHUNK):
             h.update(block)
             n += len(block)
-    return {"bytes": n, "sha256": h.hexdigest()}
+    return FileDigest(n, h.hexdigest()).entry()
 
 
 # ----------------------------------------------------------------------------- result dirs

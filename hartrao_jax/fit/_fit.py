@@ -31,6 +31,7 @@ from ..campaign._campaign import Campaign, ScanData, ScanMeta, read_scan
 from ..campaign._campaign import _concat as concat_scans
 from ..geometry._geometry import (
     panel_cells,
+    panel_layout,
     paraboloid_deviation,
     pointing_elevation_deg,
     pointing_gravity,
@@ -592,13 +593,15 @@ def fit_position(
             cell, design, *rest = hit_cells(
                 mdl, l, x_white, c, sig, kappa, tel.ring_edges_m, tel.panels_per_ring,
                 with_v=start is not None, with_xy=bool(groups))
-            n_cells = int(sum(tel.panels_per_ring))
-            desc = f"panels ({n_cells} in {len(tel.panels_per_ring)} rings)"
+            v_start = rest.pop(0) if start is not None else None
+            X_hit = rest.pop(0) if groups else None
+            n_cells, desc = panel_layout(tel.panels_per_ring)
             keys = None
         else:  # square cells: those the used points occupy, or the start's
             X_hit, *rest = (np.asarray(a) for a in (
                 hit_points_and_residuals(mdl, l, x_white, c, sig, kappa) if start is not None
                 else (hit_points(mdl, l, x_white, c, sig, kappa),)))
+            v_start = rest[0].astype(np.float32) if start is not None else None
             keys = (start.mixed.cell_keys if start is not None
                     else square_cells(X_hit[used], cell_m)[2])
             cell, local, n_cells, desc = panel_cells(X_hit, cell_m=cell_m, keys=keys)
@@ -606,19 +609,13 @@ def fit_position(
             design = lendable_empty((n_pad, 1 + local.shape[1]), np.float32)
             design[:, 0] = cell >= 0
             np.multiply(local, design[:, :1], out=design[:, 1:], casting="same_kind")
-            del local
-            if start is not None:
-                rest[0] = rest[0].astype(np.float32)
-            if groups:
-                rest.append(X_hit[:, :2].astype(np.float32))
-            del X_hit
+            del local, rest
+            X_hit = X_hit[:, :2].astype(np.float32) if groups else None
         if start is not None:
-            v_start = rest.pop(0)
             if robust_k is not None:
                 # the outliers the white robust adjustment would have rejected, judged there
                 used = reject_beyond(v_start, sig, used, robust_k, len(mdl.free))
             warm["v0"] = v_start
-        X_hit = rest.pop(0) if groups else None
         w_mixed = used  # (bool: taken as 0/1 weights, 7 B per point less than float)
 
         def hit_points_now():

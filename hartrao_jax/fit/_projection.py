@@ -16,7 +16,7 @@ import numpy as np
 
 from .._config import by_row_blocks, row_blocks
 from .._programs import cached_jit
-from ..geometry._geometry import panel_geometry, ring_cells
+from ..geometry._geometry import ring_cells
 from ..model._model import ParaboloidModel
 from ..solver._kernel import _materialize, materialize_trig
 
@@ -97,8 +97,7 @@ def _hit_points(model, l, x, c, sigma_l, kappa_rad, on, with_v: bool):
 def _hit_cells(model, l, x, c, sigma_l, kappa_rad, on, ring_edges_m: tuple,
                panels_per_ring: tuple, with_v: bool, with_xy: bool):
     X, v = _project(model, l, x, c, sigma_l, kappa_rad, on)
-    ids, local = ring_cells(X, ring_edges_m, panels_per_ring,
-                            panel_geometry(ring_edges_m, panels_per_ring), xp=jnp)
+    ids, local = ring_cells(X, ring_edges_m, panels_per_ring, xp=jnp)
     f = jnp.float32
     design = jnp.concatenate([(ids >= 0)[:, None].astype(f), local.astype(f)], axis=1)
     return ((ids.astype(jnp.int32), design) + ((v.astype(f),) if with_v else ())

@@ -291,7 +291,6 @@ def panel_cells(
     """
     X = np.asarray(X, float)
     if ring_edges_m is not None and panels_per_ring is not None:
-        geo = panel_geometry(ring_edges_m, panels_per_ring)
         edges, counts = tuple(map(float, ring_edges_m)), tuple(map(int, panels_per_ring))
         if len(X) > BLOCK_ROWS:
             # compiled, a block of rows at a time on each core (one program: every block of
@@ -300,16 +299,23 @@ def panel_cells(
             ids, local = by_row_blocks(lambda X_: _ring_cells_compiled(X_, edges, counts), (X,),
                                        block=BLOCK_ROWS)
         else:
-            ids, local = ring_cells(X, edges, counts, geo)
-        return ids.astype(np.int64, copy=False), local, int(len(geo["ring"])), (
-            f"panels ({len(geo['ring'])} in {len(panels_per_ring)} rings)")
+            ids, local = ring_cells(X, edges, counts)
+        return (ids.astype(np.int64, copy=False), local) + panel_layout(counts)
     cell, local, keys = square_cells(X, cell_m, keys)
     return cell, local, int(len(keys)), f"square cells of {cell_m:g} m (no panel layout)"
 
 
-def ring_cells(X, ring_edges_m, panels_per_ring, geo, xp=np):
+def panel_layout(panels_per_ring) -> tuple[int, str]:
+    """``(number of panels, description)`` of a ring layout, as :func:`panel_cells` gives
+    them."""
+    n = int(sum(panels_per_ring))
+    return n, f"panels ({n} in {len(panels_per_ring)} rings)"
+
+
+def ring_cells(X, ring_edges_m, panels_per_ring, xp=np):
     """Panel ids and local ``(radial, tangential)`` coordinates (m) of points ``X`` (n, 3)
     (``xp``: NumPy, or ``jax.numpy`` inside a compiled program)."""
+    geo = panel_geometry(ring_edges_m, panels_per_ring)
     rho = xp.hypot(X[:, 0], X[:, 1])
     psi = xp.mod(xp.arctan2(X[:, 1], X[:, 0]), 2 * np.pi)
     ids = panel_ids(rho, psi, ring_edges_m, panels_per_ring, xp=xp)
@@ -324,8 +330,7 @@ def ring_cells(X, ring_edges_m, panels_per_ring, geo, xp=np):
 @cached_jit
 def _ring_cells_compiled(X, ring_edges_m: tuple, panels_per_ring: tuple):
     """:func:`ring_cells` of a block of points, compiled (int32 ids)."""
-    ids, local = ring_cells(X, ring_edges_m, panels_per_ring,
-                             panel_geometry(ring_edges_m, panels_per_ring), xp=jnp)
+    ids, local = ring_cells(X, ring_edges_m, panels_per_ring, xp=jnp)
     return ids.astype(jnp.int32), local
 
 

@@ -49,7 +49,7 @@ from ..model._model import ZERNIKE_PREFIX
 from ..preprocess._initial import geometry_window
 from ..solver._ghm import bucket_size
 from ..solver._kernel import next_rate, remaining_error
-from ..solver._mixed import iteration_converged, mixed_response, ridge_indices
+from ..solver._mixed import MIXED_TOL, iteration_converged, mixed_response, ridge_indices
 from ..solver._mixed_stream import MixedSums, mixed_chunk, mixed_step
 from ._distributed import worker_campaign
 from ._fit import fit_position, scan_arrays, sigma_vector
@@ -167,7 +167,7 @@ def stream_fit_position(
     window_m: float = 0.10,
     robust_k: float | None = 4.0,
     max_iter: int = 10,
-    tol: float = 1e-2,
+    tol: float = MIXED_TOL,
     seed: int = 0,
     progress: bool = False,
     mode_prior_m2: float | None = None,

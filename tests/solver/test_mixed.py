@@ -17,7 +17,7 @@ from hartrao_jax.geometry._geometry import (
 )
 from hartrao_jax.model._model import make_model
 from hartrao_jax.solver._ghm import gauss_helmert
-from hartrao_jax.solver._mixed import gauss_helmert_mixed, ridge_chi2
+from hartrao_jax.solver._mixed import MIXED_TOL, gauss_helmert_mixed, ridge_chi2
 
 EDGES = (1.6, 3.2, 4.8, 6.4, 8.0, 9.6, 11.2, 12.95)
 COUNTS = (15, 24, 30, 36, 42, 48, 60)
@@ -210,7 +210,8 @@ def test_a_start_from_a_sample_solution_saves_passes_with_the_same_answer(thread
     """Started from a random-effect solution of a quarter of the points (its cells ``u0``, its
     contraction ``rate0``), the adjustment of every point judges outliers from its first step
     and stops on the predicted rest: fewer passes than from the white start, the same
-    estimates (1e-3 sigma), sigmas, variance components and rejected points."""
+    estimates (1e-3 sigma), sigmas, variance components and rejected points; with the start's
+    residuals, one pass (the estimates within :data:`MIXED_TOL` of their sigmas)."""
     lobs, X = two_face_scan(3, n=8000)
     bad = np.arange(0, len(lobs), 997)
     lobs[bad, 0] += 0.02  # 2 cm range outliers, far beyond the noise
@@ -241,3 +242,13 @@ def test_a_start_from_a_sample_solution_saves_passes_with_the_same_answer(thread
     # once (_dropped_sums) it needs 3 passes, as the sample's start does (5 and 4 before)
     assert bool(warm.converged) and int(warm.iterations) <= int(ref.iterations)
     assert 0.0 < float(warm.contraction) < 0.5
+    # with the white adjustment's residuals as well (a large position's start, fit._fit), the
+    # first step is judged by the sample's contraction: one pass, the same answer within tol
+    white = gauss_helmert(model, lobs, x_true, SIGMA, c, weights=w)
+    one = run(every, x0=np.asarray(s.x), u0=np.asarray(s.u), cell_var0=np.asarray(s.cell_var),
+              noise_var0=float(s.noise_var), rate0=float(s.contraction),
+              v0=np.asarray(white.v))
+    assert bool(one.converged) and int(one.iterations) == 1
+    assert np.max(np.abs(np.asarray(one.x) - np.asarray(ref.x)) / sd) < MIXED_TOL
+    assert np.allclose(np.sqrt(np.diag(np.asarray(one.cov))), sd, rtol=1e-3)
+    assert np.array_equal(np.asarray(one.weights) > 0, np.asarray(ref.weights) > 0)

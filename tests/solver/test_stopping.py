@@ -22,15 +22,24 @@ def test_remaining_error_is_the_rest_of_a_geometric_series():
 
 
 def test_random_effect_stops_on_the_prediction_only_with_settled_variances():
-    """A predicted rest below tol ends the iteration only when no variance component moved by
-    0.5 % or more; the step itself below tol always does."""
+    """A predicted rest below tol ends the iteration only when no variance component's rest
+    of change (its change times the contraction, as the steps') is 0.5 % or more; the step
+    itself below tol always does. Without a measured contraction the change itself counts."""
     var0 = (jnp.asarray(1.0), jnp.ones(3), jnp.ones(0))
     var = (jnp.asarray(1.0), jnp.ones(3), jnp.ones(0))
     moved = (jnp.asarray(1.02), jnp.ones(3), jnp.ones(0))
+    far = (jnp.asarray(1.5), jnp.ones(3), jnp.ones(0))
     rate = next_rate(1.0, 0.5, 0.01, False)  # 0.02: the rest is 2e-4 sigma
     assert bool(iteration_converged(0.01, rate, 1e-3, var, var, var0))
-    assert not bool(iteration_converged(0.01, rate, 1e-3, var, moved, var0))
-    assert bool(iteration_converged(5e-4, rate, 1e-3, var, moved, var0))
+    # 2 % moved at rate 0.02: 4e-4 of it left; 50 % moved: 0.83 % left
+    assert bool(iteration_converged(0.01, rate, 1e-3, var, moved, var0))
+    assert not bool(iteration_converged(0.01, rate, 1e-3, var, far, var0))
+    assert bool(iteration_converged(5e-4, rate, 1e-3, var, far, var0))
+    # a warm start's first step (7 sigma at the start's contraction 5.3e-4, the tilts' start
+    # values 1e-8 against their 6e-9 here): 3.7e-3 sigma and 0.03 % left
+    tilts = (jnp.asarray(1.0), jnp.asarray([1.0, 0.6, 0.6]), jnp.ones(0))
+    assert bool(iteration_converged(7.0, 5.3e-4, 1e-2, tilts, var, var0))
+    assert not bool(iteration_converged(7.0, 1.0, 1e-2, tilts, var, var0))
 
 
 def test_a_measured_start_rate_is_kept_until_the_iteration_measures_its_own():

@@ -18,6 +18,12 @@ from ._state import (
 COVARIATES = ("theta", "range", "incidence_angle", "intensity", "rho", "psi", "time")
 
 
+def _time_order(t: np.ndarray) -> np.ndarray | None:
+    """The permutation that sorts the times ``t`` (stable), None where they are sorted already
+    (a scan is recorded in time order: no sort, no gathers)."""
+    return None if bool(np.all(t[1:] >= t[:-1])) else np.argsort(t, kind="stable")
+
+
 def _time_bins(sc: _Scan, cfg: DiagnoseConfig):
     u = sc.used & (sc.m > 0)
     t = sc.data.time_s
@@ -87,17 +93,17 @@ def _box_search(edges, Nb, nbv, cfg: DiagnoseConfig):
 
 def _refine_window(sc: _Scan, edges, i: int, j: int, Ntot, T0: float, n_cand: int = 48):
     """Window edges at the resolution of the points' times (within one bin of the coarse
-    edges), by the same statistic on cumulative sums over the time-sorted points."""
+    edges), by the same statistic on sums over the time-sorted points (taken up to each
+    candidate edge only; no sort where the scan is in time order already)."""
     u = sc.used & (sc.m > 0)
     t = sc.data.time_s[u]
-    order = np.argsort(t, kind="stable")
-    t = t[order]
-    a = sc.probe[u][order, :3]
-    q = 1.0 / sc.m[u][order]
-    F = sc.F[u][order]
+    order = _time_order(t)
+    a = sc.probe[u][:, :3]
+    q = 1.0 / sc.m[u]
+    F = sc.F[u]
+    if order is not None:
+        t, a, q, F = t[order], a[order], q[order], F[order]
     qa = a * q[:, None]
-    CN = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(qa[:, :, None] * a[:, None, :], 0)])
-    Cn = np.concatenate([np.zeros((1, 3)), np.cumsum(qa * F[:, None], 0)])
     Ninv = np.linalg.pinv(Ntot)
 
     def cands(k):
@@ -114,10 +120,21 @@ def _refine_window(sc: _Scan, edges, i: int, j: int, Ntot, T0: float, n_cand: in
     if not ok.any():
         return (float(edges[i]), float(edges[j] - edges[i])), T0
     S0, E0 = S0[ok], E0[ok]
-    NW = CN[E0] - CN[S0]
-    nW = Cn[E0] - Cn[S0]
+    # the sums over the points before each candidate edge (prefix sums at those rows only,
+    # by segments between consecutive candidates: no cumulative sum over every point)
+    P = np.unique(np.concatenate([s_idx, e_idx]))
+    m = int(P[-1])
+    X = np.concatenate([(qa[:m, :, None] * a[:m, None, :]).reshape(-1, 9),
+                        qa[:m] * F[:m, None]], axis=1)
+    C = np.zeros((len(P), 12))
+    C[0] = X[: P[0]].sum(0)
+    if len(P) > 1:
+        C[1:] = C[0] + np.cumsum(np.add.reduceat(X, P[:-1], axis=0)[: len(P) - 1], 0)
+    at_s, at_e = np.searchsorted(P, S0), np.searchsorted(P, E0)
+    NW = (C[at_e, :9] - C[at_s, :9]).reshape(-1, 3, 3)
+    nW = C[at_e, 9:] - C[at_s, 9:]
     Sm = NW - NW @ Ninv @ NW + 1e-9 * np.trace(Ntot) / 3 * np.eye(3)
-    T = np.sum(nW * np.linalg.solve(Sm, nW[..., None])[..., 0], 1)
+    T = _quadratic_3x3(Sm, nW)
     k = int(np.argmax(T))
     if T[k] <= T0:
         return (float(edges[i]), float(edges[j] - edges[i])), T0

@@ -7,6 +7,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from .._config import thread_pool, usable_cores
 from ._covariates import _sincos_turns, compare
 from ._state import (
     DiagnoseConfig,
@@ -210,7 +211,8 @@ def _periodogram_points(sc: _Scan, freqs: np.ndarray, F: np.ndarray | None = Non
     Z2 = np.zeros((5, len(freqs)), complex)
     df = np.diff(freqs)
     even = len(freqs) > 2 and np.allclose(df, df[0], rtol=1e-9, atol=0.0)
-    for lo in range(0, len(t), chunk):
+
+    def sums(lo):
         tc = t[lo: lo + chunk]
         if even:  # equally spaced: exp(i w_k t) = exp(i w_0 t) exp(i dw t)^k, two exps per
             # point instead of one per point and frequency (15x faster, 1e-14 apart)
@@ -222,8 +224,16 @@ def _periodogram_points(sc: _Scan, freqs: np.ndarray, F: np.ndarray | None = Non
         else:
             E = np.exp(2j * np.pi * freqs[:, None] * tc[None, :])
         Wc = W[:, lo: lo + chunk].T
-        Z1 += (E @ Wc).T
-        Z2 += ((E * E) @ Wc).T
+        return (E @ Wc).T, ((E * E) @ Wc).T
+
+    # the chunks over the cores (NumPy's loops release the GIL), added in their order: the
+    # same sums as one thread's
+    starts = range(0, len(t), chunk)
+    threads = min(usable_cores(), len(starts))
+    for z1, z2 in (thread_pool(threads, "periodogram").map(sums, starts) if threads > 1
+                   else map(sums, starts)):
+        Z1 += z1
+        Z2 += z2
     A0 = W.sum(1)
     pair = ((0, 1), (1, 2))  # index of w for (a_k a_l): xx 0, xy 1, yy 2
     out = np.zeros(len(freqs))

@@ -97,6 +97,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from .._config import thread_pool, usable_cores
 from ..geometry._geometry import cell_code, grid_sum
 
 WIDTHS_M: tuple[float, ...] = (0.3, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
@@ -304,12 +305,34 @@ class BackgroundFilter:
         """``a`` per centre from the gridded residual sums ``R`` (the grid on its first two
         axes; further axes are replicates, not filtered)."""
         def g(a, s):
-            sig = [s, s] + [0.0] * (a.ndim - 2)
-            return ndimage.gaussian_filter(a, sig, mode="constant", truncate=4.0) * (
-                2 * math.pi * s * s)
+            return _filter_grids(a, s) * (2 * math.pi * s * s)
         ex = (slice(None),) * 2 + (None,) * (R.ndim - 2)
         a = (self.S11[ex] * g(R, self.s1) - self.Sg1[ex] * g(R, self.sb)) / self.det[ex]
         return np.where(self.valid[ex], a, 0.0)
+
+
+#: Grid values (cells x replicates) from which :func:`_filter_grids` splits the replicates
+#: over the cores (a search's 167 x 167 x 120 replicate grids: 0.227 -> 0.119 s per filter).
+SPLIT_FILTER_VALUES = 1_000_000
+
+
+def _filter_grids(a: np.ndarray, s: float) -> np.ndarray:
+    """The Gaussian filter of sigma ``s`` cells (truncated at 4 sigma, zero outside) over the
+    first two axes of ``a``, each replicate (the further axes) alone; many replicates are
+    split over the cores (``scipy.ndimage`` releases the GIL): the same values."""
+    sig = [s, s] + [0.0] * (a.ndim - 2)
+    threads = usable_cores()
+    if a.ndim < 3 or a.size < SPLIT_FILTER_VALUES or threads < 2 or a.shape[2] < 2:
+        return ndimage.gaussian_filter(a, sig, mode="constant", truncate=4.0)
+    out = np.empty_like(a, dtype=np.result_type(a.dtype, np.float64))
+    cuts = np.linspace(0, a.shape[2], min(threads, a.shape[2]) + 1).astype(int)
+
+    def one(k):
+        part = slice(cuts[k], cuts[k + 1])
+        ndimage.gaussian_filter(a[:, :, part], sig, mode="constant", truncate=4.0,
+                                output=out[:, :, part])
+    list(thread_pool(len(cuts) - 1, "grid-filter").map(one, range(len(cuts) - 1)))
+    return out
 
 
 def width_map(xy: np.ndarray, r: np.ndarray, w: float, sigma: float, density: float,

@@ -6,6 +6,7 @@ from __future__ import annotations
 import ctypes
 import os
 import sys
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -116,6 +117,18 @@ def thread_pool(threads: int, name: str) -> ThreadPoolExecutor:
     if key not in _POOLS:
         _POOLS[key] = ThreadPoolExecutor(threads, thread_name_prefix=f"hartrao-{name}")
     return _POOLS[key]
+
+
+def each_in_threads(fn, items: Sequence, name: str) -> list:
+    """``[fn(*item) for item in items]`` (an item that is not a tuple is one argument) with
+    the items over the usable cores (:func:`usable_cores`; the pool of ``name``, see
+    :func:`thread_pool`), in their order: for work whose NumPy or SciPy loops release the
+    GIL, each item's result the same as in one thread."""
+    args = [it if isinstance(it, tuple) else (it,) for it in items]
+    threads = min(usable_cores(), len(args))
+    if threads < 2:
+        return [fn(*a) for a in args]
+    return list(thread_pool(threads, name).map(lambda a: fn(*a), args))
 
 
 def enable_x64() -> None:

@@ -26,6 +26,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from .._config import each_in_threads
+
 FOLDS = 4
 BINS = 16
 N_PERIODS = 150
@@ -132,13 +134,14 @@ def compare(values: Mapping[str, np.ndarray], r: np.ndarray, *, seed: int = 0) -
     n = len(r)
     idx = rng.permutation(n)[:MAX_POINTS]
     fold = np.arange(len(idx)) % FOLDS
-    rows = []
-    for name, v_all in values.items():
+
+    def rows_of(name, v_all) -> list[dict]:
+        """The covariate's rows (none where it cannot be compared)."""
         v = np.asarray(v_all, float)[idx]
         rr = r[idx]
         ok = np.isfinite(v) & np.isfinite(rr)
         if ok.sum() < 10 * BINS or np.ptp(v[ok]) <= 0:
-            continue
+            return []
         v, rr, fo = v[ok], rr[ok], fold[ok]
         span = float(np.ptp(v))
         periods = np.geomspace(span / 100.0, span / 1.5, N_PERIODS)
@@ -160,7 +163,8 @@ def compare(values: Mapping[str, np.ndarray], r: np.ndarray, *, seed: int = 0) -
             sse["periodic"] += float(np.sum((rr[te] - A[te] @ coef) ** 2))
             chosen.append((P, float(np.hypot(coef[0], coef[1]))))
         if sst <= 0:
-            continue
+            return []
+        rows = []
         for model in ("bins", "periodic"):
             row = {"covariate": name, "model": model, "cv_explained": 1.0 - sse[model] / sst}
             if model == "periodic" and chosen:
@@ -169,6 +173,11 @@ def compare(values: Mapping[str, np.ndarray], r: np.ndarray, *, seed: int = 0) -
                 row["period_spread"] = float(np.ptp(Ps))
                 row["amplitude_m"] = float(np.median([c[1] for c in chosen]))
             rows.append(row)
+        return rows
+
+    # the covariates over the cores (each alone, NumPy's loops release the GIL), in order
+    rows = [row for part in each_in_threads(rows_of, list(values.items()), "covariates")
+            for row in part]
     best_per = {}
     for row in rows:
         b = best_per.get(row["covariate"])

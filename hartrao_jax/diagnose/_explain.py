@@ -114,9 +114,11 @@ def _cell_sums(ctx: _Context, sc: _Scan, model, x: np.ndarray, w: np.ndarray,
     consts = sc.consts().copy()
     consts[:, 1] -= np.where(cell >= 0, np.sum(design * U[np.maximum(cell, 0)], axis=1), 0.0)
     npad = _npad(n)
-    args = (jnp.asarray(_pad(sc.l, npad)), jnp.asarray(_pad(consts, npad)),
-            jnp.asarray(_pad(w, npad, 0.0)), jnp.asarray(np.broadcast_to(ctx.sigma**2, (npad, 3))),
-            jnp.asarray(_pad(cell, npad, -1)), jnp.asarray(_pad(design, npad, 0.0)))
+    # NumPy arrays into the program (each jnp.asarray of a NumPy array is a program of its own
+    # to lower and load per shape in every process)
+    args = (_pad(sc.l, npad), _pad(consts, npad), _pad(w, npad, 0.0),
+            np.ascontiguousarray(np.broadcast_to(ctx.sigma**2, (npad, 3))),
+            _pad(cell, npad, -1), _pad(design, npad, 0.0))
 
     def sums_of(m, x_m):
         # the same scan, model, solution and cells as a joint system before (the last step's
@@ -124,8 +126,8 @@ def _cell_sums(ctx: _Context, sc: _Scan, model, x: np.ndarray, w: np.ndarray,
         key = _sums_key(m, x_m, args, U)
         if key is not None and key in ctx.sums_memo:
             return ctx.sums_memo[key]
-        s, _ = mixed_chunk(m, *args, jnp.asarray(x_m, float), jnp.asarray(U), jnp.asarray(1.0),
-                           jnp.asarray(np.inf), dev_column=1)
+        s, _ = mixed_chunk(m, *args, np.asarray(x_m, float), np.asarray(U, float),
+                           jnp.asarray(1.0), jnp.asarray(np.inf), dev_column=1)
         s = jax.tree.map(np.asarray, s)
         if key is not None:
             while len(ctx.sums_memo) >= SUMS_MEMO:
@@ -206,12 +208,13 @@ class _SurfaceNull:
         I0 = joint.I0
         S3, sg3, tg3, U = joint.cells
         sums = MixedSums(
-            jnp.asarray(joint.N_raw[np.ix_(I0, I0)]), jnp.asarray(joint.n_raw[I0]),
-            jnp.asarray(S3), jnp.asarray(sg3[:, :, I0]), jnp.asarray(tg3),
-            jnp.asarray(joint.wMw_raw), jnp.asarray(float(joint.n_used)), jnp.asarray(0.0))
+            joint.N_raw[np.ix_(I0, I0)], joint.n_raw[I0], np.asarray(S3, float),
+            sg3[:, :, I0], np.asarray(tg3, float), jnp.asarray(joint.wMw_raw),
+            jnp.asarray(float(joint.n_used)), jnp.asarray(0.0))
         var0 = (jnp.asarray(1.0), jnp.asarray(_CELL_VAR0), jnp.zeros((0,)))
         none = jnp.zeros((0,), jnp.int32)
-        st = mixed_step(sums, var0, var0, jnp.zeros(len(I0)), jnp.asarray(U), none, none, 0)
+        st = mixed_step(sums, var0, var0, np.zeros(len(I0)), np.asarray(U, float), none, none,
+                        0)
         se2, cv = float(st.var[0]), np.asarray(st.var[1], float)
         if not (np.isfinite(se2) and se2 > 0 and np.all(np.isfinite(cv))):
             # the null block is singular for the random-effect solve: the white system

@@ -7,7 +7,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .._config import thread_pool, usable_cores
+from .._config import each_in_threads
 from ._covariates import _sincos_turns, compare
 from ._state import (
     DiagnoseConfig,
@@ -228,10 +228,7 @@ def _periodogram_points(sc: _Scan, freqs: np.ndarray, F: np.ndarray | None = Non
 
     # the chunks over the cores (NumPy's loops release the GIL), added in their order: the
     # same sums as one thread's
-    starts = range(0, len(t), chunk)
-    threads = min(usable_cores(), len(starts))
-    for z1, z2 in (thread_pool(threads, "periodogram").map(sums, starts) if threads > 1
-                   else map(sums, starts)):
+    for z1, z2 in each_in_threads(sums, range(0, len(t), chunk), "periodogram"):
         Z1 += z1
         Z2 += z2
     A0 = W.sum(1)
@@ -320,7 +317,6 @@ def _covariate_tests(ctx: _Context, scans: Sequence[_Scan], sigma0: float, names
     nb = cfg.covariate_bins
     G = ctx.n_panels
     per_scan = 2 * nb
-    out = {}
     base = []
     Mgg = np.zeros((G, 3, 3))
     ug = np.zeros((G, 3))
@@ -336,9 +332,9 @@ def _covariate_tests(ctx: _Context, scans: Sequence[_Scan], sigma0: float, names
                 Mgg[:, a, b] += np.bincount(sc.panel[pp], (q * D[:, a] * D[:, b])[pp],
                                             minlength=G)
     Mi = np.linalg.pinv(Mgg, rcond=1e-10)
-    for name in names:
-        if name in skip:
-            continue
+
+    def test(name) -> dict | None:
+        """The covariate's test (None: fewer than two bins hold points)."""
         B = per_scan * len(scans)
         Mbb = np.zeros(B)
         ub = np.zeros(B)
@@ -364,7 +360,7 @@ def _covariate_tests(ctx: _Context, scans: Sequence[_Scan], sigma0: float, names
                 Mbg[:, a] += np.bincount(cell, (q * sc.b0 * D[:, a])[okp], minlength=B * G)
         live = Mbb > 0
         if live.sum() < 2:
-            continue
+            return None
         Mbg = Mbg.reshape(B, G, 3)
         W = np.einsum("bgi,gij->bgj", Mbg, Mi)
         Sm = np.diag(Mbb) - np.einsum("bgj,cgj->bc", W, Mbg)
@@ -389,9 +385,13 @@ def _covariate_tests(ctx: _Context, scans: Sequence[_Scan], sigma0: float, names
                 if wl.sum() > 0:
                     est[sl] -= np.sum(wl * est[sl]) / wl.sum()
         se = np.where(live, sigma0 / np.sqrt(np.where(live, Mbb, 1.0)), 0.0)
-        out[name] = {"T": T, "dof": int(keep.sum()), "ids": ids_all, "est": est, "se": se,
-                     "per_scan": per_scan, "raw": raw, "planes": planes}
-    return out
+        return {"T": T, "dof": int(keep.sum()), "ids": ids_all, "est": est, "se": se,
+                "per_scan": per_scan, "raw": raw, "planes": planes}
+
+    # the covariates over the cores (each alone, NumPy's loops release the GIL), in order
+    todo = [n for n in names if n not in skip]
+    return {n: t for n, t in zip(todo, each_in_threads(test, todo, "covariate-tests"))
+            if t is not None}
 
 
 def _covariate_cv(S: Sequence[_Scan], spec: _Spec, only=None) -> dict:

@@ -43,8 +43,7 @@ def _signature(ctx: _Context, sc: _Scan, spec: _Spec, names: Sequence[str], valu
     x = np.array([prev.get(k, fixed.get(k, 0.0)) for k in model.free])
     idx = np.array([model.free.index(n) for n in names])
     npad = _npad(len(sc.l))
-    A = np.asarray(_columns(model, jnp.asarray(_pad(sc.l, npad)), jnp.asarray(x),
-                            jnp.asarray(_pad(sc.consts(), npad)), jnp.asarray(idx),
+    A = np.asarray(_columns(model, _pad(sc.l, npad), x, _pad(sc.consts(), npad), idx,
                             jnp.ones((), bool)))[: len(sc.l)]
     return A @ np.asarray(values, float)
 

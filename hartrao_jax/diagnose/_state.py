@@ -346,10 +346,12 @@ def _adjust(ctx: _Context, model, l, x0, c, w, v0=None):
         res = gauss_helmert(model, lp, x0, ctx.sigma, cp, wp)
     else:
         res = robust_gauss_helmert(model, lp, x0, ctx.sigma, cp, wp, k=k)
-    return GHResult(x=res.x, cov=res.cov, N=res.N, sigma0=res.sigma0, v=res.v[:n],
-                    misclosure=res.misclosure[:n], normalized=res.normalized[:n],
-                    weights=res.weights[:n], redundancy=res.redundancy, iterations=res.iterations,
-                    converged=res.converged)
+    # the padding cut off on the host (a slice of a device array is a program per shape)
+    return GHResult(x=res.x, cov=res.cov, N=res.N, sigma0=res.sigma0, v=np.asarray(res.v)[:n],
+                    misclosure=np.asarray(res.misclosure)[:n],
+                    normalized=np.asarray(res.normalized)[:n],
+                    weights=np.asarray(res.weights)[:n], redundancy=res.redundancy,
+                    iterations=res.iterations, converged=res.converged)
 
 
 def _refit(ctx: _Context, sc: _Scan, spec: _Spec, x_hint: dict[str, float] | None = None,
@@ -378,16 +380,16 @@ def _evaluate(ctx: _Context, sc: _Scan, spec: _Spec, model=None) -> None:
     n = len(sc.l)
     npad = _npad(n)
     c = _pad(sc.consts(), npad)
-    lp = jnp.asarray(_pad(sc.l, npad))
-    x = jnp.asarray(sc.x)
+    lp = _pad(sc.l, npad)
+    x = np.asarray(sc.x, float)
     base = [n for n in model.free if n not in SHIFT + OSCILLATION]
     fixed = {k: v for k, v in _fixed(sc, spec).items() if k not in base}
     probe = make_model(base + list(PROBE), fixed, shift_window_s=(-1e9, 1e18),
                        osc_period_s=1e18, kappa_rad=sc.kappa, aperture_radius_m=ctx.aperture,
                        check_separable=False)
     xp = np.array([sc.value(n) for n in probe.free[: len(probe.free) - len(PROBE)]])
-    F, m, b0, ap = _pointwise(model, probe, lp, x, jnp.asarray(xp), jnp.asarray(c),
-                              jnp.asarray(ctx.sigma**2), jnp.ones((), bool))
+    F, m, b0, ap = _pointwise(model, probe, lp, x, xp, c, np.asarray(ctx.sigma, float)**2,
+                              jnp.ones((), bool))
     sc.F, sc.m = np.asarray(F)[:n], np.asarray(m)[:n]
     sc.b0, sc.probe = np.asarray(b0)[:n], np.asarray(ap)[:n]
     u = sc.used

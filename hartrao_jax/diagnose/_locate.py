@@ -97,7 +97,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from .._config import thread_pool, usable_cores
+from .._config import each_in_threads, thread_pool, usable_cores
 from ..geometry._geometry import cell_code, grid_sum
 
 WIDTHS_M: tuple[float, ...] = (0.3, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
@@ -458,8 +458,10 @@ def width_maps(xy: np.ndarray, r: np.ndarray, widths: Sequence[float] = WIDTHS_M
     panels = _panel_columns(xy, groups) if groups is not None else None
     tau2 = tilt_variance(r, panels, sigma) if panels is not None else 0.0
     maps, skipped = [], []
-    for w in widths:
-        m = width_map(xy, r, w, sigma, dens, panels=panels, tau2=tau2)
+    # the widths over the cores (each map alone; its grid work releases the GIL), in order
+    done = each_in_threads(lambda w: width_map(xy, r, w, sigma, dens, panels=panels, tau2=tau2),
+                           list(widths), "width-maps")
+    for w, m in zip(widths, done):
         if m is None or not np.isfinite(m.roughness) or len(m.peaks) == 0:
             skipped.append(float(w))
             continue

@@ -122,3 +122,19 @@ def test_arrays_are_lent_where_they_can_be_and_copied_once_where_not():
         assert d.dtype == (b.dtype if dtype is None else dtype)
         np.testing.assert_array_equal(np.asarray(d), b.astype(d.dtype))
         assert d.unsafe_buffer_pointer() != a.ctypes.data
+
+
+def test_each_in_threads_keeps_the_order_and_runs_alone_on_one_core(monkeypatch):
+    """The items' results in the items' order over the cores (tuples spread as arguments),
+    and in the calling thread where one core is usable."""
+    import threading
+
+    from hartrao_jax._config import THREADS_ENV, each_in_threads
+
+    monkeypatch.setenv(THREADS_ENV, "2")
+    assert each_in_threads(lambda a, b: a * b, [(i, 3) for i in range(50)], "test") == [
+        3 * i for i in range(50)]
+    assert each_in_threads(lambda a: -a, range(5), "test") == [0, -1, -2, -3, -4]
+    monkeypatch.setenv(THREADS_ENV, "1")
+    main = threading.get_ident()
+    assert each_in_threads(lambda a: threading.get_ident(), range(3), "test") == [main] * 3

@@ -827,7 +827,8 @@ def gauss_helmert_mixed(
             step's statistics would keep that.
 
     The statistics at the solution (covariance, variance components, residuals) come from the
-    last step's linearisation: its step was below ``tol`` sigma, so no further pass is made.
+    last step's linearisation: its step, or the rest of the steps its contraction predicts,
+    was below ``tol`` sigma, so no further pass is made.
     """
     n = np.shape(l)[0]
     max_iter = max(int(max_iter), 1)

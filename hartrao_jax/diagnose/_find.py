@@ -92,6 +92,17 @@ def _box_search(edges, Nb, nbv, cfg: DiagnoseConfig):
     return best[0], best[1], best[2], profile, Lmax
 
 
+def _edge_candidates(t: np.ndarray, edges: np.ndarray, k: int, n_cand: int) -> np.ndarray:
+    """Candidate window edges within one bin of coarse edge ``k``: positions in the sorted
+    times ``t`` (a window edge at position p starts before point p), at most ``n_cand``."""
+    lo, hi = edges[max(k - 1, 0)], edges[min(k + 1, len(edges) - 1)]
+    idx = np.arange(np.searchsorted(t, lo), np.searchsorted(t, hi, side="right") + 1)
+    idx = np.clip(idx, 0, len(t))
+    if len(idx) > n_cand:
+        idx = idx[np.linspace(0, len(idx) - 1, n_cand).astype(int)]
+    return np.unique(idx)
+
+
 def _refine_window(sc: _Scan, edges, i: int, j: int, Ntot, T0: float, n_cand: int = 48):
     """Window edges at the resolution of the points' times (within one bin of the coarse
     edges), by the same statistic on sums over the time-sorted points (taken up to each
@@ -107,15 +118,7 @@ def _refine_window(sc: _Scan, edges, i: int, j: int, Ntot, T0: float, n_cand: in
     qa = a * q[:, None]
     Ninv = np.linalg.pinv(Ntot)
 
-    def cands(k):
-        lo, hi = edges[max(k - 1, 0)], edges[min(k + 1, len(edges) - 1)]
-        idx = np.arange(np.searchsorted(t, lo), np.searchsorted(t, hi, side="right") + 1)
-        idx = np.clip(idx, 0, len(t))
-        if len(idx) > n_cand:
-            idx = idx[np.linspace(0, len(idx) - 1, n_cand).astype(int)]
-        return np.unique(idx)
-
-    s_idx, e_idx = cands(i), cands(j)
+    s_idx, e_idx = _edge_candidates(t, edges, i, n_cand), _edge_candidates(t, edges, j, n_cand)
     S0, E0 = np.meshgrid(s_idx, e_idx, indexing="ij")
     ok = E0 > S0
     if not ok.any():

@@ -11,7 +11,7 @@ from scipy import optimize, stats
 
 from hartrao_jax.diagnose._covariates import _fold_periods, _periodogram_folds, _sincos_turns
 from hartrao_jax.diagnose._detectability import _noncentrality
-from hartrao_jax.diagnose._find import _quadratic_3x3, _refine_window
+from hartrao_jax.diagnose._find import _edge_candidates, _quadratic_3x3, _refine_window
 from hartrao_jax.diagnose._locate import _filter_grids
 
 
@@ -83,16 +83,8 @@ def _window_by_cumsum(t, a, q, F, edges, i, j, Ntot, n_cand=48):
     qa = a * q[:, None]
     CN = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(qa[:, :, None] * a[:, None, :], 0)])
     Cn = np.concatenate([np.zeros((1, 3)), np.cumsum(qa * F[:, None], 0)])
-
-    def cands(k):
-        lo, hi = edges[max(k - 1, 0)], edges[min(k + 1, len(edges) - 1)]
-        idx = np.arange(np.searchsorted(t, lo), np.searchsorted(t, hi, side="right") + 1)
-        idx = np.clip(idx, 0, len(t))
-        if len(idx) > n_cand:
-            idx = idx[np.linspace(0, len(idx) - 1, n_cand).astype(int)]
-        return np.unique(idx)
-
-    S0, E0 = np.meshgrid(cands(i), cands(j), indexing="ij")
+    S0, E0 = np.meshgrid(_edge_candidates(t, edges, i, n_cand),
+                         _edge_candidates(t, edges, j, n_cand), indexing="ij")
     S0, E0 = S0[E0 > S0], E0[E0 > S0]
     NW, nW = CN[E0] - CN[S0], Cn[E0] - Cn[S0]
     Sm = NW - NW @ np.linalg.pinv(Ntot) @ NW + 1e-9 * np.trace(Ntot) / 3 * np.eye(3)

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
+from .._programs import cached_jit
 from ..geometry._geometry import polar_to_cartesian, zernike
 
 # --------------------------------------------------------------------------------------------
@@ -263,18 +264,22 @@ def face_signatures(names, r: np.ndarray, a: np.ndarray, theta0: np.ndarray):
     """
 
     faces = [(a, theta0), (np.mod(a + np.pi, 2 * np.pi), 2 * np.pi - theta0)]
-    odd, even = [], []
-    for name in names:
-        d = []
-        for phi, th in faces:
-            x0 = np.asarray(polar_to_cartesian(r, phi, th))
-            # linear in the value: a small value and a difference quotient give the column
-            h = 1e-7
-            x1 = np.asarray(polar_to_cartesian(*correct_observations(r, phi, th, {name: h})))
-            d.append(((x1 - x0) / h).ravel())
-        odd.append((d[0] - d[1]) / 2)
-        even.append((d[0] + d[1]) / 2)
-    return np.asarray(odd), np.asarray(even)
+    d = [np.asarray(_displacements(tuple(names), np.asarray(r, float), np.asarray(phi, float),
+                                   np.asarray(th, float))) for phi, th in faces]
+    return (d[0] - d[1]) / 2, (d[0] + d[1]) / 2
+
+
+@cached_jit
+def _displacements(names: tuple[str, ...], r, phi, theta):
+    """Per parameter of ``names``, the Cartesian displacement (m, raveled) of the
+    observations ``(r, phi, theta)`` by a unit value, shape ``(len(names), 3 n)``: one program
+    for all of them, loaded from disk in later processes (as eager operations, 0.13 s of
+    lowering and loading a ``diagnose``)."""
+    x0 = polar_to_cartesian(r, phi, theta)
+    # linear in the value: a small value and a difference quotient give the column
+    h = 1e-7
+    return jnp.stack([((polar_to_cartesian(*correct_observations(r, phi, theta, {n: h})) - x0)
+                       / h).ravel() for n in names])
 
 
 def two_face_parameters(names=None) -> tuple[str, ...]:

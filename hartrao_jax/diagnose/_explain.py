@@ -12,10 +12,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from scipy import special
 
+from .._config import on_device
 from .._programs import Uncacheable, spec
 from ..model._model import (
     DRIFT,
@@ -127,7 +127,7 @@ def _cell_sums(ctx: _Context, sc: _Scan, model, x: np.ndarray, w: np.ndarray,
         if key is not None and key in ctx.sums_memo:
             return ctx.sums_memo[key]
         s, _ = mixed_chunk(m, *args, np.asarray(x_m, float), np.asarray(U, float),
-                           jnp.asarray(1.0), jnp.asarray(np.inf), dev_column=1)
+                           on_device(1.0), on_device(np.inf), dev_column=1)
         s = jax.tree.map(np.asarray, s)
         if key is not None:
             while len(ctx.sums_memo) >= SUMS_MEMO:
@@ -209,10 +209,10 @@ class _SurfaceNull:
         S3, sg3, tg3, U = joint.cells
         sums = MixedSums(
             joint.N_raw[np.ix_(I0, I0)], joint.n_raw[I0], np.asarray(S3, float),
-            sg3[:, :, I0], np.asarray(tg3, float), jnp.asarray(joint.wMw_raw),
-            jnp.asarray(float(joint.n_used)), jnp.asarray(0.0))
-        var0 = (jnp.asarray(1.0), jnp.asarray(_CELL_VAR0), jnp.zeros((0,)))
-        none = jnp.zeros((0,), jnp.int32)
+            sg3[:, :, I0], np.asarray(tg3, float), on_device(joint.wMw_raw),
+            on_device(float(joint.n_used)), on_device(0.0))
+        var0 = (on_device(1.0), on_device(_CELL_VAR0), on_device(np.zeros((0,))))
+        none = on_device(np.zeros((0,), np.int32))
         st = mixed_step(sums, var0, var0, np.zeros(len(I0)), np.asarray(U, float), none, none,
                         0)
         se2, cv = float(st.var[0]), np.asarray(st.var[1], float)

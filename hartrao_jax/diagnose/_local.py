@@ -93,7 +93,7 @@ def search_points(S, robust_k: float | None = 4.0, back=None, panels: bool = Fal
 def _raw_xyz(sc) -> np.ndarray:
     """The scan's points in its own Cartesian frame as recorded (file coordinates on import)."""
 
-    return np.asarray(polar_to_cartesian(sc.l[:, 0], sc.l[:, 1], sc.l[:, 2]))
+    return polar_to_cartesian(sc.l[:, 0], sc.l[:, 1], sc.l[:, 2], np)
 
 
 def _place(ctx, S, x0: float, y0: float, w: float) -> dict:

@@ -11,9 +11,9 @@ from collections.abc import Sequence
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
+from .._config import on_device
 from .._programs import cached_jit
 from ..solver._kernel import materialize_trig
 from ._find import COVARIATES, _covariate_values
@@ -44,7 +44,7 @@ def _signature(ctx: _Context, sc: _Scan, spec: _Spec, names: Sequence[str], valu
     idx = np.array([model.free.index(n) for n in names])
     npad = _npad(len(sc.l))
     A = np.asarray(_columns(model, _pad(sc.l, npad), x, _pad(sc.consts(), npad), idx,
-                            jnp.ones((), bool)))[: len(sc.l)]
+                            on_device(True, bool)))[: len(sc.l)]
     return A @ np.asarray(values, float)
 
 

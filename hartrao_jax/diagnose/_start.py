@@ -58,11 +58,11 @@ def _start_scans(ctx: _Context, start: tuple[str, ...], keep,
         psi = np.mod(np.arctan2(X[:, 1], X[:, 0]), 2 * np.pi)
         pid, local, _, _ = panel_cells(X, ctx.edges, ctx.counts)
         fval = f.value("f")
-        s_rho = np.asarray(paraboloid_normal_scale(rho, fval))
+        s_rho = paraboloid_normal_scale(rho, fval, np)
         # incidence angle: beam (from the scanner origin, fitted frame) against the normal
 
-        t = np.array([f.value("tx"), f.value("ty"), f.value("tz")]) @ np.asarray(
-            rot_z(f.alignment.kappa_rad)).T
+        t = np.array([f.value("tx"), f.value("ty"), f.value("tz")]) @ rot_z(
+            f.alignment.kappa_rad, np).T
         d = X - t
         nrm = np.column_stack([-X[:, 0] / (2 * fval), -X[:, 1] / (2 * fval), np.ones(len(X))])
         cosi = np.abs(np.sum(d * nrm, 1)) / (np.linalg.norm(d, axis=1) * np.linalg.norm(nrm, axis=1)

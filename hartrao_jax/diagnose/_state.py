@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._config import on_device
 from .._programs import cached_jit
 from ..campaign._campaign import Campaign, ScanData, ScanMeta
 from ..geometry._geometry import panel_geometry
@@ -307,10 +308,10 @@ class _Supersets:
         if big is None:
             known.append(model)
             return model, np.asarray(x, float), np.arange(len(model.free))
-        values = {k: float(v) for k, v in model.params(jnp.asarray(x, float)).items()}
+        values = model.values(x)
         wide = ParaboloidModel(
             free=big.free, fixed_names=big.fixed_names,
-            fixed_values=jnp.asarray([values[n] for n in big.fixed_names], float).reshape(-1),
+            fixed_values=on_device([values[n] for n in big.fixed_names], float),
             shift_window_s=model.shift_window_s, osc_period_s=model.osc_period_s,
             kappa_rad=model.kappa_rad, aperture_radius_m=model.aperture_radius_m)
         x_wide = np.array([values.get(n, 0.0) for n in big.free])
@@ -389,7 +390,7 @@ def _evaluate(ctx: _Context, sc: _Scan, spec: _Spec, model=None) -> None:
                        check_separable=False)
     xp = np.array([sc.value(n) for n in probe.free[: len(probe.free) - len(PROBE)]])
     F, m, b0, ap = _pointwise(model, probe, lp, x, xp, c, np.asarray(ctx.sigma, float)**2,
-                              jnp.ones((), bool))
+                              on_device(True, bool))
     sc.F, sc.m = np.asarray(F)[:n], np.asarray(m)[:n]
     sc.b0, sc.probe = np.asarray(b0)[:n], np.asarray(ap)[:n]
     u = sc.used

@@ -37,7 +37,7 @@ def _wrap(a):
 
 def kappa_from_gravity(rx: float, ry: float, gravity: np.ndarray) -> float:
     """``kappa`` (rad) from the azimuth of gravity in the fitted and in the telescope frame."""
-    g_fit = np.asarray(rot_y(ry) @ rot_x(rx))[:, 2]  # scanner z axis in the fitted frame
+    g_fit = (rot_y(ry, np) @ rot_x(rx, np))[:, 2]  # scanner z axis in the fitted frame
     g = np.asarray(gravity, float)
     return float(_wrap(np.arctan2(g[1], g[0]) - np.arctan2(g_fit[1], g_fit[0])))
 
@@ -137,7 +137,7 @@ def mount_heading(kappa: float, rx: float, ry: float, gravity: np.ndarray) -> fl
     ``Rz(kappa) Ry(ry) Rx(rx) = R_gimbal(g) Rz(heading)``: the heading is a property of the
     mounting, the same at every position of a campaign.
     """
-    R = np.asarray(rot_z(kappa) @ rot_y(ry) @ rot_x(rx))
+    R = rot_z(kappa, np) @ rot_y(ry, np) @ rot_x(rx, np)
     Rz_h = gimbal_rotation(gravity).T @ R
     return float(np.arctan2(Rz_h[1, 0], Rz_h[0, 0]))
 
@@ -159,8 +159,8 @@ def mean_heading(headings) -> float | None:
 
 def kappa_from_heading(heading: float, gravity: np.ndarray) -> float:
     """``kappa`` (rad) predicted from a known mount heading at a position with gravity ``g``."""
-    R = gimbal_rotation(gravity) @ np.asarray(rot_z(heading))
-    return float(decompose_zyx(R)[0])
+    R = gimbal_rotation(gravity) @ rot_z(heading, np)
+    return float(decompose_zyx(R, np)[0])
 
 
 def north_alignment(

@@ -23,6 +23,7 @@ from .._config import (
     BLOCK_ROWS,
     by_row_blocks,
     lendable_empty,
+    on_device,
     release_compiled_programs,
     row_blocks,
 )
@@ -249,7 +250,7 @@ def _fitted_points(mdl: ParaboloidModel, data: ScanData, x, f: float):
     observations made from the scan's columns (not a copy of the whole scan's: 240 MiB per
     6.3e6 points)."""
     n = len(data)
-    x, f, on = jnp.asarray(x), jnp.asarray(f, jnp.float64), jnp.ones((), bool)
+    x, f, on = jnp.asarray(x), on_device(f, np.float64), on_device(True, bool)
     if n <= BLOCK_ROWS:
         l, c = scan_arrays(data, n_pad=bucket_size(n))
         X, dev = _fitted_points_jit(mdl, l, x, c, f, on)
@@ -289,7 +290,7 @@ def finish_scan_fit(
     x = np.asarray(res.x)
     names = mdl.free
     used = np.asarray(res.weights) > 0
-    p = {k: float(v) for k, v in mdl.params(res.x).items()}
+    p = mdl.values(x)
     X_fit, dev = _fitted_points(mdl, data, res.x, p["f"])
     tel = campaign.telescope
     rim = tel.diameter_m / 2
@@ -301,7 +302,7 @@ def finish_scan_fit(
     # north-aligned in place where X_fit is the host's own, a block at a time (no second
     # (n, 3) table: 144 MiB per 6.3e6-point scan)
     X_tel = X_fit if X_fit.flags.writeable else np.array(X_fit)
-    R = np.asarray(rot_z(align.kappa_rad)).T
+    R = rot_z(align.kappa_rad, np).T
     for rows in row_blocks(len(X_tel)):
         X_tel[rows] = X_tel[rows] @ R
     notes = []

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._config import by_row_blocks, row_blocks
+from .._config import by_row_blocks, on_device, row_blocks
 from .._programs import cached_jit
 from ..geometry._geometry import ring_cells
 from ..model._model import ParaboloidModel
@@ -57,16 +57,17 @@ def hit_cells(model: ParaboloidModel, l, x, c, sigma_l, kappa_rad, ring_edges_m,
     As :func:`hit_points` then :func:`..geometry.panel_cells` and the float32 copies a
     position's random effect keeps of them, without the hit points, the cells' float64 columns
     and their copies in memory: 1.26e7 points 0.9 GB less written and read."""
-    args = (jnp.asarray(sigma_l, jnp.float64), jnp.asarray(kappa_rad, jnp.float64),
-            jnp.ones((), bool), tuple(map(float, ring_edges_m)), tuple(map(int, panels_per_ring)),
+    args = (on_device(sigma_l, np.float64), on_device(kappa_rad, np.float64),
+            on_device(True, bool), tuple(map(float, ring_edges_m)),
+            tuple(map(int, panels_per_ring)),
             with_v, with_xy)
     return by_row_blocks(lambda l_, c_: _hit_cells(model, l_, x, c_, *args), (l, c))
 
 
 def _by_blocks(model, l, x, c, sigma_l, kappa_rad, with_v: bool):
     """:func:`_hit_points` by :func:`by_row_blocks`."""
-    args = (jnp.asarray(sigma_l, jnp.float64), jnp.asarray(kappa_rad, jnp.float64),
-            jnp.ones((), bool), with_v)
+    args = (on_device(sigma_l, np.float64), on_device(kappa_rad, np.float64),
+            on_device(True, bool), with_v)
     out = by_row_blocks(lambda l_, c_: _hit_points(model, l_, x, c_, *args), (l, c))
     return out if with_v else out[0]
 

@@ -29,25 +29,28 @@ from ..campaign._format import cartesian_to_raw  # noqa: F401  (the recording's 
 # --------------------------------------------------------------------------------------------
 
 
-def rot_x(a: ArrayLike) -> Float[Array, "3 3"]:
-    """Right-handed rotation by ``a`` (rad) about the x axis."""
-    c, s = jnp.cos(a), jnp.sin(a)
-    o, z = jnp.ones_like(c), jnp.zeros_like(c)
-    return jnp.stack([jnp.stack([o, z, z]), jnp.stack([z, c, -s]), jnp.stack([z, s, c])])
+def rot_x(a: ArrayLike, xp=jnp) -> Float[Array, "3 3"]:
+    """Right-handed rotation by ``a`` (rad) about the x axis; ``xp``: ``jax.numpy``
+    (default) or ``numpy`` (host-side bookkeeping: no JAX operation)."""
+    c, s = xp.cos(a), xp.sin(a)
+    o, z = xp.ones_like(c), xp.zeros_like(c)
+    return xp.stack([xp.stack([o, z, z]), xp.stack([z, c, -s]), xp.stack([z, s, c])])
 
 
-def rot_y(a: ArrayLike) -> Float[Array, "3 3"]:
-    """Right-handed rotation by ``a`` (rad) about the y axis."""
-    c, s = jnp.cos(a), jnp.sin(a)
-    o, z = jnp.ones_like(c), jnp.zeros_like(c)
-    return jnp.stack([jnp.stack([c, z, s]), jnp.stack([z, o, z]), jnp.stack([-s, z, c])])
+def rot_y(a: ArrayLike, xp=jnp) -> Float[Array, "3 3"]:
+    """Right-handed rotation by ``a`` (rad) about the y axis; ``xp``: ``jax.numpy``
+    (default) or ``numpy`` (host-side bookkeeping: no JAX operation)."""
+    c, s = xp.cos(a), xp.sin(a)
+    o, z = xp.ones_like(c), xp.zeros_like(c)
+    return xp.stack([xp.stack([c, z, s]), xp.stack([z, o, z]), xp.stack([-s, z, c])])
 
 
-def rot_z(a: ArrayLike) -> Float[Array, "3 3"]:
-    """Right-handed rotation by ``a`` (rad) about the z axis."""
-    c, s = jnp.cos(a), jnp.sin(a)
-    o, z = jnp.ones_like(c), jnp.zeros_like(c)
-    return jnp.stack([jnp.stack([c, -s, z]), jnp.stack([s, c, z]), jnp.stack([z, z, o])])
+def rot_z(a: ArrayLike, xp=jnp) -> Float[Array, "3 3"]:
+    """Right-handed rotation by ``a`` (rad) about the z axis; ``xp``: ``jax.numpy``
+    (default) or ``numpy`` (host-side bookkeeping: no JAX operation)."""
+    c, s = xp.cos(a), xp.sin(a)
+    o, z = xp.ones_like(c), xp.zeros_like(c)
+    return xp.stack([xp.stack([c, -s, z]), xp.stack([s, c, z]), xp.stack([z, z, o])])
 
 
 def rot_axis(axis: ArrayLike, angle: ArrayLike) -> Float[Array, "3 3"]:
@@ -69,14 +72,15 @@ def rotation_from_vector(w: Float[Array, " 3"]) -> Float[Array, "3 3"]:
     return jnp.eye(3) + a * kx + b * (kx @ kx)
 
 
-def scanner_to_telescope(rx: ArrayLike, ry: ArrayLike) -> Float[Array, "3 3"]:
+def scanner_to_telescope(rx: ArrayLike, ry: ArrayLike, xp=jnp) -> Float[Array, "3 3"]:
     """Seed eq. (6) rotation ``Ry(ry) . Rx(rx)`` from the scanner to the (fitted) telescope
-    frame."""
-    return rot_y(ry) @ rot_x(rx)
+    frame; ``xp`` as in :func:`rot_x`."""
+    return rot_y(ry, xp) @ rot_x(rx, xp)
 
 
-def decompose_zyx(R: Float[Array, "3 3"]) -> tuple[Array, Array, Array]:
-    """Angles ``(kappa, ry, rx)`` with ``R = Rz(kappa) . Ry(ry) . Rx(rx)``.
+def decompose_zyx(R: Float[Array, "3 3"], xp=jnp) -> tuple[Array, Array, Array]:
+    """Angles ``(kappa, ry, rx)`` with ``R = Rz(kappa) . Ry(ry) . Rx(rx)``; ``xp`` as in
+    :func:`rot_x`.
 
     The branch is chosen with ``cos(ry) < 0`` (scanner upside down, ``ry`` near pi), the
     attitude of a scanner hanging towards the reflector, so that the initial values and
@@ -84,12 +88,12 @@ def decompose_zyx(R: Float[Array, "3 3"]) -> tuple[Array, Array, Array]:
     """
     # Third row of Rz Ry Rx is (-sin ry, cos ry sin rx, cos ry cos rx): independent of kappa.
     r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
-    rx = jnp.arctan2(-r21, -r22)
-    ry = jnp.arctan2(-r20, -jnp.sqrt(r21**2 + r22**2))
-    M = rot_y(ry) @ rot_x(rx)
+    rx = xp.arctan2(-r21, -r22)
+    ry = xp.arctan2(-r20, -xp.sqrt(r21**2 + r22**2))
+    M = rot_y(ry, xp) @ rot_x(rx, xp)
     # R = Rz(kappa) M  ->  Rz(kappa) = R M^T
     Rz = R @ M.T
-    kappa = jnp.arctan2(Rz[1, 0], Rz[0, 0])
+    kappa = xp.arctan2(Rz[1, 0], Rz[0, 0])
     return kappa, ry, rx
 
 
@@ -189,10 +193,10 @@ def polar_components(r: ArrayLike, phi: ArrayLike, theta: ArrayLike, xp=jnp):
     return r * st * xp.sin(phi), r * st * xp.cos(phi), r * xp.cos(theta)
 
 
-def polar_to_cartesian(r: ArrayLike, phi: ArrayLike, theta: ArrayLike) -> Array:
+def polar_to_cartesian(r: ArrayLike, phi: ArrayLike, theta: ArrayLike, xp=jnp) -> Array:
     """Seed eq. (2): ``(r sin(theta) sin(phi), r sin(theta) cos(phi), r cos(theta))``, last
-    axis 3."""
-    return jnp.stack(polar_components(r, phi, theta), axis=-1)
+    axis 3; ``xp`` as in :func:`polar_components`."""
+    return xp.stack(polar_components(r, phi, theta, xp), axis=-1)
 
 
 def face_of(theta: ArrayLike) -> np.ndarray:
@@ -212,9 +216,10 @@ def dish_coordinates(X: Float[Array, "... 3"]) -> tuple[Array, Array]:
     return rho, psi
 
 
-def paraboloid_normal_scale(rho: ArrayLike, f: ArrayLike) -> Array:
-    """``sqrt(1 + (rho / 2f)^2)``: converts a normal deviation into a change of Z at radius rho."""
-    return jnp.sqrt(1.0 + (rho / (2.0 * f)) ** 2)
+def paraboloid_normal_scale(rho: ArrayLike, f: ArrayLike, xp=jnp) -> Array:
+    """``sqrt(1 + (rho / 2f)^2)``: converts a normal deviation into a change of Z at radius rho;
+    ``xp``: ``jax.numpy`` (default) or ``numpy``."""
+    return xp.sqrt(1.0 + (rho / (2.0 * f)) ** 2)
 
 
 def paraboloid_deviation(X: Float[Array, "... 3"], f: ArrayLike, newton_steps: int = 3) -> Array:

@@ -14,10 +14,12 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
+from .._config import on_device
 from ..geometry._geometry import polar_to_cartesian, rot_z, scanner_to_telescope
 from ..physics._catalog import (
     EXTENDED,
@@ -112,6 +114,14 @@ def parse_model(spec: str | Iterable[str]) -> tuple[str, ...]:
     return OBJECT_PARAMETERS + tuple(rest)
 
 
+def _floats(v) -> Array:
+    """``v`` (a value or a list of values) as a float64 device array: host values by a
+    transfer (:func:`.._config.on_device`), JAX arrays and tracers by ``jnp.asarray``."""
+    if any(isinstance(a, jax.Array) for a in (v if isinstance(v, list) else [v])):
+        return jnp.asarray(v, dtype=float)
+    return on_device(v, float)
+
+
 def _unstack(v: Float[Array, " p"]) -> list[Array]:
     """The entries of a vector as scalars (none for an empty one)."""
     return list(jnp.unstack(v)) if v.shape[0] else []
@@ -138,6 +148,13 @@ class ParaboloidModel(eqx.Module):
     osc_period_s: Float[Array, ""]
     kappa_rad: Float[Array, ""]
     aperture_radius_m: float = eqx.field(static=True, default=12.95)
+
+    def values(self, x: ArrayLike) -> dict[str, float]:
+        """:meth:`params` on the host, as floats (no JAX operation)."""
+        p = dict(zip(self.fixed_names, np.asarray(self.fixed_values, float).tolist(),
+                     strict=True))
+        p.update(zip(self.free, np.asarray(x, float).reshape(-1).tolist(), strict=True))
+        return p
 
     def params(self, x: Float[Array, " u"]) -> dict[str, Array]:
         """All named parameter values: free ones from ``x``, then the fixed ones."""
@@ -244,10 +261,10 @@ def make_model(
     return ParaboloidModel(
         free=names,
         fixed_names=fixed_names,
-        fixed_values=jnp.asarray([fixed[k] for k in fixed_names], dtype=float).reshape(-1),
-        shift_window_s=jnp.asarray(shift_window_s, dtype=float),
-        osc_period_s=jnp.asarray(osc_period_s, dtype=float),
-        kappa_rad=jnp.asarray(kappa_rad, dtype=float),
+        fixed_values=_floats([fixed[k] for k in fixed_names]),
+        shift_window_s=_floats(shift_window_s),
+        osc_period_s=_floats(osc_period_s),
+        kappa_rad=_floats(kappa_rad),
         aperture_radius_m=float(aperture_radius_m),
     )
 

@@ -30,9 +30,8 @@ from ..geometry._geometry import (
     decompose_zyx,
     polar_components,
     polar_to_cartesian,
-    rot_x,
-    rot_y,
     rot_z,
+    scanner_to_telescope,
 )
 
 
@@ -54,15 +53,10 @@ class InitialValues:
 
 
 def scanner_rotation(rx: float, ry: float) -> np.ndarray:
-    """``Ry(ry) Rx(rx)`` (rad; :func:`..geometry._geometry.scanner_to_telescope`) in NumPy.
-
-    Written out instead of calling the JAX function: the pose refinement evaluates it about
-    60 times per scan, and an eager JAX call on scalars costs ~3 ms (the test suite checks
-    that the two agree)."""
-    cx, sx, cy, sy = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry)
-    return np.array([[cy, sy * sx, sy * cx],
-                     [0.0, cx, -sx],
-                     [-sy, cy * sx, cy * cx]])
+    """``Ry(ry) Rx(rx)`` (rad; :func:`..geometry._geometry.scanner_to_telescope`) in NumPy:
+    the pose refinement evaluates it about 60 times per scan, and an eager JAX call on
+    scalars costs ~3 ms."""
+    return scanner_to_telescope(rx, ry, np)
 
 
 def gimbal_rotation(g: np.ndarray) -> np.ndarray:
@@ -516,8 +510,8 @@ def quadric_initial_values(
             break
         a, V, f = model(sel)
     R = _rotation_axis_to_z(a)
-    kappa, ry, rx = (float(v) for v in decompose_zyx(R))
-    R2 = np.asarray(rot_y(ry) @ rot_x(rx))
+    kappa, ry, rx = (float(v) for v in decompose_zyx(R, np))
+    R2 = scanner_rotation(rx, ry)
     t = -R2 @ V
     d = np.abs(_paraboloid_distance(P, a, V, f))
     return InitialValues(
@@ -591,8 +585,8 @@ def patch_initial_values(
         r_hat /= np.linalg.norm(r_hat)
         V = p0 - rho * r_hat - (rho * rho / (4 * f)) * a
         R = _rotation_axis_to_z(a)
-        kappa, ry, rx = (float(x) for x in decompose_zyx(R))
-        R2 = np.asarray(rot_y(ry) @ rot_x(rx))
+        kappa, ry, rx = (float(x) for x in decompose_zyx(R, np))
+        R2 = scanner_rotation(rx, ry)
         tt = -R2 @ V
         d = np.abs(_paraboloid_distance(P, a, V, f))
         out.append(InitialValues(

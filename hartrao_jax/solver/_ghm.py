@@ -34,6 +34,7 @@ import lineax as lx
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .._config import on_device
 from .._programs import cached_jit
 from ._kernel import (
     REJECT_BELOW,
@@ -209,7 +210,7 @@ def _gauss_helmert(condition, l, x0, sigma_l, consts, weights, v0, tol, *, max_i
     u = x0.shape[0]
     x, N, Ninv, V, K, M, F0, omega, it, done, weights = gh_one_pass(
         condition, l, x0, sigma_l, consts, weights, v0,
-        jnp.ones((), bool) if on is None else on, tol,
+        on_device(True, bool) if on is None else on, tol,
         lin=linearize_rev, chunk=chunk_size, max_iter=max_iter, robust_k=robust_k,
         max_rounds=max_rounds)
     red = jnp.sum(weights > 0) - u
@@ -231,7 +232,8 @@ def _gauss_helmert_split(condition, l, x0, sigma_l, consts, weights, v0, tol, *,
     of the sums' additions."""
     n, u = l.shape[0], x0.shape[0]
     f = l.dtype
-    on = jnp.ones((), bool)
+    on = on_device(True, bool)
+    robust_k = None if robust_k is None else float(robust_k)  # the limit on the host
     chunk = chunk_size
     m = -(-n // (threads * chunk)) * chunk
     cuts = [(s0, min(s0 + m, n)) for s0 in range(0, n, m)]
@@ -389,7 +391,7 @@ def gauss_helmert_batch(
     )
     return eqx.filter_jit(jax.vmap(fn, in_axes=(0, 0, 0, 0, None)))(
         l, jnp.asarray(x0, l.dtype), jnp.asarray(consts, l.dtype), jnp.asarray(weights, l.dtype),
-        jnp.ones((), bool))
+        on_device(True, bool))
 
 
 def robust_gauss_helmert(
@@ -418,7 +420,7 @@ def robust_gauss_helmert(
     return _adjust(
         condition, l, jnp.asarray(x0, l.dtype), jnp.asarray(sigma_l, l.dtype), consts, w, v0,
         float(tol), max_iter=max_iter, chunk_size=chunk, threads=threads,
-        robust_k=jnp.asarray(k, l.dtype), max_rounds=int(max_rounds))
+        robust_k=on_device(k, l.dtype), max_rounds=int(max_rounds))
 
 
 class NormalEquations(eqx.Module):

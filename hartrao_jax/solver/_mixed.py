@@ -57,7 +57,7 @@ from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 from scipy.special import chdtrc  # chi-square survival function (scipy.stats: 0.38 s to import)
 
-from .._config import lend_to_device, lendable_empty, return_free_heap, row_blocks
+from .._config import lend_to_device, lendable_empty, on_device, return_free_heap, row_blocks
 from .._programs import cached_jit
 from ._ghm import AbstractAdjustment
 from ._kernel import (
@@ -571,7 +571,7 @@ def _solve_parts(condition, cfg: _Settings, parts: list[dict], x0, U0, var0, rid
     sums of the parts are added, the step and the variance components computed from them as
     before. Same iteration, same arithmetic up to the order of the sums' additions.
     ``back``: the parts' per-point arrays (a list) -> one array in the caller's order."""
-    on = jnp.ones((), bool)
+    on = on_device(True, bool)
     pool = thread_pool(len(parts))
 
     large = parts[0]["L"].shape[0] >= TRIM_ROWS
@@ -865,7 +865,7 @@ def gauss_helmert_mixed(
            "G": jnp.asarray(g_np, jnp.int32), "DM": jnp.asarray(design, f),
            "MZ": jnp.asarray(MZ, f)}
     return _solve(condition, cfg, pts, x0, U0, var0, ridge_idx, ridge_group, k_rob,
-                  jnp.ones((), bool), jnp.asarray(reject_from), jnp.asarray(rate0, f))
+                  on_device(True, bool), on_device(reject_from), on_device(rate0, f))
 
 
 def ridge_chi2(result: MixedResult, ridge: dict[str, list[int]] | None) -> dict[str, tuple]:

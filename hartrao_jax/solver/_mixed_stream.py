@@ -13,8 +13,10 @@ from functools import partial
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
 
+from .._config import on_device
 from .._programs import cached_jit
 from ._kernel import step_sigmas
 from ._mixed import _Linearization, _ridge_args, _update, _vce
@@ -86,13 +88,13 @@ def mixed_chunk(
     Steps 1 and 2 run in one loop over blocks of ``chunk`` points (the residuals of a block
     are linearised while its rows are in cache: 0.61 -> 0.46 s per 1e6 points on one core).
     """
-    MZ = (jnp.zeros((l.shape[0], 0), x.dtype) if mode_design is None
+    MZ = (on_device(np.zeros((l.shape[0], 0), x.dtype)) if mode_design is None
           else jnp.asarray(mode_design, x.dtype))
     # ``on`` enters the compiled program as an argument: a constant True would let XLA fold
     # the materialising cond of the pass away and recompute the derivatives in every consumer
     # (10x the time with the 30 unknowns of the diagnosis' candidates: 2.1 s for 2.6e5 points)
     return _mixed_chunk(condition, l, consts, weights, s2, groups, design, x, U, noise_var,
-                        robust_k, jnp.ones((), bool), MZ, dev_column=dev_column, chunk=chunk)
+                        robust_k, on_device(True, bool), MZ, dev_column=dev_column, chunk=chunk)
 
 
 @cached_jit

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._config import on_device
+from .._config import each_in_threads, on_device
 from .._programs import cached_jit
 from ..campaign._campaign import Campaign, ScanData, ScanMeta
 from ..geometry._geometry import panel_geometry
@@ -480,10 +480,14 @@ def _refit_all(ctx, S, spec, only: Sequence[_Scan] | None = None, hints=None,
                from_used: bool = True, others: bool = False):
     """Refit the scans ``only`` (default all) from the window or from their points in use;
     ``others``: the remaining scans too, from their points in use (the panel offsets or the
-    shared parameters moved)."""
-    for sc in S:
-        mine = only is None or sc in only
-        if not mine and not others:
-            continue
+    shared parameters moved). The scans in threads: each refit reads the context and the
+    spec and writes its own scan only; the parts of its passes go to the solver's pool, and
+    one scan's host bookkeeping and evaluation overlap the other's passes."""
+    todo = [(sc, only is None or sc in only) for sc in S]
+    todo = [(sc, mine) for sc, mine in todo if mine or others]
+
+    def refit(sc, mine):
         _set_known(ctx, sc, spec)
         _refit(ctx, sc, spec, (hints or {}).get(sc.id), from_used=from_used or not mine)
+
+    each_in_threads(refit, todo, "refits")

@@ -9,6 +9,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from .._config import each_in_threads
 from ..campaign._campaign import read_scan, require_points
 from ..fit._align import mean_heading, scan_heading
 from ..fit._fit import finish_scan_fit, prepare_scan, scan_arrays
@@ -27,14 +28,17 @@ log = logging.getLogger("hartrao_jax")
 
 def _start_scans(ctx: _Context, start: tuple[str, ...], keep,
                  scans: Sequence[str] | None) -> list[_Scan]:
-    """Fit every scan with the start model (as ``fit`` does) and freeze its geometry."""
+    """Fit every scan with the start model (as ``fit`` does) and freeze its geometry. The
+    scans are read, prepared and adjusted in threads (each on its own arrays); the fits are
+    finished in order of decreasing tilt, each with the mount heading of those before it."""
 
     camp = ctx.campaign
     metas = [camp.scan(s) for s in scans] if scans else list(camp.scans)
     tel, site = camp.telescope, camp.site
     tilt = {m.id: np.arccos(np.clip(-pointing_gravity(m, tel, site)[2], -1, 1)) for m in metas}
-    fits, headings = {}, []
-    for meta in sorted(metas, key=lambda m: -tilt[m.id]):
+    order = sorted(metas, key=lambda m: -tilt[m.id])
+
+    def adjusted(meta):
         data = read_scan(camp, meta)
         require_points(len(data), len(parse_model(start)), file=camp.root / meta.file,
                        scan_id=meta.id, what="the start model")  # refused by name
@@ -43,7 +47,11 @@ def _start_scans(ctx: _Context, start: tuple[str, ...], keep,
         mdl = make_model(start, aperture_radius_m=ctx.aperture, check_separable=False)
         l, c = scan_arrays(data)
         x0 = np.array([init.x.get(n, 0.0) for n in mdl.free])
-        res = _adjust(ctx, mdl, l, x0, c, window.astype(float))
+        return mdl, data, _adjust(ctx, mdl, l, x0, c, window.astype(float)), g, init, window
+
+    fits, headings = {}, []
+    for meta, (mdl, data, res, g, init, window) in zip(
+            order, each_in_threads(adjusted, order, "start-fits")):
         f = finish_scan_fit(camp, meta, mdl, data, res, g, init, window,
                             heading_hint_rad=mean_heading(headings))
         headings.append(scan_heading(f))

@@ -7,6 +7,7 @@ import functools
 import hashlib
 import logging
 import math
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -15,7 +16,7 @@ import jax
 import numpy as np
 from scipy import special
 
-from .._config import on_device
+from .._config import each_in_threads, on_device
 from .._programs import Uncacheable, spec
 from ..model._model import (
     DRIFT,
@@ -124,15 +125,17 @@ def _cell_sums(ctx: _Context, sc: _Scan, model, x: np.ndarray, w: np.ndarray,
         # the same scan, model, solution and cells as a joint system before (the last step's
         # and the final estimates' first, 0.2 s a scan): its sums again
         key = _sums_key(m, x_m, args, U)
-        if key is not None and key in ctx.sums_memo:
-            return ctx.sums_memo[key]
+        with _MEMO_LOCK:  # the scans' sums are made in threads
+            if key is not None and key in ctx.sums_memo:
+                return ctx.sums_memo[key]
         s, _ = mixed_chunk(m, *args, np.asarray(x_m, float), np.asarray(U, float),
                            on_device(1.0), on_device(np.inf), dev_column=1)
         s = jax.tree.map(np.asarray, s)
         if key is not None:
-            while len(ctx.sums_memo) >= SUMS_MEMO:
-                ctx.sums_memo.pop(next(iter(ctx.sums_memo)))
-            ctx.sums_memo[key] = s
+            with _MEMO_LOCK:
+                while len(ctx.sums_memo) >= SUMS_MEMO:
+                    ctx.sums_memo.pop(next(iter(ctx.sums_memo)))
+                ctx.sums_memo[key] = s
         return s
 
     # by the widest model of the scan that gives the same values (one program for the
@@ -150,6 +153,7 @@ def _cell_sums(ctx: _Context, sc: _Scan, model, x: np.ndarray, w: np.ndarray,
 
 #: Joint systems' sums of one scan kept for reuse (:func:`_cell_sums`; a scan's are a few MB).
 SUMS_MEMO = 8
+_MEMO_LOCK = threading.Lock()
 
 
 def _sums_key(model, x, args, U) -> str | None:
@@ -316,7 +320,10 @@ class _Joint:
         self.n_used = 0
         self.sum_q = 0.0
         t0 = time.time()
-        for sc, x_names in zip(scans, maps):
+
+        def scan_sums(sc, x_names):
+            """One scan's sums at its solution and its columns' place in the joint system
+            (``P``: its model's unknowns -> joint unknowns)."""
             cands = candidates_local[sc.id]
             extra = list(self.shared_names) + (
                 [f"{ZERNIKE_PREFIX}{j}" for j in ZERNIKE_TESTED] if zern_acc else [])
@@ -343,7 +350,11 @@ class _Joint:
                 else:
                     P[i, self.cidx[(sc.id, name)]] = 1.0
             w = (sc.used & (sc.m > 0)).astype(float)
-            ne = _cell_sums(ctx, sc, model, x, w, U)
+            return _cell_sums(ctx, sc, model, x, w, U), P, w
+
+        # the scans' sums in threads (their programs overlap), added in the scans' order
+        for sc, (ne, P, w) in zip(scans, each_in_threads(scan_sums, list(zip(scans, maps)),
+                                                        "joint-sums")):
             N += P.T @ np.asarray(ne.N) @ P
             n += P.T @ np.asarray(ne.nv)
             wMw += float(ne.wMw)

@@ -57,6 +57,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._config import each_in_threads
 from ..campaign._campaign import Campaign, ScanData, ScanMeta, load_campaign
 from ..model._model import parse_model
 from ..physics._catalog import EFFECTS, two_face_parameters
@@ -144,8 +145,7 @@ def _start_spec(ctx: _Context, S: Sequence[_Scan], start_names: tuple[str, ...],
     if not ctx.has_layout:
         skipped.append({"search": "within-panel structure", "why": ctx.layout_note})
         notes.append(ctx.layout_note)
-    for sc in S:
-        _evaluate(ctx, sc, spec)
+    each_in_threads(lambda sc: _evaluate(ctx, sc, spec), S, "evaluate")
     return spec, skipped
 
 

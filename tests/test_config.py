@@ -138,3 +138,41 @@ def test_each_in_threads_keeps_the_order_and_runs_alone_on_one_core(monkeypatch)
     monkeypatch.setenv(THREADS_ENV, "1")
     main = threading.get_ident()
     assert each_in_threads(lambda a: threading.get_ident(), range(3), "test") == [main] * 3
+
+
+def test_on_device_is_jnp_asarray_without_a_program():
+    """A host value put on the device by a transfer is the array ``jnp.asarray`` makes (dtype,
+    shape, value, weak type of a Python scalar), and lowers no conversion program."""
+    import logging
+
+    import jax.numpy as jnp
+    import numpy as np
+
+    from hartrao_jax._config import on_device
+
+    cases = [(1.0, None), (np.inf, None), (3, None), (True, bool), (0.25, np.float64),
+             ((1e-8, 2e-8, 3e-8), None), ([0.5, 1.5], float), (np.zeros((0,), np.int32), None),
+             (np.arange(6.0).reshape(2, 3), np.float64)]
+    seen: list[str] = []
+
+    class Catch(logging.Handler):
+        def emit(self, rec):
+            seen.append(rec.getMessage())
+
+    h = Catch()
+    logger = logging.getLogger("jax._src.interpreters.pxla")
+    old = logger.level
+    logger.addHandler(h)
+    logger.setLevel(logging.DEBUG)
+    try:
+        with jax.log_compiles(True):
+            got = [on_device(v, d) for v, d in cases]
+    finally:
+        logger.removeHandler(h)
+        logger.setLevel(old)
+    assert not [m for m in seen if m.startswith("Compiling")]
+    for (v, d), a in zip(cases, got):
+        want = jnp.asarray(v, d)
+        assert isinstance(a, jax.Array)
+        assert (a.dtype, a.shape, a.weak_type) == (want.dtype, want.shape, want.weak_type)
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(want))

@@ -117,7 +117,7 @@ def parse_model(spec: str | Iterable[str]) -> tuple[str, ...]:
 def _floats(v) -> Array:
     """``v`` (a value or a list of values) as a float64 device array: host values by a
     transfer (:func:`.._config.on_device`), JAX arrays and tracers by ``jnp.asarray``."""
-    if any(isinstance(a, jax.Array) for a in (v if isinstance(v, list) else [v])):
+    if any(isinstance(a, jax.Array) for a in (v if isinstance(v, (list, tuple)) else [v])):
         return jnp.asarray(v, dtype=float)
     return on_device(v, float)
 

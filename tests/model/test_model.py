@@ -48,3 +48,13 @@ def test_inseparable_pairs_found_and_refused():
 def test_unknown_parameter_names_are_refused():
     with pytest.raises(ModelError, match="unknown parameter"):
         make_model("x4,x99")
+
+
+def test_host_values_are_the_params():
+    """``values(x)`` on the host (no JAX operation) gives ``params(x)``: the free unknowns
+    from ``x``, then the held ones."""
+    m = make_model(["tx", "ty", "tz", "rx", "ry", "f", "x2"], fixed={"x4": 1e-5, "x6": -2e-5})
+    x = np.linspace(-1.0, 1.0, len(m.free))
+    want = {k: float(v) for k, v in m.params(jnp.asarray(x)).items()}
+    assert m.values(x) == want
+    assert list(m.values(x)) == list(want)

@@ -10,7 +10,7 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-from scipy import optimize, special
+from scipy import special
 
 from ..model._model import SHIFT
 from ._explain import _Joint, _Test
@@ -22,9 +22,10 @@ POWER = 0.8  # of the minimal detectable amplitude (Baarda's beta = 0.2)
 def _noncentrality(alpha: float, dof: int, power: float = POWER) -> float:
     """The noncentrality at which a chi-square test of ``dof`` degrees of freedom at level
     ``alpha`` rejects with probability ``power`` (scipy.special's chi-square functions: the
-    same numbers as scipy.stats to 1e-15, without its 0.4 s import)."""
-    crit = special.chdtri(dof, alpha)
-    return optimize.brentq(lambda L: special.chndtr(crit, dof, L) - (1.0 - power), 1e-6, 1e6)
+    same numbers as scipy.stats to 1e-15, without its 0.4 s import; the noncentral
+    distribution's inverse in its noncentrality, within 4e-16 of a root search on its CDF,
+    without scipy.optimize's 0.1 s import)."""
+    return float(special.chndtrinc(special.chdtri(dof, alpha), dof, 1.0 - power))
 
 
 def _detectability(ctx: _Context, joint: _Joint, tests: Sequence[_Test],

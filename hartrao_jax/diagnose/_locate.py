@@ -211,36 +211,88 @@ def tilt_variance(r: np.ndarray, panels, sigma: float) -> float:
     return max(0.0, float(np.mean(t2) - sigma**2 * np.mean(nv)))
 
 
-def _group_sums(ij: np.ndarray, r: np.ndarray, panels, shape, sw: float, sigma: float,
-                tau2: float):
+@dataclass(frozen=True)
+class _PanelAlgebra:
+    """What the panel nuisance of the maps needs of the panels whatever the width: per panel
+    ``K^-1`` and ``u = P^T r`` (:func:`_group_sums`), and the panels' points one panel after
+    the other with their nuisance columns (``k`` of them: zero where a panel has fewer)."""
+
+    rows: np.ndarray  # (n,) the points, panel after panel
+    pid: np.ndarray  # (n,) their panel, 0 .. n_p - 1
+    starts: np.ndarray  # (n_p,) first entry of each panel in ``rows``
+    cols: np.ndarray  # (n, k) nuisance columns
+    Ki: np.ndarray  # (n_p, k, k)
+    u: np.ndarray  # (n_p, k)
+
+    @classmethod
+    def of(cls, panels, r: np.ndarray, sigma: float, tau2: float) -> _PanelAlgebra:
+        """From :func:`_panel_columns`' panels, the residuals ``r`` (m), their sd ``sigma``
+        and the tilts' variance ``tau2`` (none when 0)."""
+        k = 3 if tau2 > 0.0 else 1
+        n_p = len(panels)
+        sizes = np.array([len(idx) for idx, _ in panels], np.int64)
+        cols = np.zeros((int(sizes.sum()), k))
+        Ki = np.zeros((n_p, k, k))
+        u = np.zeros((n_p, k))
+        at = 0
+        for p, (idx, P) in enumerate(panels):
+            P = P[:, :k]
+            kp = P.shape[1]
+            K = P.T @ P
+            if kp > 1:
+                K[1:, 1:] += np.eye(kp - 1) * sigma**2 / tau2
+            Ki[p, :kp, :kp] = np.linalg.inv(K)
+            u[p, :kp] = P.T @ r[idx]
+            cols[at: at + len(idx), :kp] = P
+            at += len(idx)
+        rows = (np.concatenate([idx for idx, _ in panels]) if panels
+                else np.zeros(0, np.int64))
+        return cls(rows, np.repeat(np.arange(n_p), sizes), np.cumsum(sizes) - sizes, cols, Ki,
+                   u)
+
+
+def _group_sums(ij: np.ndarray, alg: _PanelAlgebra, shape, sw: float):
     """Per centre, the panels' share of the bump's sums: ``sum_p G_p^T K_p^-1 u_p`` and
     ``sum_p G_p^T K_p^-1 G_p`` with a panel's nuisance columns ``P`` (:func:`_panel_columns`),
     ``G_p = sum g P`` (Gaussian sums of width ``sw`` cells over the panel's points), ``u_p =
     sum r P`` and ``K_p = P^T P + diag(0, sigma^2/tau2, sigma^2/tau2)``: the offset free, the
     tilts a random effect of variance ``tau2`` (generalised least squares by Woodbury; no tilt
-    when ``tau2`` is 0). Each panel is filtered on its own patch (its points' cells plus the
-    filter's reach): the cost is that of the points, not of the panels times the grid."""
+    when ``tau2`` is 0; :class:`_PanelAlgebra`). Each panel is filtered on its own patch (its
+    points' cells plus the filter's reach): the cost is that of the points, not of the panels
+    times the grid.
+
+    All panels at once: their patches stacked, each at the corner of a patch of the largest
+    size (the filter's zeros beyond a patch are those of its ``mode="constant"``). The sums
+    are added into the grid in the panels' order, so every cell receives the same additions,
+    in the same order, as from one panel after the other (the per-panel loop of 2026-11-28,
+    about 1e4 small NumPy calls a search holding the GIL, gave bit-identical maps)."""
     Q1, Q2 = np.zeros(shape), np.zeros(shape)
+    n_p, k = alg.u.shape
+    if n_p == 0:
+        return Q1, Q2
     reach = int(4.0 * sw + 0.5) + 1  # gaussian_filter's truncate=4 radius, and one cell
-    for idx, P in panels:
-        if tau2 <= 0.0:
-            P = P[:, :1]
-        k = P.shape[1]
-        K = P.T @ P
-        if k > 1:
-            K[1:, 1:] += np.eye(k - 1) * sigma**2 / tau2
-        Ki = np.linalg.inv(K)
-        lo = np.maximum(ij[idx].min(0) - reach, 0)
-        hi = np.minimum(ij[idx].max(0) + reach + 1, shape)
-        shp = tuple(int(v) for v in hi - lo)
-        cell = (ij[idx, 0] - lo[0]) * shp[1] + (ij[idx, 1] - lo[1])
-        G = np.empty(shp + (k,))
-        for a in range(k):
-            Ca = np.bincount(cell, P[:, a], minlength=shp[0] * shp[1]).reshape(shp)
-            G[..., a] = _gauss(Ca, sw)
-        GK = G @ Ki
-        Q1[lo[0]:hi[0], lo[1]:hi[1]] += GK @ (P.T @ r[idx])
-        Q2[lo[0]:hi[0], lo[1]:hi[1]] += np.einsum("...a,...a->...", GK, G)
+    at = ij[alg.rows]
+    lo = np.maximum(np.minimum.reduceat(at, alg.starts) - reach, 0)
+    shp = np.minimum(np.maximum.reduceat(at, alg.starts) + reach + 1, shape) - lo
+    H, W = (int(v) for v in shp.max(0))
+    # every point's cell in its panel's patch, the patches one after the other
+    cell = (alg.pid * H + (at[:, 0] - lo[alg.pid, 0])) * W + (at[:, 1] - lo[alg.pid, 1])
+    G = np.empty((n_p, H, W, k))
+    for a in range(k):
+        Ca = np.bincount(cell, alg.cols[:, a], minlength=n_p * H * W).reshape(n_p, H, W)
+        G[..., a] = ndimage.gaussian_filter(Ca, (0.0, sw, sw), mode="constant",
+                                            truncate=4.0) * (2 * math.pi * sw * sw)
+    GK = G @ alg.Ki[:, None]  # (n_p, H, W, k)
+    q1 = (GK @ alg.u[:, None, :, None])[..., 0]
+    q2 = np.einsum("...a,...a->...", GK, G)
+    # the cells of each panel's own patch in the grid, panel after panel
+    a_, b_ = np.ogrid[:H, :W]
+    inside = (a_[None] < shp[:, 0, None, None]) & (b_[None] < shp[:, 1, None, None])
+    to = ((lo[:, 0, None, None] + a_[None]) * shape[1] + (lo[:, 1, None, None] + b_[None]))
+    to = np.broadcast_to(to, inside.shape)[inside]
+    n = shape[0] * shape[1]
+    Q1 += np.bincount(to, q1[inside], minlength=n).reshape(shape)
+    Q2 += np.bincount(to, q2[inside], minlength=n).reshape(shape)
     return Q1, Q2
 
 
@@ -338,8 +390,9 @@ def width_map(xy: np.ndarray, r: np.ndarray, w: float, sigma: float, density: fl
               min_coverage: float = 0.7, min_points: float = 8.0,
               panels=None, tau2: float = 0.0) -> WidthMap | None:
     """Matched-filter maps of width ``w`` (see the module docstring); ``panels``: the points'
-    panels (:func:`_panel_columns`), whose offsets (and tilts of variance ``tau2``) are then
-    the filter's nuisance instead of the local background (the module docstring, "Panels")."""
+    panels (:func:`_panel_columns`, or their :class:`_PanelAlgebra` for these ``r``, ``sigma``
+    and ``tau2``), whose offsets (and tilts of variance ``tau2``) are then the filter's
+    nuisance instead of the local background (the module docstring, "Panels")."""
     lo, shape, ij, h = grid_of(xy, w)
     if shape == (0, 0):
         return None
@@ -353,7 +406,9 @@ def width_map(xy: np.ndarray, r: np.ndarray, w: float, sigma: float, density: fl
         a = bf.amplitude(R)
         se = sigma * bf.se_unit
     else:  # a g + one offset per panel, unwindowed: sums over the bump's own points
-        Q1, Q2 = _group_sums(ij, r, panels, shape, sw, sigma, tau2)
+        alg = (panels if isinstance(panels, _PanelAlgebra)
+               else _PanelAlgebra.of(panels, r, sigma, tau2))
+        Q1, Q2 = _group_sums(ij, alg, shape, sw)
         den = ng - Q2  # sum of the bump's within-panel part squared
         valid = covered & (den > MIN_WITHIN_PANEL * ng)
         denv = np.where(valid, den, 1.0)
@@ -456,9 +511,10 @@ def width_maps(xy: np.ndarray, r: np.ndarray, widths: Sequence[float] = WIDTHS_M
     dens = _density(xy) if density is None else density
     panels = _panel_columns(xy, groups) if groups is not None else None
     tau2 = tilt_variance(r, panels, sigma) if panels is not None else 0.0
+    alg = _PanelAlgebra.of(panels, r, sigma, tau2) if panels is not None else None
     maps, skipped = [], []
     # the widths over the cores (each map alone; its grid work releases the GIL), in order
-    done = each_in_threads(lambda w: width_map(xy, r, w, sigma, dens, panels=panels, tau2=tau2),
+    done = each_in_threads(lambda w: width_map(xy, r, w, sigma, dens, panels=alg),
                            list(widths), "width-maps")
     for w, m in zip(widths, done):
         if m is None or not np.isfinite(m.roughness) or len(m.peaks) == 0:

@@ -26,6 +26,7 @@ from .._config import (
     on_device,
     release_compiled_programs,
     row_blocks,
+    thread_pool,
 )
 from .._programs import cached_jit
 from ..campaign._campaign import Campaign, ScanData, ScanMeta, read_scan
@@ -63,7 +64,7 @@ from ..solver._ghm import (
 )
 from ..solver._kernel import materialize_trig, usable_cores
 from ..solver._mixed import gauss_helmert_mixed
-from ._align import mean_heading, north_alignment, scan_heading
+from ._align import MIN_TILT_RAD, mean_heading, north_alignment, scan_heading
 from ._identify import (
     PER_CYCLE_UNDETERMINED,
     Held,
@@ -348,6 +349,18 @@ RESUMED_NOTE = ("adjusted with the campaign's mode variance from where its first
 #: 20.6 s in a fresh process (three runs each), peak resident 9.3-9.6 GiB either way (with
 #: one heap for every thread, ``_config.keep_freed_memory``; before it, nothing was gained).
 PARALLEL_FACES_BYTES = 2 * 2**30
+#: A tilted position of at most this many bytes of scan files is fitted in a thread while the
+#: position before it is (``fit_campaign``: two small positions use the cores better than one).
+AHEAD_POSITION_BYTES = 256 * 2**20
+
+
+def _file_bytes(campaign: Campaign, metas: Sequence[ScanMeta]) -> int:
+    """The size of the scans' files (bytes); larger than any limit where one is unreadable
+    (reading it says what is wrong)."""
+    try:
+        return sum((campaign.root / m.file).stat().st_size for m in metas)
+    except OSError:
+        return 2**62
 
 
 def fits_resume_budget(held_points: int, pf: PositionFit) -> bool:
@@ -460,10 +473,7 @@ def fit_position(
 
     # the faces read and preprocessed each in its own thread (NumPy releases the GIL in its
     # array loops; the same results in the same order), where they are small enough
-    try:
-        size = sum((campaign.root / m.file).stat().st_size for m in metas) if datas is None else 0
-    except OSError:  # read_scan says what is wrong with the file
-        size = PARALLEL_FACES_BYTES + 1
+    size = _file_bytes(campaign, metas) if datas is None else 0
     workers = min(len(metas), usable_cores()) if size <= PARALLEL_FACES_BYTES else 1
     with ThreadPoolExecutor(max(1, workers)) as ex:
         prepared = list(ex.map(prepare, range(len(metas))))
@@ -820,14 +830,29 @@ def fit_campaign(
         held_points = 0
         headings: list[float] = []
         hints: dict[str, float | None] = {}
+
+        def fit_one(pos, hint):
+            return fit_position(campaign, groups[pos], model, keep=keep, fixed=fixed,
+                                robust_k=robust_k, heading_hint_rad=hint, surface=surface,
+                                keep_resume=True)
+
+        # small tilted positions fitted in threads, the next one while this one is: gravity
+        # fixes their north alignment, so they need no heading from the positions before
+        # them (checked on the result; the same fits, taken in the same order)
+        ahead = {p: tilt[groups[p][0].id] >= MIN_TILT_RAD and _file_bytes(campaign, groups[p])
+                 <= AHEAD_POSITION_BYTES for p in order} if usable_cores() > 1 else {}
+        pending: dict = {}
         with _progress(not progress) as prog:
             task = prog.add_task("fitting positions", total=len(order))
-            for pos in order:
+            for i, pos in enumerate(order):
                 prog.update(task, description=f"fitting {pos}")
                 hints[pos] = mean_heading(headings)
-                pf = fit_position(campaign, groups[pos], model, keep=keep, fixed=fixed,
-                                  robust_k=robust_k, heading_hint_rad=hints[pos],
-                                  surface=surface, keep_resume=True)
+                for p in order[i: i + 2]:
+                    if ahead.get(p) and p not in pending:
+                        pending[p] = thread_pool(2, "positions").submit(fit_one, p, None)
+                pf = pending.pop(pos).result() if pos in pending else None
+                if pf is None or any(s.alignment.source != "gravity" for s in pf.scans):
+                    pf = fit_one(pos, hints[pos])
                 if fits_resume_budget(held_points, pf):  # its arrays held for the prior
                     held_points += pf.n_points
                 else:

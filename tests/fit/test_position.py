@@ -408,3 +408,20 @@ def test_only_a_position_carrying_no_mode_takes_the_campaign_prior():
     assert takes_campaign_prior(coma, {"zern_5": (1e-5, 2e-6)}) is False
     assert takes_campaign_prior({}, {}) is False
     assert takes_campaign_prior(None, None) is False
+
+
+def test_small_tilted_positions_fitted_ahead_give_the_sequential_fits(tmp_path, monkeypatch):
+    """Small tilted positions are fitted in threads, the next one while this one is: the same
+    fit.json as one position after the other, the zenith position's north alignment still
+    from the headings of those before it."""
+    import hartrao_jax.fit._fit as fit_module
+
+    camp = load_campaign(simulate_campaign(
+        tmp_path / "c", preset="demo", effects=EFFECTS, seed=5, step_rad=STEP,
+        positions=[("r23", -35.0, -64.0), ("r12", 20.0, -40.0), ("z0", 0.0, -25.9)]).root)
+    ahead = fit_json(fit_campaign(camp, "extended", progress=False))
+    monkeypatch.setattr(fit_module, "AHEAD_POSITION_BYTES", -1)
+    one_by_one = fit_campaign(camp, "extended", progress=False)
+    assert json.dumps(ahead, sort_keys=True) == json.dumps(fit_json(one_by_one), sort_keys=True)
+    z0 = next(pf for pf in one_by_one.position_fits if pf.position == "z0")
+    assert all(s.alignment.source != "gravity" for s in z0.scans)

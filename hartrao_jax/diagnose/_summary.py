@@ -8,13 +8,14 @@ Units: metres (telescope frame).
 from __future__ import annotations
 
 from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
 from ._state import Finding, _Context, _num, _Scan
 
 
-def _extent(sc: _Scan) -> list[float]:
+def _extent(sc: _Scan | _Moment) -> list[float]:
     """Square ``[x0, x1, y0, y1]`` (m, telescope frame) around the scan's points in the window."""
     w = sc.window & np.all(np.isfinite(sc.X_tel[:, :2]), 1)
     if not w.any():
@@ -39,10 +40,10 @@ def _cells_not_panels(ctx: _Context, f: Finding) -> None:
         f.estimate[k.replace("panel_", "cell_", 1)] = f.estimate.pop(k)
 
 
-def _dish_map(sc: _Scan, values: np.ndarray, n: int = 96, used: np.ndarray | None = None):
+def _dish_map(sc: _Scan | _Moment, values: np.ndarray, n: int = 96):
     """Binned mean of ``values`` on an ``n x n`` grid of telescope X, Y over the scan's extent
-    (for figures), over the points ``used`` (default the scan's points in use)."""
-    u = (sc.used if used is None else used) & np.all(np.isfinite(sc.X_tel[:, :2]), 1)
+    (for figures), over its points in use."""
+    u = sc.used & np.all(np.isfinite(sc.X_tel[:, :2]), 1)
     x0, x1, y0, y1 = _extent(sc)
     X, Y = sc.X_tel[u, 0], sc.X_tel[u, 1]
     i = np.clip(((X - x0) / (x1 - x0) * n).astype(int), 0, n - 1)
@@ -55,22 +56,34 @@ def _dish_map(sc: _Scan, values: np.ndarray, n: int = 96, used: np.ndarray | Non
     return out.reshape(n, n)
 
 
+@dataclass(frozen=True)
+class _Moment:
+    """What a mismatch map needs of a scan at one moment: its telescope coordinates and
+    window (never changed during a diagnosis: shared, not copied) and its points in use then
+    (a copy)."""
+
+    X_tel: np.ndarray
+    window: np.ndarray
+    used: np.ndarray
+
+
 class _Maps(Mapping[str, np.ndarray]):
     """Binned mismatch maps (m, float32) of the scans as they were when it was made, by scan
-    id, for the history figures. It keeps each scan's mismatch (a fresh array) and a copy of
-    its points in use and bins them when a map is first read: a diagnosis without a report
-    (the command without ``--report``) never bins them (0.05 s a snapshot of two
-    2.6e5-point scans). The scans' coordinates and extents do not change during a
-    diagnosis."""
+    id, for the history figures. It keeps each scan's mismatch of that moment (a fresh
+    array) and its points in use (:class:`_Moment`, not the scan: a diagnosis kept does not
+    keep its scans) and bins them when a map is first read: a diagnosis without a report
+    (the command without ``--report``) never bins them (0.05 s a snapshot of two 2.6e5-point
+    scans)."""
 
     def __init__(self, scans: Sequence[_Scan]):
-        self._of = {sc.id: (sc, sc.mismatch_m, sc.used.copy()) for sc in scans}
+        self._of = {sc.id: (_Moment(sc.X_tel, sc.window, sc.used.copy()), sc.mismatch_m)
+                    for sc in scans}
         self._maps: dict[str, np.ndarray] = {}
 
     def __getitem__(self, key: str) -> np.ndarray:
         if key not in self._maps:
-            sc, d, used = self._of[key]
-            self._maps[key] = _dish_map(sc, d, used=used).astype(np.float32)
+            moment, d = self._of[key]
+            self._maps[key] = _dish_map(moment, d).astype(np.float32)
         return self._maps[key]
 
     def __iter__(self) -> Iterator[str]:

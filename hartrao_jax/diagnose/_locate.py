@@ -251,6 +251,11 @@ class _PanelAlgebra:
                    u)
 
 
+#: Values of a chunk of stacked panel patches in :func:`_group_sums` (panels x cells x columns;
+#: 32 MB per array): a reflector of thousands of panels or grid cells is taken in chunks.
+PATCH_VALUES = 1 << 22
+
+
 def _group_sums(ij: np.ndarray, alg: _PanelAlgebra, shape, sw: float):
     """Per centre, the panels' share of the bump's sums: ``sum_p G_p^T K_p^-1 u_p`` and
     ``sum_p G_p^T K_p^-1 G_p`` with a panel's nuisance columns ``P`` (:func:`_panel_columns`),
@@ -261,11 +266,12 @@ def _group_sums(ij: np.ndarray, alg: _PanelAlgebra, shape, sw: float):
     points' cells plus the filter's reach): the cost is that of the points, not of the panels
     times the grid.
 
-    All panels at once: their patches stacked, each at the corner of a patch of the largest
-    size (the filter's zeros beyond a patch are those of its ``mode="constant"``). The sums
-    are added into the grid in the panels' order, so every cell receives the same additions,
-    in the same order, as from one panel after the other (the per-panel loop of 2026-11-28,
-    about 1e4 small NumPy calls a search holding the GIL, gave bit-identical maps)."""
+    The panels at once, in chunks of at most :data:`PATCH_VALUES`: their patches stacked,
+    each at the corner of a patch of the largest size (the filter's zeros beyond a patch are
+    those of its ``mode="constant"``). The sums are added into the grid in the panels' order
+    (a chunk's after the grid's values so far), so every cell receives the same additions, in
+    the same order, as from one panel after the other: bit-identical to the per-panel loop of
+    2026-11-28, whose ~1e4 small NumPy calls a search held the GIL."""
     Q1, Q2 = np.zeros(shape), np.zeros(shape)
     n_p, k = alg.u.shape
     if n_p == 0:
@@ -274,25 +280,37 @@ def _group_sums(ij: np.ndarray, alg: _PanelAlgebra, shape, sw: float):
     at = ij[alg.rows]
     lo = np.maximum(np.minimum.reduceat(at, alg.starts) - reach, 0)
     shp = np.minimum(np.maximum.reduceat(at, alg.starts) + reach + 1, shape) - lo
-    H, W = (int(v) for v in shp.max(0))
-    # every point's cell in its panel's patch, the patches one after the other
-    cell = (alg.pid * H + (at[:, 0] - lo[alg.pid, 0])) * W + (at[:, 1] - lo[alg.pid, 1])
-    G = np.empty((n_p, H, W, k))
-    for a in range(k):
-        Ca = np.bincount(cell, alg.cols[:, a], minlength=n_p * H * W).reshape(n_p, H, W)
-        G[..., a] = ndimage.gaussian_filter(Ca, (0.0, sw, sw), mode="constant",
-                                            truncate=4.0) * (2 * math.pi * sw * sw)
-    GK = G @ alg.Ki[:, None]  # (n_p, H, W, k)
-    q1 = (GK @ alg.u[:, None, :, None])[..., 0]
-    q2 = np.einsum("...a,...a->...", GK, G)
-    # the cells of each panel's own patch in the grid, panel after panel
-    a_, b_ = np.ogrid[:H, :W]
-    inside = (a_[None] < shp[:, 0, None, None]) & (b_[None] < shp[:, 1, None, None])
-    to = ((lo[:, 0, None, None] + a_[None]) * shape[1] + (lo[:, 1, None, None] + b_[None]))
-    to = np.broadcast_to(to, inside.shape)[inside]
     n = shape[0] * shape[1]
-    Q1 += np.bincount(to, q1[inside], minlength=n).reshape(shape)
-    Q2 += np.bincount(to, q2[inside], minlength=n).reshape(shape)
+    every = np.arange(n)
+    per = max(1, PATCH_VALUES // (int(np.prod(shp.max(0))) * k))
+    ends = np.append(alg.starts[1:], len(alg.rows))
+    for p0 in range(0, n_p, per):
+        p1 = min(p0 + per, n_p)
+        rows = slice(int(alg.starts[p0]), int(ends[p1 - 1]))
+        pid, a_pt = alg.pid[rows] - p0, at[rows]
+        lo_c, shp_c = lo[p0:p1], shp[p0:p1]
+        H, W = (int(v) for v in shp_c.max(0))
+        # every point's cell in its panel's patch, the patches one after the other
+        cell = (pid * H + (a_pt[:, 0] - lo_c[pid, 0])) * W + (a_pt[:, 1] - lo_c[pid, 1])
+        G = np.empty((p1 - p0, H, W, k))
+        for a in range(k):
+            Ca = np.bincount(cell, alg.cols[rows, a],
+                             minlength=(p1 - p0) * H * W).reshape(p1 - p0, H, W)
+            G[..., a] = ndimage.gaussian_filter(Ca, (0.0, sw, sw), mode="constant",
+                                                truncate=4.0) * (2 * math.pi * sw * sw)
+        GK = G @ alg.Ki[p0:p1, None]  # (panels, H, W, k)
+        q1 = (GK @ alg.u[p0:p1, None, :, None])[..., 0]
+        q2 = np.einsum("...a,...a->...", GK, G)
+        # the cells of each panel's own patch in the grid, panel after panel, after the
+        # grid's values so far
+        a_, b_ = np.ogrid[:H, :W]
+        inside = (a_[None] < shp_c[:, 0, None, None]) & (b_[None] < shp_c[:, 1, None, None])
+        to = (lo_c[:, 0, None, None] + a_[None]) * shape[1] + (lo_c[:, 1, None, None] + b_[None])
+        to = np.concatenate([every, np.broadcast_to(to, inside.shape)[inside]])
+        Q1 = np.bincount(to, np.concatenate([Q1.reshape(-1), q1[inside]]),
+                         minlength=n).reshape(shape)
+        Q2 = np.bincount(to, np.concatenate([Q2.reshape(-1), q2[inside]]),
+                         minlength=n).reshape(shape)
     return Q1, Q2
 
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from hartrao_jax.diagnose import _locate as L
 from hartrao_jax.diagnose._locate import _group_sums, _panel_columns, _PanelAlgebra, grid_of
 
 
@@ -33,10 +34,14 @@ def _one_by_one(ij, r, panels, shape, sw, sigma, tau2):
     return Q1, Q2
 
 
+@pytest.mark.parametrize("chunk", [None, 1, 30_000])
 @pytest.mark.parametrize("tau2", [0.0, 1e-8])
-def test_all_panels_at_once_are_one_panel_after_the_other(tau2):
+def test_all_panels_at_once_are_one_panel_after_the_other(tau2, chunk, monkeypatch):
     """Bit for bit: the same additions in the same order, with and without the tilts, with
-    panels of a few points (offset alone) among them and patches cut at the grid's edge."""
+    panels of a few points (offset alone) among them and patches cut at the grid's edge; in
+    one chunk of panels, one panel a chunk, or a few panels a chunk."""
+    if chunk is not None:
+        monkeypatch.setattr(L, "PATCH_VALUES", chunk)
     rng = np.random.default_rng(4)
     n = 40_000
     xy = rng.uniform(-6.0, 6.0, (n, 2))

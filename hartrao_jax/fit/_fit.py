@@ -354,7 +354,7 @@ PARALLEL_FACES_BYTES = 2 * 2**30
 AHEAD_POSITION_BYTES = 256 * 2**20
 
 
-def _file_bytes(campaign: Campaign, metas: Sequence[ScanMeta]) -> int:
+def file_bytes(campaign: Campaign, metas: Sequence[ScanMeta]) -> int:
     """The size of the scans' files (bytes); larger than any limit where one is unreadable
     (reading it says what is wrong)."""
     try:
@@ -473,7 +473,7 @@ def fit_position(
 
     # the faces read and preprocessed each in its own thread (NumPy releases the GIL in its
     # array loops; the same results in the same order), where they are small enough
-    size = _file_bytes(campaign, metas) if datas is None else 0
+    size = file_bytes(campaign, metas) if datas is None else 0
     workers = min(len(metas), usable_cores()) if size <= PARALLEL_FACES_BYTES else 1
     with ThreadPoolExecutor(max(1, workers)) as ex:
         prepared = list(ex.map(prepare, range(len(metas))))
@@ -839,7 +839,7 @@ def fit_campaign(
         # small tilted positions fitted in threads, the next one while this one is: gravity
         # fixes their north alignment, so they need no heading from the positions before
         # them (checked on the result; the same fits, taken in the same order)
-        ahead = {p: tilt[groups[p][0].id] >= MIN_TILT_RAD and _file_bytes(campaign, groups[p])
+        ahead = {p: tilt[groups[p][0].id] >= MIN_TILT_RAD and file_bytes(campaign, groups[p])
                  <= AHEAD_POSITION_BYTES for p in order} if usable_cores() > 1 else {}
         pending: dict = {}
         with _progress(not progress) as prog:

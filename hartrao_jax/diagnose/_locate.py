@@ -163,9 +163,11 @@ class Search:
     skipped_widths: list[float]
 
 
-def _gauss(a: np.ndarray, s_cells: float) -> np.ndarray:
-    """Unnormalised Gaussian convolution ``sum_k a_k exp(-d^2 / 2 s^2)`` (d in cells)."""
-    return ndimage.gaussian_filter(a, s_cells, mode="constant", truncate=4.0) * (
+def _gauss(a: np.ndarray, s_cells: float, lead: int = 0) -> np.ndarray:
+    """Unnormalised Gaussian convolution ``sum_k a_k exp(-d^2 / 2 s^2)`` (d in cells) over the
+    grid's two axes, the ones after the first ``lead`` (a stack of grids: not filtered)."""
+    sig = [0.0] * lead + [s_cells, s_cells] + [0.0] * (a.ndim - lead - 2)
+    return ndimage.gaussian_filter(a, sig, mode="constant", truncate=4.0) * (
         2 * math.pi * s_cells * s_cells)
 
 
@@ -296,8 +298,7 @@ def _group_sums(ij: np.ndarray, alg: _PanelAlgebra, shape, sw: float):
         for a in range(k):
             Ca = np.bincount(cell, alg.cols[rows, a],
                              minlength=(p1 - p0) * H * W).reshape(p1 - p0, H, W)
-            G[..., a] = ndimage.gaussian_filter(Ca, (0.0, sw, sw), mode="constant",
-                                                truncate=4.0) * (2 * math.pi * sw * sw)
+            G[..., a] = _gauss(Ca, sw, lead=1)
         GK = G @ alg.Ki[p0:p1, None]  # (panels, H, W, k)
         q1 = (GK @ alg.u[p0:p1, None, :, None])[..., 0]
         q2 = np.einsum("...a,...a->...", GK, G)

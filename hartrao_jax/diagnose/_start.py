@@ -12,13 +12,7 @@ import numpy as np
 from .._config import each_in_threads
 from ..campaign._campaign import read_scan, require_points
 from ..fit._align import mean_heading, scan_heading
-from ..fit._fit import (
-    PARALLEL_FACES_BYTES,
-    file_bytes,
-    finish_scan_fit,
-    prepare_scan,
-    scan_arrays,
-)
+from ..fit._fit import finish_scan_fit, prepare_scan, scan_arrays, side_by_side
 from ..geometry._geometry import (
     face_of,
     panel_cells,
@@ -56,8 +50,8 @@ def _start_scans(ctx: _Context, start: tuple[str, ...], keep,
         return mdl, data, _adjust(ctx, mdl, l, x0, c, window.astype(float)), g, init, window
 
     # in threads where the files are small enough for two at once (as ``fit``'s faces)
-    small = file_bytes(camp, order) <= PARALLEL_FACES_BYTES
-    done = each_in_threads(adjusted, order, "start-fits") if small else map(adjusted, order)
+    done = (each_in_threads(adjusted, order, "start-fits") if side_by_side(camp, order)
+            else map(adjusted, order))
     fits, headings = {}, []
     for meta, (mdl, data, res, g, init, window) in zip(order, done):
         f = finish_scan_fit(camp, meta, mdl, data, res, g, init, window,

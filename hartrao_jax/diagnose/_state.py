@@ -17,7 +17,7 @@ import numpy as np
 from .._config import each_in_threads, on_device
 from .._programs import cached_jit
 from ..campaign._campaign import Campaign, ScanData, ScanMeta
-from ..fit._fit import PARALLEL_FACES_BYTES, file_bytes
+from ..fit._fit import side_by_side
 from ..geometry._geometry import panel_geometry
 from ..model._model import (
     OSCILLATION,
@@ -491,7 +491,7 @@ def _refit_all(ctx, S, spec, only: Sequence[_Scan] | None = None, hints=None,
         _set_known(ctx, sc, spec)
         _refit(ctx, sc, spec, (hints or {}).get(sc.id), from_used=from_used or not mine)
 
-    if file_bytes(ctx.campaign, [sc.meta for sc, _ in todo]) <= PARALLEL_FACES_BYTES:
+    if side_by_side(ctx.campaign, [sc.meta for sc, _ in todo]):
         each_in_threads(refit, todo, "refits")
     else:  # scans too large for two adjustments' stores at once (as ``fit``'s faces)
         for sc, mine in todo:

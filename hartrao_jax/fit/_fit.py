@@ -363,6 +363,13 @@ def file_bytes(campaign: Campaign, metas: Sequence[ScanMeta]) -> int:
         return 2**62
 
 
+def side_by_side(campaign: Campaign, metas: Sequence[ScanMeta]) -> bool:
+    """Whether the scans ``metas`` are small enough to be read, prepared and adjusted in
+    threads at once (:data:`PARALLEL_FACES_BYTES` of files: a position's faces, a diagnosis'
+    scans)."""
+    return file_bytes(campaign, metas) <= PARALLEL_FACES_BYTES
+
+
 def fits_resume_budget(held_points: int, pf: PositionFit) -> bool:
     """Whether ``pf``'s continuation may be kept with ``held_points`` points already held
     (:data:`RESUME_POINTS`): the one rule of ``fit`` and of a ``fit-dask`` worker."""
@@ -473,8 +480,8 @@ def fit_position(
 
     # the faces read and preprocessed each in its own thread (NumPy releases the GIL in its
     # array loops; the same results in the same order), where they are small enough
-    size = file_bytes(campaign, metas) if datas is None else 0
-    workers = min(len(metas), usable_cores()) if size <= PARALLEL_FACES_BYTES else 1
+    together = datas is not None or side_by_side(campaign, metas)
+    workers = min(len(metas), usable_cores()) if together else 1
     with ThreadPoolExecutor(max(1, workers)) as ex:
         prepared = list(ex.map(prepare, range(len(metas))))
     init = max((p[2] for p in prepared), key=lambda c: c.inlier_fraction)

@@ -15,7 +15,9 @@ directory per run, removed after it. The versions alternate (before, after, befo
 machine that slows down during the comparison slows both.
 
 Measured per run from the child's resource usage (``os.wait4``): wall seconds, user and system
-CPU seconds, peak resident set (GiB).
+CPU seconds, peak resident set (GiB). The paired differences (after - before, run by run)
+cancel most of a drift of the machine's speed; ``benchmarks/machine_probe.py`` runs before the
+first and after the last run, so the machine's state is recorded with the comparison.
 """
 
 from __future__ import annotations
@@ -32,6 +34,8 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO / "benchmarks"))
+from machine_probe import line as _probe_line  # noqa: E402
 
 
 def _module_root(root: Path, cwd: str, env: dict[str, str]) -> Path:
@@ -65,6 +69,13 @@ def _run(root: Path, args: list[str], cwd: str) -> dict[str, float]:
             "peak_gib": ru.ru_maxrss / 2**20}
 
 
+def _probe() -> dict[str, float]:
+    """:mod:`machine_probe`'s figures, from a fresh process."""
+    out = subprocess.run([sys.executable, str(REPO / "benchmarks" / "machine_probe.py"),
+                          "--json"], capture_output=True, text=True, check=True)
+    return json.loads(out.stdout)
+
+
 def _span(xs: list[float], fmt: str) -> str:
     lo, hi, mid = (fmt.format(v) for v in (min(xs), max(xs), statistics.median(xs)))
     return f"{lo}-{hi} (median {mid})"
@@ -92,12 +103,16 @@ def main() -> None:
             if got != root:
                 raise SystemExit(f"error: {label}: the package comes from {got}, not {root}")
         runs: dict[str, list[dict]] = {"before": [], "after": []}
+        probes = [_probe()]
+        print("machine before:", _probe_line(probes[0]), flush=True)
         for i in range(a.runs):
             for label, root in roots.items():
                 r = _run(root, args, cwd)
                 runs[label].append(r)
                 print(f"{label} {i + 1}: {r['wall_s']:.2f} s wall, {r['user_s']:.2f} user, "
                       f"{r['sys_s']:.2f} sys, {r['peak_gib']:.2f} GiB", flush=True)
+        probes.append(_probe())
+        print("machine after:", _probe_line(probes[1]), flush=True)
     finally:
         subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)],
                        capture_output=True)
@@ -110,9 +125,14 @@ def main() -> None:
             _span([r[k] for r in rs], f) for k, f in (("wall_s", "{:.2f}"), ("user_s", "{:.1f}"),
                                                       ("sys_s", "{:.1f}"),
                                                       ("peak_gib", "{:.2f}"))) + " |")
+    paired = [q["wall_s"] - p["wall_s"] for p, q in zip(runs["before"], runs["after"])]
+    print(f"\npaired differences (after - before), wall s: {min(paired):+.2f} to "
+          f"{max(paired):+.2f} (median {statistics.median(paired):+.2f})")
     if a.json:
         Path(a.json).write_text(json.dumps({"before": a.before, "after": a.after,
-                                            "args": args, "runs": runs}, indent=1))
+                                            "args": args, "runs": runs,
+                                            "paired_wall_s": paired,
+                                            "machine_probe": probes}, indent=1))
 
 
 if __name__ == "__main__":

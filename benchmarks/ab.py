@@ -35,6 +35,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO / "benchmarks"))
+from machine_probe import fresh as _probe  # noqa: E402
 from machine_probe import line as _probe_line  # noqa: E402
 
 
@@ -67,13 +68,6 @@ def _run(root: Path, args: list[str], cwd: str) -> dict[str, float]:
         raise SystemExit(f"error: {root}: exit {code}: {tail}")
     return {"wall_s": wall, "user_s": ru.ru_utime, "sys_s": ru.ru_stime,
             "peak_gib": ru.ru_maxrss / 2**20}
-
-
-def _probe() -> dict[str, float]:
-    """:mod:`machine_probe`'s figures, from a fresh process."""
-    out = subprocess.run([sys.executable, str(REPO / "benchmarks" / "machine_probe.py"),
-                          "--json"], capture_output=True, text=True, check=True)
-    return json.loads(out.stdout)
 
 
 def _span(xs: list[float], fmt: str) -> str:

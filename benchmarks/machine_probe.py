@@ -7,7 +7,9 @@ Measured in this process (start it fresh: its first touch of memory is one of th
 
 * ``python_loop_s``: 3e6 iterations of an interpreted loop (one core, the GIL's pace);
 * ``numpy_sin_s``: ``np.sin`` of 1e7 float64 values into an existing array (one core);
-* ``first_touch_s_per_gib``: writing 1 GiB of memory this process never had. On a virtual
+* ``first_touch_s_per_gib``: writing 1 GiB of memory this process never had (in NumPy's huge
+  pages where the kernel gives them; 4 KiB pages took 0.40-0.44 s per GiB on the machine
+  where huge pages took 1.8-1.9 s, `results/profile.md`). On a virtual
   machine whose host backs guest memory lazily, or takes freed memory back, this cost grows
   by an order of magnitude (0.12 s per GiB to 3.5 s per GiB measured on one machine within an
   hour, 2026-11-28), and every command that allocates fresh arrays pays it;
@@ -21,7 +23,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -54,6 +59,13 @@ def probe() -> dict[str, float]:
     b.sum()
     out["read_gb_s"] = GIB / (time.perf_counter() - t) / 1e9
     return out
+
+
+def fresh() -> dict[str, float]:
+    """:func:`probe` in a process of its own (its first touch is then of fresh memory)."""
+    out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--json"],
+                         capture_output=True, text=True, check=True)
+    return json.loads(out.stdout)
 
 
 def line(p: dict[str, float]) -> str:

@@ -36,6 +36,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
+from machine_probe import fresh as _probe  # noqa: E402
 from machine_probe import line as probe_line  # noqa: E402
 
 #: (name, command after ``hartrao-jax``, data set, target wall s or None, target GiB or None)
@@ -68,12 +69,6 @@ def _simulate(name: str, out: Path) -> None:
             "from hartrao_jax.simulate._simulate import simulate_campaign\n"
             f"out = {str(out)!r}\n{_SIMULATE[name]}\n")
     subprocess.run([sys.executable, "-c", code], check=True)
-
-
-def _probe() -> dict[str, float]:
-    out = subprocess.run([sys.executable, str(HERE / "machine_probe.py"), "--json"],
-                         capture_output=True, text=True, check=True)
-    return json.loads(out.stdout)
 
 
 def _run(argv: list[str]) -> dict[str, float]:

@@ -5,7 +5,9 @@
 
 ``--before`` is a git revision of this repository, checked out into a temporary worktree
 (removed at the end); ``--after`` the package root to compare it with (default: this
-checkout, with its uncommitted changes). Each run is a fresh ``python -m hartrao_jax.cli``
+checkout, with its uncommitted changes). ``--env-before`` / ``--env-after KEY=VALUE`` set an
+environment variable for one side only: ``--before HEAD --env-after NUMPY_MADVISE_HUGEPAGE=0``
+compares a setting on the same code. Each run is a fresh ``python -m hartrao_jax.cli``
 process with ``PYTHONPATH`` the version's root and its working directory an empty temporary
 directory, and the module actually imported is checked before the runs: from the repository's
 root, ``python -m`` and ``python -c`` put the working directory first on ``sys.path``, so the
@@ -47,8 +49,8 @@ def _module_root(root: Path, cwd: str, env: dict[str, str]) -> Path:
     return Path(out.stdout.strip()).resolve().parent.parent
 
 
-def _run(root: Path, args: list[str], cwd: str) -> dict[str, float]:
-    env = {**os.environ, "PYTHONPATH": str(root)}
+def _run(root: Path, args: list[str], cwd: str, extra_env: dict[str, str]) -> dict[str, float]:
+    env = {**os.environ, **extra_env, "PYTHONPATH": str(root)}
     out = tempfile.mkdtemp(prefix="ab-out-")
     shutil.rmtree(out)  # the command makes it
     argv = [a.replace("{out}", out) for a in args]
@@ -81,9 +83,20 @@ def main() -> None:
     ap.add_argument("--after", default=str(REPO), help="package root (default: this checkout)")
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--json", default=None, help="write the runs here as well")
+    ap.add_argument("--env-before", action="append", default=[], metavar="KEY=VALUE",
+                    help="an environment variable of the before runs only (repeatable)")
+    ap.add_argument("--env-after", action="append", default=[], metavar="KEY=VALUE",
+                    help="an environment variable of the after runs only (repeatable; with "
+                         "--before HEAD and a clean checkout: one setting against another)")
     ap.add_argument("args", nargs=argparse.REMAINDER, help="-- then the command's arguments")
     a = ap.parse_args()
     args = a.args[1:] if a.args[:1] == ["--"] else a.args
+    envs = {}
+    for label, pairs in (("before", a.env_before), ("after", a.env_after)):
+        bad = [p for p in pairs if "=" not in p or not p.split("=", 1)[0]]
+        if bad:
+            raise SystemExit(f"error: --env-{label}: expected KEY=VALUE, found {bad[0]!r}")
+        envs[label] = dict(p.split("=", 1) for p in pairs)
     if not args:
         raise SystemExit("error: no command given (after --)")
     tree = Path(tempfile.mkdtemp(prefix="ab-before-"))
@@ -101,7 +114,7 @@ def main() -> None:
         print("machine before:", _probe_line(probes[0]), flush=True)
         for i in range(a.runs):
             for label, root in roots.items():
-                r = _run(root, args, cwd)
+                r = _run(root, args, cwd, envs[label])
                 runs[label].append(r)
                 print(f"{label} {i + 1}: {r['wall_s']:.2f} s wall, {r['user_s']:.2f} user, "
                       f"{r['sys_s']:.2f} sys, {r['peak_gib']:.2f} GiB", flush=True)
@@ -114,7 +127,8 @@ def main() -> None:
     print(f"\n`hartrao-jax {' '.join(args)}`, {a.runs} runs each, alternated\n")
     print("| | wall s | user s | sys s | peak GiB |\n|---|---|---|---|---|")
     for label, rs in runs.items():
-        name = a.before if label == "before" else a.after
+        name = (a.before if label == "before" else a.after) + "".join(
+            f", {k}={v}" for k, v in envs[label].items())
         print(f"| {label} ({name}) | " + " | ".join(
             _span([r[k] for r in rs], f) for k, f in (("wall_s", "{:.2f}"), ("user_s", "{:.1f}"),
                                                       ("sys_s", "{:.1f}"),
@@ -124,7 +138,7 @@ def main() -> None:
           f"{max(paired):+.2f} (median {statistics.median(paired):+.2f})")
     if a.json:
         Path(a.json).write_text(json.dumps({"before": a.before, "after": a.after,
-                                            "args": args, "runs": runs,
+                                            "args": args, "env": envs, "runs": runs,
                                             "paired_wall_s": paired,
                                             "machine_probe": probes}, indent=1))
 

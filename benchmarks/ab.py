@@ -49,8 +49,13 @@ def _module_root(root: Path, cwd: str, env: dict[str, str]) -> Path:
     return Path(out.stdout.strip()).resolve().parent.parent
 
 
-def _run(root: Path, args: list[str], cwd: str, extra_env: dict[str, str]) -> dict[str, float]:
-    env = {**os.environ, **extra_env, "PYTHONPATH": str(root)}
+def run_command(root: Path, args: list[str], cwd: str,
+                extra_env: dict[str, str] | None = None) -> dict[str, float]:
+    """One ``hartrao-jax`` command (``args``; ``{out}`` a new directory, removed after it) in
+    a fresh process importing the package from ``root``, started in ``cwd`` (an empty
+    directory: see the module doc) with ``extra_env`` added: its wall, user and system
+    seconds and peak resident GiB; a failed command ends the benchmark with its last lines."""
+    env = {**os.environ, **(extra_env or {}), "PYTHONPATH": str(root)}
     out = tempfile.mkdtemp(prefix="ab-out-")
     shutil.rmtree(out)  # the command makes it
     argv = [a.replace("{out}", out) for a in args]
@@ -114,7 +119,7 @@ def main() -> None:
         print("machine before:", _probe_line(probes[0]), flush=True)
         for i in range(a.runs):
             for label, root in roots.items():
-                r = _run(root, args, cwd, envs[label])
+                r = run_command(root, args, cwd, envs[label])
                 runs[label].append(r)
                 print(f"{label} {i + 1}: {r['wall_s']:.2f} s wall, {r['user_s']:.2f} user, "
                       f"{r['sys_s']:.2f} sys, {r['peak_gib']:.2f} GiB", flush=True)

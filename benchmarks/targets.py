@@ -24,6 +24,7 @@ resident memory of every run, and each target's verdict on this machine.
 from __future__ import annotations
 
 import argparse
+import atexit
 import json
 import os
 import shutil
@@ -36,6 +37,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
+from ab import run_command  # noqa: E402
 from machine_probe import fresh as _probe  # noqa: E402
 from machine_probe import line as probe_line  # noqa: E402
 
@@ -71,25 +73,6 @@ def _simulate(name: str, out: Path) -> None:
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
-def _run(argv: list[str]) -> dict[str, float]:
-    """One fresh ``hartrao-jax`` process: wall seconds, CPU seconds and peak GiB."""
-    out = tempfile.mkdtemp(prefix="targets-out-")
-    shutil.rmtree(out)  # the command makes it
-    argv = [a.replace("{out}", out) for a in argv]
-    with tempfile.TemporaryFile() as err:  # read after the exit (a full pipe would block)
-        t0 = time.perf_counter()
-        proc = subprocess.Popen([sys.executable, "-m", "hartrao_jax.cli", *argv],
-                                stdout=subprocess.DEVNULL, stderr=err)
-        _, status, ru = os.wait4(proc.pid, 0)
-        wall = time.perf_counter() - t0
-        err.seek(0)
-        tail = err.read().decode(errors="replace").strip()[-400:]
-    shutil.rmtree(out, ignore_errors=True)
-    if os.waitstatus_to_exitcode(status) != 0:
-        raise SystemExit(f"error: hartrao-jax {' '.join(argv)} failed: {tail}")
-    return {"wall_s": wall, "cpu_s": ru.ru_utime + ru.ru_stime, "peak_gib": ru.ru_maxrss / 2**20}
-
-
 def _verdict(value: float, target: float | None) -> str:
     return "" if target is None else ("met" if value < target else "not met")
 
@@ -104,6 +87,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     skip = {s.strip() for s in a.skip.split(",") if s.strip()}
     a.work.mkdir(parents=True, exist_ok=True)
+    cwd = tempfile.mkdtemp(prefix="targets-cwd-")  # empty: no checkout shadows the package
+    atexit.register(shutil.rmtree, cwd, True)
     doc: dict = {"runs_per_command": a.runs, "probe_before": _probe(), "commands": {}}
     print("machine before:", probe_line(doc["probe_before"]), flush=True)
     for name, args, data, t_wall, t_gib in COMMANDS:
@@ -112,8 +97,8 @@ def main(argv=None) -> int:
         camp = a.work / data
         _simulate(data, camp)
         argv = [x.replace("{camp}", str(camp)) for x in args]
-        _run(argv)  # fills the compilation cache (left out)
-        runs = [_run(argv) for _ in range(a.runs)]
+        run_command(HERE.parent, argv, cwd)  # fills the compilation cache (left out)
+        runs = [run_command(HERE.parent, argv, cwd) for _ in range(a.runs)]
         wall = statistics.median(r["wall_s"] for r in runs)
         peak = max(r["peak_gib"] for r in runs)
         doc["commands"][name] = {"argv": argv, "runs": runs, "median_wall_s": wall,

@@ -22,6 +22,7 @@ from hartrao_jax.campaign._safeio import (
     verify_result_dir,
     write_columns,
     write_json_atomic,
+    write_table,
 )
 
 
@@ -134,6 +135,37 @@ def test_digest_taken_while_writing(tmp_path, monkeypatch):
     files = verify_result_dir(tmp_path / "r", "main.json")["files"]
     assert files["t.parquet"] == got.entry()
     assert files["x.bin"] == {"bytes": 3, "sha256": hashlib.sha256(b"abc").hexdigest()}
+
+
+def test_parquet_codec_per_column(tmp_path):
+    """Both writers store floating-point columns without a codec and integer and boolean ones
+    with Snappy (``parquet_codecs``), an explicit ``compression`` wins, and every value
+    reads back as written."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    rng = np.random.default_rng(1)
+    cols = {"x_m": rng.normal(size=20_000), "i": np.float32(rng.normal(size=20_000)),
+            "row": np.arange(20_000), "used": rng.random(20_000) > 0.1,
+            "face": np.int8(rng.integers(1, 3, 20_000))}
+    want = {"x_m": "UNCOMPRESSED", "i": "UNCOMPRESSED", "row": "SNAPPY", "used": "SNAPPY",
+            "face": "SNAPPY"}
+
+    def codecs(path):
+        rg = pq.ParquetFile(path).metadata.row_group(0)
+        return {rg.column(k).path_in_schema: rg.column(k).compression
+                for k in range(rg.num_columns)}
+
+    write_columns(cols, tmp_path / "a.parquet", row_group_rows=4096)
+    write_table(pa.table(cols), tmp_path / "b.parquet")
+    write_table(pa.table(cols), tmp_path / "c.parquet", compression="zstd")
+    assert codecs(tmp_path / "a.parquet") == want == codecs(tmp_path / "b.parquet")
+    assert set(codecs(tmp_path / "c.parquet").values()) == {"ZSTD"}
+    for name in ("a", "b", "c"):
+        back = pq.read_table(tmp_path / f"{name}.parquet")
+        for k, v in cols.items():
+            got = back.column(k).to_numpy()
+            assert got.dtype == v.dtype and np.array_equal(got, v)
 
 
 def test_output_dir_abort_keeps_the_previous_result(tmp_path):

@@ -12,10 +12,17 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e '.[test,dask]'
 	@touch $(STAMP)
 
+# The package's bytecode, written before every run: an editable install compiles none, and where
+# $$PYTHONDONTWRITEBYTECODE is set (as on the machines here) every process would otherwise compile
+# the package's source again (0.22-0.37 s of each `diagnose`, benchmarks/results/profile.md).
+COMPILE := $(PY) -m compileall -q hartrao_jax
+
 demo: $(STAMP)
+	@$(COMPILE)
 	$(VENV)/bin/hartrao-jax demo --out demo-output
 
 test: $(STAMP)
+	@$(COMPILE)
 	$(PY) -m pytest
 
 bench: $(STAMP)

@@ -37,7 +37,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from ab import run_command  # noqa: E402
+from ab import compile_package, run_command  # noqa: E402
 from machine_probe import fresh as _probe  # noqa: E402
 from machine_probe import line as probe_line  # noqa: E402
 
@@ -88,6 +88,7 @@ def main(argv=None) -> int:
     skip = {s.strip() for s in a.skip.split(",") if s.strip()}
     a.work.mkdir(parents=True, exist_ok=True)
     cwd = tempfile.mkdtemp(prefix="targets-cwd-")  # empty: no checkout shadows the package
+    compile_package(HERE.parent)
     atexit.register(shutil.rmtree, cwd, True)
     doc: dict = {"runs_per_command": a.runs, "probe_before": _probe(), "commands": {}}
     print("machine before:", probe_line(doc["probe_before"]), flush=True)

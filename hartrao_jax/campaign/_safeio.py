@@ -75,8 +75,8 @@ def parquet_codecs(schema) -> dict[str, str]:
     (row numbers, flags, faces: 2-20x smaller), none for floating-point ones.
 
     Measured floats (angles, ranges, times, residuals) have random low bits, which Snappy
-    cannot shorten: on a 6.5e6-row residual table it made 11 of 12 float columns 0.01 %
-    *larger* and the other two 5-12 % smaller (the whole file 1.3 % smaller), for 0.3 CPU s of
+    cannot shorten: on a 6.5e6-row residual table it made 11 of its 13 float columns 0.01 %
+    *larger* and the other two 5-12 % smaller (the whole file 2.1 % smaller), for 0.2-0.25 s of
     a 1.6-s write (``benchmarks/results/profile.md``). Every Parquet reader reads both."""
     import pyarrow.types as pt
 

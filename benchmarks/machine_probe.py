@@ -7,6 +7,11 @@ Measured in this process (start it fresh: its first touch of memory is one of th
 
 * ``python_loop_s``: 3e6 iterations of an interpreted loop (one core, the GIL's pace);
 * ``numpy_sin_s``: ``np.sin`` of 1e7 float64 values into an existing array (one core);
+* ``numpy_sin_2threads_s``: the same in two threads at once, 1e7 values each (both cores:
+  NumPy releases the GIL in its loops). Twice ``numpy_sin_s``'s work in about its time on two
+  free cores; a host that slows the second core, or both when both run, shows here and not
+  in the one-core figures (2026-11-28: every command 15-25 % slower within an hour, the
+  one-core probes unchanged);
 * ``first_touch_s_per_gib``: writing 1 GiB of memory this process never had (in NumPy's huge
   pages where the kernel gives them; 4 KiB pages took 0.40-0.44 s per GiB on the machine
   where huge pages took 1.8-1.9 s, `results/profile.md`). On a virtual
@@ -26,6 +31,7 @@ import json
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -47,7 +53,13 @@ def probe() -> dict[str, float]:
     t = time.perf_counter()
     np.sin(x, out=y)
     out["numpy_sin_s"] = time.perf_counter() - t
-    del x, y
+    xs, ys = (x, x[::-1].copy()), (y, np.empty_like(x))
+    with ThreadPoolExecutor(2) as ex:
+        list(ex.map(lambda i: np.sin(xs[i], out=ys[i]), range(2)))  # (the threads started)
+        t = time.perf_counter()
+        list(ex.map(lambda i: np.sin(xs[i], out=ys[i]), range(2)))
+        out["numpy_sin_2threads_s"] = time.perf_counter() - t
+    del x, y, xs, ys
     b = np.empty(GIB // 8)
     t = time.perf_counter()
     b[...] = 1.0
@@ -70,7 +82,9 @@ def fresh() -> dict[str, float]:
 
 def line(p: dict[str, float]) -> str:
     """One line of a probe's figures."""
-    return (f"python loop {p['python_loop_s']:.3f} s, sin 1e7 {p['numpy_sin_s']:.3f} s, "
+    two = p.get("numpy_sin_2threads_s")  # (not in the probes of earlier JSON files)
+    return (f"python loop {p['python_loop_s']:.3f} s, sin 1e7 {p['numpy_sin_s']:.3f} s"
+            + (f" (two threads {two:.3f} s), " if two is not None else ", ") +
             f"first touch {p['first_touch_s_per_gib']:.2f} s/GiB, again "
             f"{p['retouch_s_per_gib']:.2f} s/GiB, read {p['read_gb_s']:.1f} GB/s")
 

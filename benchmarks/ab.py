@@ -59,13 +59,19 @@ def compile_package(root: Path) -> None:
                    check=True, capture_output=True)
 
 
+def child_env(root: Path, extra_env: dict[str, str] | None = None) -> dict[str, str]:
+    """The environment of a command of the package at ``root``: this one, ``extra_env`` and
+    ``PYTHONPATH`` the root."""
+    return {**os.environ, **(extra_env or {}), "PYTHONPATH": str(root)}
+
+
 def run_command(root: Path, args: list[str], cwd: str,
                 extra_env: dict[str, str] | None = None) -> dict[str, float]:
     """One ``hartrao-jax`` command (``args``; ``{out}`` a new directory, removed after it) in
     a fresh process importing the package from ``root``, started in ``cwd`` (an empty
     directory: see the module doc) with ``extra_env`` added: its wall, user and system
     seconds and peak resident GiB; a failed command ends the benchmark with its last lines."""
-    env = {**os.environ, **(extra_env or {}), "PYTHONPATH": str(root)}
+    env = child_env(root, extra_env)
     out = tempfile.mkdtemp(prefix="ab-out-")
     shutil.rmtree(out)  # the command makes it
     argv = [a.replace("{out}", out) for a in args]
@@ -122,7 +128,7 @@ def main() -> None:
         roots = {"before": tree, "after": Path(a.after).resolve()}
         for label, root in roots.items():
             compile_package(root)
-            got = _module_root(root, cwd, {**os.environ, "PYTHONPATH": str(root)})
+            got = _module_root(root, cwd, child_env(root, envs[label]))
             if got != root:
                 raise SystemExit(f"error: {label}: the package comes from {got}, not {root}")
         runs: dict[str, list[dict]] = {"before": [], "after": []}

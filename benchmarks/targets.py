@@ -87,8 +87,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     skip = {s.strip() for s in a.skip.split(",") if s.strip()}
     a.work.mkdir(parents=True, exist_ok=True)
-    cwd = tempfile.mkdtemp(prefix="targets-cwd-")  # empty: no checkout shadows the package
     compile_package(HERE.parent)
+    cwd = tempfile.mkdtemp(prefix="targets-cwd-")  # empty: no checkout shadows the package
     atexit.register(shutil.rmtree, cwd, True)
     doc: dict = {"runs_per_command": a.runs, "probe_before": _probe(), "commands": {}}
     print("machine before:", probe_line(doc["probe_before"]), flush=True)

@@ -255,6 +255,59 @@ def return_free_heap() -> bool:
     return True
 
 
+#: The variable an OpenBLAS library reads for its threads when it loads: the number
+#: :func:`single_threaded_blas` gives the loaded libraries where it is set (the user's choice).
+BLAS_THREADS_ENV = "OPENBLAS_NUM_THREADS"
+#: Names of OpenBLAS's thread-count setter in its builds: plain, and NumPy's and SciPy's own
+#: copies (``scipy_`` prefix; 64-bit integers with the ``64_`` suffix).
+_BLAS_SETTERS = tuple(f"{p}openblas_set_num_threads{s}" for p in ("", "scipy_")
+                      for s in ("", "64_"))
+
+
+def blas_libraries() -> list[str]:
+    """Paths of the OpenBLAS libraries this process has loaded (NumPy and SciPy each bring
+    their own copy), from ``/proc/self/maps``; empty where ``/proc`` does not tell."""
+    try:
+        with open("/proc/self/maps") as fh:
+            paths = {line.split()[-1] for line in fh if "openblas" in line.lower()}
+    except OSError:
+        return []
+    return sorted(p for p in paths if p.startswith("/"))
+
+
+def single_threaded_blas() -> int:
+    """One thread (``$OPENBLAS_NUM_THREADS`` where set) for every OpenBLAS library loaded in
+    this process (:func:`blas_libraries`); returns how many it set. The CLI calls it at the
+    start of each command, a Dask worker at its set-up; a library loaded later keeps its own
+    number (read from the environment as it loads).
+
+    Why: the package's NumPy and SciPy calls into BLAS are small (least squares of samples,
+    3 x 3 systems, products of an ``(n, 3)`` table with a vector), and OpenBLAS's worker
+    threads keep spinning after each call on the cores XLA's threads and the package's own
+    compute on (``blas_thread_server`` 3 % of a large position's CPU samples under ``perf``).
+    Measured on 2 cores (``benchmarks/ab.py``, 4 alternated runs each, medians):
+    ``diagnose`` 12.16 -> 11.55 s (user CPU 18.6 -> 16.1 s), the 12-scan ``fit`` 8.82 -> 8.47
+    s, the large position's 13.56 -> 13.29 s."""
+    try:
+        threads = max(1, int(os.environ.get(BLAS_THREADS_ENV) or 1))
+    except ValueError:  # not a number: OpenBLAS itself took its default
+        return 0
+    done = 0
+    for path in blas_libraries():
+        try:
+            lib = ctypes.CDLL(path)  # already loaded: the same library, not a second copy
+        except OSError:
+            continue
+        name = next((n for n in _BLAS_SETTERS if hasattr(lib, n)), None)
+        if name is not None:
+            setter = getattr(lib, name)
+            setter.argtypes = [ctypes.c_int64 if name.endswith("64_") else ctypes.c_int]
+            setter.restype = None
+            setter(threads)
+            done += 1
+    return done
+
+
 #: Share of the kernel's memory-map limit above which :func:`release_compiled_programs` drops
 #: JAX's in-memory compiled programs.
 MAPS_FRACTION = 0.5

@@ -4,6 +4,7 @@ of memory maps."""
 from __future__ import annotations
 
 import jax
+import pytest
 
 
 def test_compiled_programs_are_dropped_near_the_memory_map_limit():
@@ -58,6 +59,46 @@ def test_freed_memory_environment_for_new_processes(monkeypatch):
         "MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_": str(2**31 - 1),
         "MALLOC_ARENA_MAX": "1", "ARROW_DEFAULT_MEMORY_POOL": "system"}
 
+
+def test_blas_libraries_run_one_thread_unless_the_user_set_their_threads():
+    """Every OpenBLAS library a process has loaded (NumPy's and SciPy's copies) runs one
+    thread after :func:`single_threaded_blas`, or the user's ``$OPENBLAS_NUM_THREADS`` where
+    set (fresh processes: a library reads that number as it loads)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    code = """
+import ctypes, json
+import numpy, scipy.special
+from hartrao_jax._config import blas_libraries, single_threaded_blas
+done = single_threaded_blas()
+threads = []
+for path in blas_libraries():
+    lib = ctypes.CDLL(path)
+    for name in ("openblas_get_num_threads", "openblas_get_num_threads64_",
+                 "scipy_openblas_get_num_threads", "scipy_openblas_get_num_threads64_"):
+        if hasattr(lib, name):
+            threads.append(getattr(lib, name)())
+            break
+print(json.dumps([done, threads]))
+"""
+    if not sys.platform.startswith("linux"):
+        return
+
+    def run(**extra):
+        env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"} | extra
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             check=True, env=env).stdout
+        return json.loads(out.splitlines()[-1])
+
+    done, threads = run()
+    if not threads:
+        pytest.skip("NumPy and SciPy brought no OpenBLAS here (another BLAS)")
+    assert done == len(threads) and threads == [1] * len(threads)
+    done, threads = run(OPENBLAS_NUM_THREADS="2")
+    assert done == len(threads) and threads == [2] * len(threads)
 
 def test_free_heap_goes_back_to_the_kernel():
     """With freed memory kept (a new process, as the CLI sets it), 512 MiB freed stay resident

@@ -14,7 +14,12 @@ import sys
 
 import click
 
-from .._config import enable_compilation_cache, enable_x64, keep_freed_memory
+from .._config import (
+    enable_compilation_cache,
+    enable_x64,
+    keep_freed_memory,
+    single_threaded_blas,
+)
 from ..campaign._campaign import CampaignError
 from ..model._model import ModelError, parameter_unit
 from ..simulate._simulate import EffectError
@@ -41,6 +46,7 @@ def command(fn):
         enable_x64()
         enable_compilation_cache()
         keep_freed_memory()
+        single_threaded_blas()
         try:
             validate_command(ctx, kwargs)  # options, paths, inputs: before any work
             return fn(*args, **kwargs)

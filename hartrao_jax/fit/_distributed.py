@@ -45,6 +45,7 @@ from .._config import (
     enable_x64,
     keep_freed_environment,
     release_compiled_programs,
+    single_threaded_blas,
 )
 from ..campaign._campaign import load_campaign, read_scan
 from ..campaign._safeio import OutputDir
@@ -92,10 +93,13 @@ MALLOC_VAR = "MALLOC_TRIM_THRESHOLD_"  # see _pre_spawn_environ
 
 
 def worker_setup() -> None:
-    """Runs in every worker: float64 and the persistent compilation cache."""
+    """Runs in every worker: float64, the persistent compilation cache and one BLAS thread
+    (the worker's libraries are loaded before this runs: their number is set, not only the
+    environment's)."""
     for k, v in WORKER_ENV.items():
         os.environ.setdefault(k, v)
 
+    single_threaded_blas()
     enable_x64()
     try:
         enable_compilation_cache()

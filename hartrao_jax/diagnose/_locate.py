@@ -198,16 +198,27 @@ def _panel_columns(xy: np.ndarray, groups: np.ndarray) -> list[tuple[np.ndarray,
     return out
 
 
+def panel_fits(r: np.ndarray, panels) -> list[tuple[np.ndarray, np.ndarray, float]]:
+    """Per panel of :func:`_panel_columns` (in their order), the least-squares fit of its
+    columns ``P`` to the residuals ``r`` (m): ``(coefficients (k,), M^-1 = (P^T P)^-1 (k, k),
+    residual sum of squares (m^2))``, ``k`` the panel's columns (3: offset m, tilts m/m; 1: the
+    offset alone)."""
+    out = []
+    for idx, P in panels:
+        Mi = np.linalg.inv(P.T @ P)
+        coef = Mi @ (P.T @ r[idx])
+        out.append((coef, Mi, float(np.sum((r[idx] - P @ coef) ** 2))))
+    return out
+
+
 def tilt_variance(r: np.ndarray, panels, sigma: float) -> float:
     """The variance of the panels' tilts (m/m per aperture axis) beyond the noise: moments of
-    the per-panel plane fits (``mean(t^2) - sigma^2 mean(M^-1_tt)``, at least 0)."""
+    the per-panel plane fits (:func:`panel_fits`; ``mean(t^2) - sigma^2 mean(M^-1_tt)``, at
+    least 0)."""
     t2, nv = [], []
-    for idx, P in panels:
-        if P.shape[1] == 3:
-            Mi = np.linalg.inv(P.T @ P)
-            t = Mi @ (P.T @ r[idx])
-            t2 += [t[1] ** 2, t[2] ** 2]
-            nv += [Mi[1, 1], Mi[2, 2]]
+    for t, Mi, _ in panel_fits(r, [(idx, P) for idx, P in panels if P.shape[1] == 3]):
+        t2 += [t[1] ** 2, t[2] ** 2]
+        nv += [Mi[1, 1], Mi[2, 2]]
     if not t2:
         return 0.0
     return max(0.0, float(np.mean(t2) - sigma**2 * np.mean(nv)))

@@ -55,6 +55,7 @@ from ._locate import (
     coverage,
     grid_of,
     judge,
+    panel_fits,
     roughness_of,
     width_maps,
 )
@@ -75,15 +76,13 @@ def panel_variances(r: np.ndarray, panels) -> tuple[float, float, float]:
     offsets and tilts less the noise's share: a bump spread over a few panels moves their
     offsets without widening the null it is judged against."""
     off, tilts, v_o, v_t, rss, dof = [], [], [], [], 0.0, 0
-    for idx, P in panels:
-        Mi = np.linalg.inv(P.T @ P)
-        o = Mi @ (P.T @ r[idx])
+    for (idx, P), (o, Mi, ss) in zip(panels, panel_fits(r, panels)):
         off.append(o[0])
         v_o.append(Mi[0, 0])
         if P.shape[1] == 3:
             tilts += [o[1], o[2]]
             v_t += [Mi[1, 1], Mi[2, 2]]
-        rss += float(np.sum((r[idx] - P @ o) ** 2))
+        rss += ss
         dof += len(idx) - P.shape[1]
     if not off or dof <= 0:
         return 0.0, 0.0, float(np.std(r))

@@ -256,7 +256,8 @@ def return_free_heap() -> bool:
 
 
 #: The variable an OpenBLAS library reads for its threads when it loads: the number
-#: :func:`single_threaded_blas` gives the loaded libraries where it is set (the user's choice).
+#: :func:`set_blas_threads` gives the loaded libraries by default where it is set (the user's
+#: choice).
 BLAS_THREADS_ENV = "OPENBLAS_NUM_THREADS"
 #: Names of OpenBLAS's thread-count setter in its builds: plain, and NumPy's and SciPy's own
 #: copies (``scipy_`` prefix; 64-bit integers with the ``64_`` suffix).
@@ -275,11 +276,11 @@ def blas_libraries() -> list[str]:
     return sorted(p for p in paths if p.startswith("/"))
 
 
-def single_threaded_blas() -> int:
-    """One thread (``$OPENBLAS_NUM_THREADS`` where set) for every OpenBLAS library loaded in
-    this process (:func:`blas_libraries`); returns how many it set. The CLI calls it at the
-    start of each command, a Dask worker at its set-up; a library loaded later keeps its own
-    number (read from the environment as it loads).
+def set_blas_threads(threads: int | None = None) -> int:
+    """``threads`` (default ``$OPENBLAS_NUM_THREADS`` where set, else one) for every OpenBLAS
+    library loaded in this process (:func:`blas_libraries`); returns how many it set. The CLI
+    calls it at the start of each command, a Dask worker at its set-up; a library loaded
+    later keeps its own number (read from the environment as it loads).
 
     Why: the package's NumPy and SciPy calls into BLAS are small (least squares of samples,
     3 x 3 systems, products of an ``(n, 3)`` table with a vector), and OpenBLAS's worker
@@ -288,10 +289,12 @@ def single_threaded_blas() -> int:
     Measured on 2 cores (``benchmarks/ab.py``, 4 alternated runs each, medians):
     ``diagnose`` 12.16 -> 11.55 s (user CPU 18.6 -> 16.1 s), the 12-scan ``fit`` 8.82 -> 8.47
     s, the large position's 13.56 -> 13.29 s."""
-    try:
-        threads = max(1, int(os.environ.get(BLAS_THREADS_ENV) or 1))
-    except ValueError:  # not a number: OpenBLAS itself took its default
-        return 0
+    if threads is None:
+        try:
+            threads = int(os.environ.get(BLAS_THREADS_ENV) or 1)
+        except ValueError:  # not a number: OpenBLAS itself took its default
+            return 0
+    threads = max(1, int(threads))
     done = 0
     for path in blas_libraries():
         try:

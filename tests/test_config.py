@@ -60,10 +60,10 @@ def test_freed_memory_environment_for_new_processes(monkeypatch):
         "MALLOC_ARENA_MAX": "1", "ARROW_DEFAULT_MEMORY_POOL": "system"}
 
 
-def test_blas_libraries_run_one_thread_unless_the_user_set_their_threads():
+def test_blas_libraries_run_one_thread_unless_told_otherwise():
     """Every OpenBLAS library a process has loaded (NumPy's and SciPy's copies) runs one
-    thread after :func:`single_threaded_blas`, or the user's ``$OPENBLAS_NUM_THREADS`` where
-    set (fresh processes: a library reads that number as it loads)."""
+    thread after :func:`set_blas_threads`, the user's ``$OPENBLAS_NUM_THREADS`` where set,
+    or the number given (fresh processes: a library reads the variable as it loads)."""
     import json
     import os
     import subprocess
@@ -72,17 +72,20 @@ def test_blas_libraries_run_one_thread_unless_the_user_set_their_threads():
     code = """
 import ctypes, json
 import numpy, scipy.special
-from hartrao_jax._config import blas_libraries, single_threaded_blas
-done = single_threaded_blas()
-threads = []
-for path in blas_libraries():
-    lib = ctypes.CDLL(path)
-    for name in ("openblas_get_num_threads", "openblas_get_num_threads64_",
-                 "scipy_openblas_get_num_threads", "scipy_openblas_get_num_threads64_"):
-        if hasattr(lib, name):
-            threads.append(getattr(lib, name)())
-            break
-print(json.dumps([done, threads]))
+from hartrao_jax._config import blas_libraries, set_blas_threads
+def threads():
+    out = []
+    for path in blas_libraries():
+        lib = ctypes.CDLL(path)
+        for name in ("openblas_get_num_threads", "openblas_get_num_threads64_",
+                     "scipy_openblas_get_num_threads", "scipy_openblas_get_num_threads64_"):
+            if hasattr(lib, name):
+                out.append(getattr(lib, name)())
+                break
+    return out
+done = set_blas_threads()
+first = threads()
+print(json.dumps([done, first, set_blas_threads(3), threads()]))
 """
     if not sys.platform.startswith("linux"):
         return
@@ -93,12 +96,13 @@ print(json.dumps([done, threads]))
                              check=True, env=env).stdout
         return json.loads(out.splitlines()[-1])
 
-    done, threads = run()
+    done, threads, done3, threads3 = run()
     if not threads:
         pytest.skip("NumPy and SciPy brought no OpenBLAS here (another BLAS)")
-    assert done == len(threads) and threads == [1] * len(threads)
-    done, threads = run(OPENBLAS_NUM_THREADS="2")
-    assert done == len(threads) and threads == [2] * len(threads)
+    n = len(threads)
+    assert (done, threads, done3, threads3) == (n, [1] * n, n, [3] * n)
+    done, threads, _, _ = run(OPENBLAS_NUM_THREADS="2")
+    assert (done, threads) == (n, [2] * n)
 
 def test_free_heap_goes_back_to_the_kernel():
     """With freed memory kept (a new process, as the CLI sets it), 512 MiB freed stay resident

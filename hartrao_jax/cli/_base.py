@@ -18,7 +18,7 @@ from .._config import (
     enable_compilation_cache,
     enable_x64,
     keep_freed_memory,
-    single_threaded_blas,
+    set_blas_threads,
 )
 from ..campaign._campaign import CampaignError
 from ..model._model import ModelError, parameter_unit
@@ -46,7 +46,7 @@ def command(fn):
         enable_x64()
         enable_compilation_cache()
         keep_freed_memory()
-        single_threaded_blas()
+        set_blas_threads()
         try:
             validate_command(ctx, kwargs)  # options, paths, inputs: before any work
             return fn(*args, **kwargs)

@@ -45,7 +45,7 @@ from .._config import (
     enable_x64,
     keep_freed_environment,
     release_compiled_programs,
-    single_threaded_blas,
+    set_blas_threads,
 )
 from ..campaign._campaign import load_campaign, read_scan
 from ..campaign._safeio import OutputDir
@@ -99,7 +99,7 @@ def worker_setup() -> None:
     for k, v in WORKER_ENV.items():
         os.environ.setdefault(k, v)
 
-    single_threaded_blas()
+    set_blas_threads()
     enable_x64()
     try:
         enable_compilation_cache()

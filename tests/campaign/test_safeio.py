@@ -168,6 +168,33 @@ def test_parquet_codec_per_column(tmp_path):
             assert got.dtype == v.dtype and np.array_equal(got, v)
 
 
+
+def test_columns_without_nulls_are_written_required(tmp_path):
+    """Both writers declare every column without a null required (no definition levels in
+    the file), keep a column with nulls optional with its nulls, and read back every value
+    (NaN included) as written."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=5000)
+    x[7] = np.nan  # a value, not a null
+    cols = {"x_m": x, "row": np.arange(5000), "used": rng.random(5000) > 0.5}
+    holes = pa.array([1.0, None, 3.0] * 1000)
+
+    write_columns(cols, tmp_path / "a.parquet", row_group_rows=1024)
+    write_table(pa.table(cols), tmp_path / "b.parquet")
+    write_table(pa.table({"x_m": x[:3000], "holes": holes}), tmp_path / "c.parquet")
+    for name in ("a", "b"):
+        back = pq.read_table(tmp_path / f"{name}.parquet")
+        assert [f.nullable for f in back.schema] == [False] * 3
+        for k, v in cols.items():
+            assert np.array_equal(back.column(k).to_numpy(), v, equal_nan=v.dtype.kind == "f")
+    back = pq.read_table(tmp_path / "c.parquet")
+    assert [f.nullable for f in back.schema] == [False, True]
+    assert back.column("holes").null_count == 1000
+    assert back.column("holes").to_pylist() == holes.to_pylist()
+
 def test_output_dir_abort_keeps_the_previous_result(tmp_path):
     root = tmp_path / "r"
     with OutputDir(root, "main.json") as od:

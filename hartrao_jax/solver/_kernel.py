@@ -505,15 +505,25 @@ def final_sweep(condition, l, consts, weights, store, residuals, x, dx, on, *, c
 
 #: Points per part below which a pass is not split (one part, the single jitted loop).
 PARALLEL_MIN_POINTS = 1 << 17
+#: Points per chunk of a pass split into parts (threads), at most: XLA's runtime spreads a
+#: larger chunk's loops over its threads, which the other part's thread needs at the same time.
+#: Two parts of the random effect's pass over 1e6 points each at once (2 cores): 0.46-0.50 s
+#: with chunks of 2048, 0.52-0.56 s with 4096, 0.54-0.56 s with 8192; the white adjustment of
+#: 2e6 points in two parts (4 passes) 0.81-0.88 s with 2048, 0.87-0.98 s with 4096. A pass not
+#: split keeps larger chunks, which XLA spreads over the cores (the random effect's over 1e6
+#: points alone: 0.35-0.37 s with 8192, 0.47 s with 2048).
+PART_CHUNK = 2048
 
 def pass_threads(n: int) -> int:
     """Parts (threads) a pass over ``n`` points is split into: :func:`usable_cores`, at most 8
     and at most one part per :data:`PARALLEL_MIN_POINTS` points.
 
-    XLA runs one fusion on one core, and the pass is one loop of fusions: one jitted call uses
-    one core whatever the machine. Two calls from two threads run at the same time (the
-    runtime executes concurrent calls concurrently), so the points are split into parts, each
-    part's pass runs in its own thread, and the sums are added."""
+    A pass is one loop over chunks, and XLA spreads a chunk's loops over its threads only
+    where they are large: one jitted call's loop uses at most part of the cores. Two calls
+    from two threads run at the same time (the runtime executes concurrent calls
+    concurrently), so the points are split into parts, each part's pass runs in its own
+    thread on chunks of at most :data:`PART_CHUNK` points (one core each), and the sums are
+    added."""
     return int(max(1, min(usable_cores(), 8, n // PARALLEL_MIN_POINTS)))
 
 

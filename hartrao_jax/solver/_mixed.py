@@ -62,6 +62,7 @@ from .._programs import cached_jit
 from ._ghm import AbstractAdjustment
 from ._kernel import (
     PARALLEL_MIN_POINTS,  # noqa: F401  (re-exported: this module's name since 520202b)
+    PART_CHUNK,
     THREADS_ENV,  # noqa: F401
     array_namespace,
     host_sum,
@@ -840,9 +841,11 @@ def gauss_helmert_mixed(
     var0 = (jnp.asarray(noise_var0, f), jnp.asarray(cell_var0, f).reshape(k),
             jnp.broadcast_to(jnp.asarray(ridge_var0, f), (n_groups,)))
     U0 = jnp.zeros((n_cells, k), f) if u0 is None else jnp.asarray(u0, f)
+    threads = mixed_threads(n) if threads is None else max(1, int(threads))
+    if threads > 1:  # parts at once, one core each: chunks XLA does not split over the cores
+        chunk_size = min(chunk_size, PART_CHUNK)
     chunk = int(min(chunk_size, max(256, 1 << int(np.ceil(np.log2(max(n, 1)))))))
     g_np = np.asarray(groups)
-    threads = mixed_threads(n) if threads is None else max(1, int(threads))
     threads = min(threads, -(-n // chunk))  # whole chunks per part: no empty part
     reject_from = 0 if u0 is not None else 1
     rate0 = 1.0 if v0 is None or ridge else rate0

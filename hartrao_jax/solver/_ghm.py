@@ -354,7 +354,8 @@ def gauss_helmert(
         max_iter: maximum Gauss-Newton iterations.
         tol: convergence when every ``|dx_j|`` is below ``tol`` times its a priori standard
             deviation ``sqrt((N^-1)_jj)``.
-        chunk_size: points per chunk of the normal-equation accumulation (bounds memory).
+        chunk_size: points per chunk of the normal-equation accumulation (bounds memory;
+            at most :data:`~._kernel.PART_CHUNK` where the pass is split into parts).
         threads: parts each pass is split into, one thread each (None: as the random effect,
             :func:`~._kernel.pass_threads`: the usable cores, one part per 2^17 points at
             most); the estimates do not depend on it beyond round-off.

@@ -514,6 +514,7 @@ PARALLEL_MIN_POINTS = 1 << 17
 #: points alone: 0.35-0.37 s with 8192, 0.47 s with 2048).
 PART_CHUNK = 2048
 
+
 def pass_threads(n: int) -> int:
     """Parts (threads) a pass over ``n`` points is split into: :func:`usable_cores`, at most 8
     and at most one part per :data:`PARALLEL_MIN_POINTS` points.

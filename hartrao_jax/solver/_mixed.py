@@ -801,6 +801,8 @@ def gauss_helmert_mixed(
             0.5 % (:func:`iteration_converged`).
         threads: parts each pass over the points is split into, one thread each (None:
             :func:`mixed_threads`); the estimates do not depend on it beyond round-off.
+        chunk_size: points per chunk of a pass (at most :data:`~._kernel.PART_CHUNK` where
+            the pass is split into parts).
         mode_design: ``(n, r)`` (float32 kept in float32): the last ``r`` unknowns of ``x``
             are coefficients (m) of deviations known per point, ``dev_i += mode_design_i .
             x[u - r:]`` (e.g. Zernike modes at each point's aperture coordinates); ``condition``

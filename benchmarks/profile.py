@@ -227,9 +227,11 @@ def main(argv=None) -> int:
     from hartrao_jax.simulate._simulate import simulate_campaign
 
     enable_compilation_cache()
-    if args.keep_memory:  # as the CLI (one BLAS thread: the peer's wall time is the same with
-        keep_freed_memory()  # its default two, 10.79-11.31 against 10.87-10.96 s, at twice
-        set_blas_threads()  # the CPU seconds: the second thread spun)
+    # as the CLI. One BLAS thread for the peer as well: its wall time is the same with its
+    # default two (10.79-11.31 against 10.87-10.96 s), at twice the CPU seconds (the second spun)
+    if args.keep_memory:
+        keep_freed_memory()
+        set_blas_threads()
     tmp = Path(tempfile.mkdtemp(prefix="profile-"))  # the outputs (and the campaign it made)
     atexit.register(shutil.rmtree, tmp, True)  # 1.2 GB per run of a full-resolution position
     t0 = time.perf_counter()

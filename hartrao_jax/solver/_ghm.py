@@ -37,13 +37,13 @@ from jaxtyping import Array, Bool, Float, Int
 from .._config import on_device
 from .._programs import cached_jit
 from ._kernel import (
-    PART_CHUNK,
     REJECT_BELOW,
     gh_one_pass,
     host_sum,
     linearize_rev,
     newton_step,
     next_rate,
+    part_chunk,
     part_final,
     part_omega,
     part_pass,
@@ -312,8 +312,7 @@ def _adjust(condition, l, x0, sigma_l, consts, weights, v0, tol, *, max_iter, ch
     else the single jitted loop."""
     n = l.shape[0]
     t = pass_threads(n) if threads is None else max(1, int(threads))
-    if t > 1:  # parts at once, one core each (:data:`~._kernel.PART_CHUNK`)
-        chunk_size = min(chunk_size, PART_CHUNK)
+    chunk_size = part_chunk(chunk_size, t)
     t = min(t, max(1, n // chunk_size))
     kw = dict(max_iter=max_iter, chunk_size=chunk_size, robust_k=robust_k,
               max_rounds=max_rounds)

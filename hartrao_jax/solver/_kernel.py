@@ -515,6 +515,12 @@ PARALLEL_MIN_POINTS = 1 << 17
 PART_CHUNK = 2048
 
 
+def part_chunk(chunk: int, threads: int) -> int:
+    """The chunk of a pass in ``threads`` parts: ``chunk``, at most :data:`PART_CHUNK` where
+    the pass is split (parts at once, one core each)."""
+    return min(chunk, PART_CHUNK) if threads > 1 else chunk
+
+
 def pass_threads(n: int) -> int:
     """Parts (threads) a pass over ``n`` points is split into: :func:`usable_cores`, at most 8
     and at most one part per :data:`PARALLEL_MIN_POINTS` points.

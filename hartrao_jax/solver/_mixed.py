@@ -62,11 +62,11 @@ from .._programs import cached_jit
 from ._ghm import AbstractAdjustment
 from ._kernel import (
     PARALLEL_MIN_POINTS,  # noqa: F401  (re-exported: this module's name since 520202b)
-    PART_CHUNK,
     THREADS_ENV,  # noqa: F401
     array_namespace,
     host_sum,
     next_rate,
+    part_chunk,
     pass_threads,
     remaining_error,
     solve_scaled,
@@ -844,9 +844,8 @@ def gauss_helmert_mixed(
             jnp.broadcast_to(jnp.asarray(ridge_var0, f), (n_groups,)))
     U0 = jnp.zeros((n_cells, k), f) if u0 is None else jnp.asarray(u0, f)
     threads = mixed_threads(n) if threads is None else max(1, int(threads))
-    if threads > 1:  # parts at once, one core each: chunks XLA does not split over the cores
-        chunk_size = min(chunk_size, PART_CHUNK)
-    chunk = int(min(chunk_size, max(256, 1 << int(np.ceil(np.log2(max(n, 1)))))))
+    chunk = int(min(part_chunk(chunk_size, threads),
+                    max(256, 1 << int(np.ceil(np.log2(max(n, 1)))))))
     g_np = np.asarray(groups)
     threads = min(threads, -(-n // chunk))  # whole chunks per part: no empty part
     reject_from = 0 if u0 is not None else 1

@@ -168,7 +168,6 @@ def test_parquet_codec_per_column(tmp_path):
             assert got.dtype == v.dtype and np.array_equal(got, v)
 
 
-
 def test_columns_without_nulls_are_written_required(tmp_path):
     """Both writers declare every column without a null required (no definition levels in
     the file), keep a column with nulls optional with its nulls, and read back every value
@@ -194,6 +193,7 @@ def test_columns_without_nulls_are_written_required(tmp_path):
     assert [f.nullable for f in back.schema] == [False, True]
     assert back.column("holes").null_count == 1000
     assert back.column("holes").to_pylist() == holes.to_pylist()
+
 
 def test_output_dir_abort_keeps_the_previous_result(tmp_path):
     root = tmp_path / "r"

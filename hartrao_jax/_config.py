@@ -110,12 +110,18 @@ def lend_to_device(a, dtype=None) -> jax.Array:
     return jax.device_put(a)
 
 
-def usable_cores() -> int:
-    """The threads this process's work may use: ``$HARTRAO_JAX_THREADS``, else the cores it
-    may run on (its CPU affinity on Linux; elsewhere the core count)."""
-    env = os.environ.get(THREADS_ENV)
+def machine_cores() -> int:
+    """The cores this process may run on (its CPU affinity on Linux; elsewhere the core
+    count): those XLA's own threads span."""
     affinity = getattr(os, "sched_getaffinity", None)
-    return max(1, int(env) if env else (len(affinity(0)) if affinity else os.cpu_count() or 1))
+    return max(1, len(affinity(0)) if affinity else os.cpu_count() or 1)
+
+
+def usable_cores() -> int:
+    """The threads this process's work may use: ``$HARTRAO_JAX_THREADS`` (a Dask worker's
+    one, other processes using the other cores), else :func:`machine_cores`."""
+    env = os.environ.get(THREADS_ENV)
+    return max(1, int(env)) if env else machine_cores()
 
 
 def thread_pool(threads: int, name: str) -> ThreadPoolExecutor:

@@ -16,7 +16,7 @@ import jax
 import numpy as np
 from scipy import special
 
-from .._config import each_in_threads, on_device
+from .._config import each_in_threads, on_device, usable_cores
 from .._programs import Uncacheable, spec
 from ..model._model import (
     DRIFT,
@@ -101,14 +101,15 @@ _CELL_VAR0 = (1e-8, 1e-8, 1e-8)  # start of the cells' variances: 0.1 mm, 1e-4 r
 
 
 def _cell_sums(ctx: _Context, sc: _Scan, model, x: np.ndarray, w: np.ndarray,
-               U: np.ndarray) -> MixedSums:
+               U: np.ndarray, threads: int = 1) -> MixedSums:
     """Normal-equation sums of one scan at its current solution, with the columns of its
     surface cells (its panels, or the stated grid, with the local coordinates of
     :func:`..geometry.panel_cells` frozen at the start; per cell its
     offset and radial and tangential tilt, entering as normal deviation), as the two-face
     adjustment forms them (:func:`..solver.mixed_chunk`). ``w``: weights of the points; ``U``
     (cells, 3): the cells' current values (the modelled panel offsets), taken out of the
-    points' known deviation so that the random effect carries the whole surface."""
+    points' known deviation so that the random effect carries the whole surface.
+    ``threads``: scans whose sums are made at once (:func:`..solver.mixed_chunk`)."""
     n = len(w)
     cell = np.where(sc.panel >= 0, sc.panel, -1)
     design = np.column_stack([np.ones(n), sc.local]) * (cell >= 0)[:, None]
@@ -129,7 +130,7 @@ def _cell_sums(ctx: _Context, sc: _Scan, model, x: np.ndarray, w: np.ndarray,
             if key is not None and key in ctx.sums_memo:
                 return ctx.sums_memo[key]
         s, _ = mixed_chunk(m, *args, np.asarray(x_m, float), np.asarray(U, float),
-                           on_device(1.0), on_device(np.inf), dev_column=1)
+                           on_device(1.0), on_device(np.inf), dev_column=1, threads=threads)
         s = jax.tree.map(np.asarray, s)
         if key is not None:
             with _MEMO_LOCK:
@@ -350,9 +351,10 @@ class _Joint:
                 else:
                     P[i, self.cidx[(sc.id, name)]] = 1.0
             w = (sc.used & (sc.m > 0)).astype(float)
-            return _cell_sums(ctx, sc, model, x, w, U), P, w
+            return _cell_sums(ctx, sc, model, x, w, U, threads), P, w
 
         # the scans' sums in threads (their programs overlap), added in the scans' order
+        threads = min(usable_cores(), len(scans))
         for sc, (ne, P, w) in zip(scans, each_in_threads(scan_sums, list(zip(scans, maps)),
                                                         "joint-sums")):
             N += P.T @ np.asarray(ne.N) @ P

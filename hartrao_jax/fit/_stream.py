@@ -75,6 +75,7 @@ from ..solver._kernel import (
     linearize_rev,
     make_pass,
     next_rate,
+    part_chunk,
     pass_threads,
     remaining_error,
     solve_scaled,
@@ -337,7 +338,10 @@ def stream_fit_scan(
             seed=seed)
     timings["initial_values_s"] = time.perf_counter() - t0
 
-    inner = int(min(INNER_CHUNK, max(256, 1 << math.ceil(math.log2(max(rows_per_chunk, 1))))))
+    threads = pass_threads(min(rows_per_chunk, n_rows)) if threads is None else int(threads)
+    # (blocks at once, or a Dask worker's one thread: each block's loop on one core)
+    inner = int(min(part_chunk(INNER_CHUNK, threads),
+                    max(256, 1 << math.ceil(math.log2(max(rows_per_chunk, 1))))))
     B = min(BLOCK, -(-rows_per_chunk // inner) * inner)  # rows per compiled call
     G = max(inner, B // 4 // inner * inner)  # granularity of a chunk's last block
     P = -(-rows_per_chunk // B) * B  # store slots per streamed chunk
@@ -486,7 +490,6 @@ def stream_fit_scan(
                 out_e.write_rows(r, e[:n])
                 out_w.write_rows(r, w_all[s0:s0 + n])
 
-    threads = pass_threads(min(rows_per_chunk, n_rows)) if threads is None else int(threads)
     cpool = thread_pool(threads) if threads > 1 else None
     t0 = time.perf_counter()
     try:

@@ -26,7 +26,7 @@ import numpy as np
 from jax import lax
 from jax.extend import core as jcore
 
-from .._config import THREADS_ENV, usable_cores  # noqa: F401  (this module's names before)
+from .._config import THREADS_ENV, machine_cores, usable_cores  # noqa: F401  (this module's names before)
 from .._config import thread_pool as _config_pool
 from .._programs import cached_jit
 
@@ -505,20 +505,26 @@ def final_sweep(condition, l, consts, weights, store, residuals, x, dx, on, *, c
 
 #: Points per part below which a pass is not split (one part, the single jitted loop).
 PARALLEL_MIN_POINTS = 1 << 17
-#: Points per chunk of a pass split into parts (threads), at most: XLA's runtime spreads a
-#: larger chunk's loops over its threads, which the other part's thread needs at the same time.
-#: Two parts of the random effect's pass over 1e6 points each at once (2 cores): 0.46-0.50 s
-#: with chunks of 2048, 0.52-0.56 s with 4096, 0.54-0.56 s with 8192; the white adjustment of
-#: 2e6 points in two parts (4 passes) 0.81-0.88 s with 2048, 0.87-0.98 s with 4096. A pass not
-#: split keeps larger chunks, which XLA spreads over the cores (the random effect's over 1e6
-#: points alone: 0.35-0.37 s with 8192, 0.47 s with 2048).
+#: Points per chunk of a pass that is to take one core, at most: XLA's runtime spreads a
+#: larger chunk's loops over its threads (every core of the machine), which another pass
+#: needs at the same time. Two parts of the random effect's pass over 1e6 points each at once
+#: (2 cores): 0.46-0.50 s with chunks of 2048, 0.52-0.56 s with 4096, 0.54-0.56 s with 8192;
+#: the white adjustment of 2e6 points in two parts (4 passes) 0.81-0.88 s with 2048, 0.87-0.98
+#: s with 4096; two full-resolution positions streamed at once on 2 Dask workers of one thread
+#: (4.9e7 rows) 49.1-51.1 s with 2048, 54.7 s with 4096, 57.5-61.0 s with 8192. A pass that
+#: has the machine to itself keeps larger chunks, which XLA spreads over the cores (the random
+#: effect's over 1e6 points alone: 0.35-0.37 s with 8192, 0.47 s with 2048).
 PART_CHUNK = 2048
 
 
 def part_chunk(chunk: int, threads: int) -> int:
-    """The chunk of a pass in ``threads`` parts: ``chunk``, at most :data:`PART_CHUNK` where
-    the pass is split (parts at once, one core each)."""
-    return min(chunk, PART_CHUNK) if threads > 1 else chunk
+    """The chunk of a pass run in ``threads`` parts at once: ``chunk``, at most
+    :data:`PART_CHUNK` where each part is to take one core: the pass is split (``threads >
+    1``), or this process is to use fewer cores than XLA's threads span
+    (``$HARTRAO_JAX_THREADS`` below :func:`machine_cores`: a Dask worker of one thread, the
+    other workers on the other cores)."""
+    return (min(chunk, PART_CHUNK) if threads > 1 or usable_cores() < machine_cores()
+            else chunk)
 
 
 def pass_threads(n: int) -> int:

@@ -18,7 +18,7 @@ from jaxtyping import Array, Float, Int
 
 from .._config import on_device
 from .._programs import cached_jit
-from ._kernel import step_sigmas
+from ._kernel import part_chunk, step_sigmas
 from ._mixed import _Linearization, _ridge_args, _update, _vce
 from ._mixed_pass import _pass
 
@@ -69,6 +69,7 @@ def mixed_chunk(
     *,
     dev_column: int = 1,
     chunk: int = 8192,
+    threads: int = 1,
     mode_design: Float[Array, "n r"] | None = None,
 ) -> tuple[MixedSums, MixedChunk]:
     """One chunk of points of a streamed :func:`gauss_helmert_mixed` (constant memory per chunk).
@@ -86,7 +87,9 @@ def mixed_chunk(
     vector (3,) for all.
 
     Steps 1 and 2 run in one loop over blocks of ``chunk`` points (the residuals of a block
-    are linearised while its rows are in cache: 0.61 -> 0.46 s per 1e6 points on one core).
+    are linearised while its rows are in cache: 0.61 -> 0.46 s per 1e6 points on one core);
+    ``threads``: calls made at once (in threads), which, as in a Dask worker of one thread,
+    keep their blocks small enough to take one core each (:func:`._kernel.part_chunk`).
     """
     MZ = (on_device(np.zeros((l.shape[0], 0), x.dtype)) if mode_design is None
           else jnp.asarray(mode_design, x.dtype))
@@ -94,7 +97,8 @@ def mixed_chunk(
     # the materialising cond of the pass away and recompute the derivatives in every consumer
     # (10x the time with the 30 unknowns of the diagnosis' candidates: 2.1 s for 2.6e5 points)
     return _mixed_chunk(condition, l, consts, weights, s2, groups, design, x, U, noise_var,
-                        robust_k, on_device(True, bool), MZ, dev_column=dev_column, chunk=chunk)
+                        robust_k, on_device(True, bool), MZ, dev_column=dev_column,
+                        chunk=part_chunk(chunk, threads))
 
 
 @cached_jit

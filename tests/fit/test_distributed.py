@@ -116,7 +116,10 @@ def test_stream_to_max_iter_equals_in_memory(scatter_campaign, tmp_path):
 def test_stream_blocks_in_threads_equal_one_thread(scatter_campaign, tmp_path, monkeypatch):
     """A chunk's compute blocks run in two threads: the same sums added in the same order."""
     from hartrao_jax.fit import _stream
+    from hartrao_jax.solver._kernel import PART_CHUNK
 
+    # the kernel's chunk of blocks in threads (at most PART_CHUNK) for one thread as well
+    monkeypatch.setattr(_stream, "INNER_CHUNK", PART_CHUNK)
     monkeypatch.setattr(_stream, "BLOCK", _stream.INNER_CHUNK)  # several blocks per chunk
     camp = scatter_campaign
     meta = camp.scan("r23c1")

@@ -94,3 +94,25 @@ def test_threads_follow_size_and_environment(monkeypatch):
     assert mixed_threads(1 << 30) == 4
     monkeypatch.setenv("HARTRAO_JAX_THREADS", "1")
     assert mixed_threads(1 << 30) == 1
+
+
+def test_a_pass_beside_other_work_keeps_its_chunks_to_one_core(monkeypatch):
+    """Chunks are capped at PART_CHUNK where a pass is split, or where the process is to use
+    fewer cores than the machine's (a Dask worker of one thread); a pass that has the machine
+    to itself keeps its chunk. The diagnosis' scans' sums, made two at once, ask for the cap
+    through mixed_chunk's ``threads``."""
+    from hartrao_jax import _config
+    from hartrao_jax._config import THREADS_ENV
+    from hartrao_jax.solver import _kernel
+    from hartrao_jax.solver._kernel import PART_CHUNK, part_chunk
+
+    for module in (_config, _kernel):  # a two-core machine
+        monkeypatch.setattr(module, "machine_cores", lambda: 2)
+    monkeypatch.delenv(THREADS_ENV, raising=False)
+    assert part_chunk(8192, 1) == 8192
+    assert part_chunk(8192, 2) == PART_CHUNK
+    assert part_chunk(1024, 2) == 1024  # a smaller chunk stays
+    monkeypatch.setenv(THREADS_ENV, "1")  # a worker of one thread on a two-core machine
+    assert part_chunk(8192, 1) == PART_CHUNK
+    monkeypatch.setenv(THREADS_ENV, "2")
+    assert part_chunk(8192, 1) == 8192

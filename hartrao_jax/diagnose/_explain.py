@@ -322,6 +322,8 @@ class _Joint:
         self.sum_q = 0.0
         t0 = time.time()
 
+        threads = min(usable_cores(), len(scans))  # scans whose sums are made at once
+
         def scan_sums(sc, x_names):
             """One scan's sums at its solution and its columns' place in the joint system
             (``P``: its model's unknowns -> joint unknowns)."""
@@ -354,7 +356,6 @@ class _Joint:
             return _cell_sums(ctx, sc, model, x, w, U, threads), P, w
 
         # the scans' sums in threads (their programs overlap), added in the scans' order
-        threads = min(usable_cores(), len(scans))
         for sc, (ne, P, w) in zip(scans, each_in_threads(scan_sums, list(zip(scans, maps)),
                                                         "joint-sums")):
             N += P.T @ np.asarray(ne.N) @ P

@@ -26,7 +26,11 @@ import numpy as np
 from jax import lax
 from jax.extend import core as jcore
 
-from .._config import THREADS_ENV, machine_cores, usable_cores  # noqa: F401  (this module's names before)
+from .._config import (
+    THREADS_ENV,  # noqa: F401  (this module's name before)
+    machine_cores,
+    usable_cores,
+)
 from .._config import thread_pool as _config_pool
 from .._programs import cached_jit
 

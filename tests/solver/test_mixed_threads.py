@@ -99,8 +99,7 @@ def test_threads_follow_size_and_environment(monkeypatch):
 def test_a_pass_beside_other_work_keeps_its_chunks_to_one_core(monkeypatch):
     """Chunks are capped at PART_CHUNK where a pass is split, or where the process is to use
     fewer cores than the machine's (a Dask worker of one thread); a pass that has the machine
-    to itself keeps its chunk. The diagnosis' scans' sums, made two at once, ask for the cap
-    through mixed_chunk's ``threads``."""
+    to itself keeps its chunk."""
     from hartrao_jax import _config
     from hartrao_jax._config import THREADS_ENV
     from hartrao_jax.solver import _kernel

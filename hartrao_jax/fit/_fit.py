@@ -27,6 +27,7 @@ from .._config import (
     release_compiled_programs,
     row_blocks,
     thread_pool,
+    usable_cores,
 )
 from .._programs import cached_jit
 from ..campaign._campaign import Campaign, ScanData, ScanMeta, read_scan
@@ -62,7 +63,7 @@ from ..solver._ghm import (
     host_result,
     robust_gauss_helmert,
 )
-from ..solver._kernel import materialize_trig, usable_cores
+from ..solver._kernel import materialize_trig
 from ..solver._mixed import gauss_helmert_mixed
 from ._align import MIN_TILT_RAD, mean_heading, north_alignment, scan_heading
 from ._identify import (

@@ -14,12 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .._config import row_blocks
+from .._config import row_blocks, usable_cores
 from .._files import FileDigest
 from ..campaign._safeio import OutputDir, write_columns, write_file_atomic
 from ..geometry._geometry import face_of
 from ..model._model import parameter_unit
-from ..solver._kernel import usable_cores
 from ._identify import Held
 from ._results import CampaignFit, ScanFit
 

@@ -480,7 +480,10 @@ def fit_position(
         return prepare_scan(campaign, m, data, window_m=window_m, keep=k)
 
     # the faces read and preprocessed each in its own thread (NumPy releases the GIL in its
-    # array loops; the same results in the same order), where they are small enough
+    # array loops; the same results in the same order), where they are small enough; a pool
+    # of this call's own, whose threads end with it: the process's persistent pool
+    # (_config.each_in_threads) kept something of that work while its threads lived, the
+    # large position's peak 3.72-3.81 -> 4.10-4.22 GiB (benchmarks/results/profile.md)
     together = datas is not None or side_by_side(campaign, metas)
     workers = min(len(metas), usable_cores()) if together else 1
     with ThreadPoolExecutor(max(1, workers)) as ex:

@@ -418,11 +418,11 @@ def _filter_grids(a: np.ndarray, s: float) -> np.ndarray:
 
 def width_map(xy: np.ndarray, r: np.ndarray, w: float, sigma: float, density: float,
               min_coverage: float = 0.7, min_points: float = 8.0,
-              panels=None, tau2: float = 0.0) -> WidthMap | None:
+              panels: _PanelAlgebra | None = None) -> WidthMap | None:
     """Matched-filter maps of width ``w`` (see the module docstring); ``panels``: the points'
-    panels (:func:`_panel_columns`, or their :class:`_PanelAlgebra` for these ``r``, ``sigma``
-    and ``tau2``), whose offsets (and tilts of variance ``tau2``) are then the filter's
-    nuisance instead of the local background (the module docstring, "Panels")."""
+    panels as their :class:`_PanelAlgebra` (for these ``r`` and ``sigma``), whose offsets (and
+    tilts) are then the filter's nuisance instead of the local background (the module
+    docstring, "Panels")."""
     lo, shape, ij, h = grid_of(xy, w)
     if shape == (0, 0):
         return None
@@ -436,9 +436,7 @@ def width_map(xy: np.ndarray, r: np.ndarray, w: float, sigma: float, density: fl
         a = bf.amplitude(R)
         se = sigma * bf.se_unit
     else:  # a g + one offset per panel, unwindowed: sums over the bump's own points
-        alg = (panels if isinstance(panels, _PanelAlgebra)
-               else _PanelAlgebra.of(panels, r, sigma, tau2))
-        Q1, Q2 = _group_sums(ij, alg, shape, sw)
+        Q1, Q2 = _group_sums(ij, panels, shape, sw)
         den = ng - Q2  # sum of the bump's within-panel part squared
         valid = covered & (den > MIN_WITHIN_PANEL * ng)
         denv = np.where(valid, den, 1.0)

@@ -8,7 +8,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hartrao_jax.diagnose._locate import _panel_columns, search, tilt_variance, width_map
+from hartrao_jax.diagnose._locate import (
+    _panel_columns,
+    _PanelAlgebra,
+    search,
+    tilt_variance,
+    width_map,
+)
 from hartrao_jax.physics._catalog import local_deformation
 
 PANEL_M = 2.0  # square panels of a 24 m x 24 m patch
@@ -44,9 +50,9 @@ def test_per_panel_constants_do_not_change_the_panel_filter():
     xy, r, ids = _surface(bump=(1.3, -2.4, 1e-3, 0.5))
     shift = np.random.default_rng(1).normal(0.0, 1e-3, ids.max() + 1)[ids]
     panels = _panel_columns(xy, ids)
-    kw = {"sigma": 0.75e-3, "density": 100.0, "panels": panels, "tau2": 1e-8}
-    m0 = width_map(xy, r, 0.5, **kw)
-    m1 = width_map(xy, r + shift, 0.5, **kw)
+    sigma, tau2 = 0.75e-3, 1e-8
+    m0, m1 = (width_map(xy, r_, 0.5, sigma, 100.0,
+                        panels=_PanelAlgebra.of(panels, r_, sigma, tau2)) for r_ in (r, r + shift))
     assert m0.valid.sum() > 1000 and np.array_equal(m0.valid, m1.valid)
     np.testing.assert_allclose(m1.amplitude[m0.valid], m0.amplitude[m0.valid], atol=1e-9)
 

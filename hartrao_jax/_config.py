@@ -134,13 +134,19 @@ def thread_pool(threads: int, name: str) -> ThreadPoolExecutor:
     return _POOLS[key]
 
 
+def threads_for(items: int) -> int:
+    """The threads :func:`each_in_threads` runs ``items`` items in: the usable cores, at most
+    one per item."""
+    return min(usable_cores(), items)
+
+
 def each_in_threads(fn, items: Sequence, name: str) -> list:
     """``[fn(*item) for item in items]`` (an item that is not a tuple is one argument) with
     the items over the usable cores (:func:`usable_cores`; the pool of ``name``, see
     :func:`thread_pool`), in their order: for work whose NumPy or SciPy loops release the
     GIL, each item's result the same as in one thread."""
     args = [it if isinstance(it, tuple) else (it,) for it in items]
-    threads = min(usable_cores(), len(args))
+    threads = threads_for(len(args))
     if threads < 2:
         return [fn(*a) for a in args]
     return list(thread_pool(threads, name).map(lambda a: fn(*a), args))

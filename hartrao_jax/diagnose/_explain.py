@@ -16,7 +16,7 @@ import jax
 import numpy as np
 from scipy import special
 
-from .._config import each_in_threads, on_device, usable_cores
+from .._config import each_in_threads, on_device, threads_for
 from .._programs import Uncacheable, spec
 from ..model._model import (
     DRIFT,
@@ -322,7 +322,7 @@ class _Joint:
         self.sum_q = 0.0
         t0 = time.time()
 
-        threads = min(usable_cores(), len(scans))  # scans whose sums are made at once
+        threads = threads_for(len(scans))  # scans whose sums are made at once (each_in_threads)
 
         def scan_sums(sc, x_names):
             """One scan's sums at its solution and its columns' place in the joint system

@@ -92,7 +92,7 @@ def residual_update(condition, l, x, sigma_l, consts, weights, v, dx, *, chunk_s
     weights = jnp.ones((n,), l.dtype) if weights is None else jnp.asarray(weights, l.dtype)
     v = jnp.zeros_like(l) if v is None else jnp.asarray(v, l.dtype)
     s2 = jnp.broadcast_to(jnp.asarray(sigma_l, l.dtype) ** 2, l.shape)
-    chunk = int(min(chunk_size, max(256, 1 << int(np.ceil(np.log2(max(n, 1)))))))
+    chunk = chunk_for(n, chunk_size)
     return _residual_pass(condition, l, jnp.asarray(x, l.dtype), s2, consts, weights, v,
                           jnp.asarray(dx, l.dtype), chunk)
 

@@ -72,6 +72,7 @@ from ..model._model import N_CONSTS, make_model, parameter_unit
 from ..preprocess._initial import InitialValues, choose_initial_values, geometry_window
 from ..solver._kernel import (
     REJECT_BELOW,
+    chunk_for,
     linearize_rev,
     make_pass,
     next_rate,
@@ -340,8 +341,7 @@ def stream_fit_scan(
 
     threads = pass_threads(min(rows_per_chunk, n_rows)) if threads is None else int(threads)
     # (blocks at once, or a Dask worker's one thread: each block's loop on one core)
-    inner = int(min(part_chunk(INNER_CHUNK, threads),
-                    max(256, 1 << math.ceil(math.log2(max(rows_per_chunk, 1))))))
+    inner = chunk_for(rows_per_chunk, part_chunk(INNER_CHUNK, threads))
     B = min(BLOCK, -(-rows_per_chunk // inner) * inner)  # rows per compiled call
     G = max(inner, B // 4 // inner * inner)  # granularity of a chunk's last block
     P = -(-rows_per_chunk // B) * B  # store slots per streamed chunk

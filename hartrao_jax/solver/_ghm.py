@@ -38,6 +38,7 @@ from .._config import on_device
 from .._programs import cached_jit
 from ._kernel import (
     REJECT_BELOW,
+    chunk_for,
     gh_one_pass,
     host_sum,
     linearize_rev,
@@ -521,7 +522,7 @@ def normal_equations(
     v = jnp.zeros_like(l) if v is None else jnp.asarray(v, l.dtype)
     groups = -jnp.ones((n,), jnp.int32) if groups is None else jnp.asarray(groups, jnp.int32)
     s2 = jnp.broadcast_to(jnp.asarray(sigma_l, l.dtype) ** 2, l.shape)
-    chunk = int(min(chunk_size, max(256, 1 << int(np.ceil(np.log2(max(n, 1)))))))
+    chunk = chunk_for(n, chunk_size)
     return _normal_equations(condition, l, jnp.asarray(x, l.dtype), s2, consts, weights, v, groups,
                              int(n_groups), chunk, int(offset_column))
 
@@ -537,7 +538,3 @@ def bucket_size(n: int, *, granularity: int = 8, minimum: int = 4096) -> int:
     p2 = 1 << max(0, int(math.ceil(math.log2(max(n, 1)))))
     q = max(minimum, p2 // granularity)
     return int(-(-n // q) * q)
-
-
-def chunk_for(n_pad: int) -> int:
-    return int(min(1 << 16, max(256, 1 << int(np.ceil(np.log2(max(n_pad, 1)))))))

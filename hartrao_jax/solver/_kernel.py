@@ -531,6 +531,13 @@ def part_chunk(chunk: int, threads: int) -> int:
             else chunk)
 
 
+def chunk_for(n: int, chunk: int = 1 << 16) -> int:
+    """Points per chunk of a pass over ``n`` points: ``chunk``, at most the power of two at or
+    above ``n`` (at least 256), so that a pass over few points is not padded to a large
+    chunk."""
+    return int(min(chunk, max(256, 1 << int(np.ceil(np.log2(max(n, 1)))))))
+
+
 def pass_threads(n: int) -> int:
     """Parts (threads) a pass over ``n`` points is split into: :func:`usable_cores`, at most 8
     and at most one part per :data:`PARALLEL_MIN_POINTS` points.

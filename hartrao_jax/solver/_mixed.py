@@ -64,6 +64,7 @@ from ._kernel import (
     PARALLEL_MIN_POINTS,  # noqa: F401  (re-exported: this module's name since 520202b)
     THREADS_ENV,  # noqa: F401
     array_namespace,
+    chunk_for,
     host_sum,
     next_rate,
     part_chunk,
@@ -844,8 +845,7 @@ def gauss_helmert_mixed(
             jnp.broadcast_to(jnp.asarray(ridge_var0, f), (n_groups,)))
     U0 = jnp.zeros((n_cells, k), f) if u0 is None else jnp.asarray(u0, f)
     threads = mixed_threads(n) if threads is None else max(1, int(threads))
-    chunk = int(min(part_chunk(chunk_size, threads),
-                    max(256, 1 << int(np.ceil(np.log2(max(n, 1)))))))
+    chunk = chunk_for(n, part_chunk(chunk_size, threads))
     g_np = np.asarray(groups)
     threads = min(threads, -(-n // chunk))  # whole chunks per part: no empty part
     reject_from = 0 if u0 is not None else 1

@@ -88,6 +88,32 @@ def test_box_search_finds_a_planted_window():
     assert T > 50  # the planted energy is 15 bins x 40 points x 0.4^2 = 96
 
 
+def test_box_search_statistic_of_every_window_equals_its_solve():
+    """Each window's statistic (the profile, the best window and its value) as the score test
+    written with the window's own sums and a solve: ``S_W = N_W - N_W N^-1 N_W``."""
+    rng = np.random.default_rng(3)
+    B = 60
+    A, N = _bins(rng, B=B)
+    N[17:19] = 0.0  # bins without points: windows of those alone hold no statistic
+    n = np.einsum("bki,bk->bi", A, rng.normal(size=(B, 40)))
+    n[17:19] = 0.0
+    cfg = DiagnoseConfig()
+    i, j, T, profile, Lmax = _box_search(np.linspace(0.0, 6.0, B + 1), N, n, cfg)
+    assert Lmax == int(cfg.max_window_fraction * B)
+    Ninv = np.linalg.pinv(N[:, :3, :3].sum(0))
+    eye = 1e-9 * np.trace(N[:, :3, :3].sum(0)) / 3 * np.eye(3)
+    want = np.zeros((Lmax, B))
+    for L in range(1, Lmax + 1):
+        for k in range(B - L + 1):
+            NW, nW = N[k:k + L, :3, :3].sum(0), n[k:k + L, :3].sum(0)
+            if np.trace(NW) > 0:
+                want[L - 1, k] = nW @ np.linalg.solve(NW - NW @ Ninv @ NW + eye, nW)
+    np.testing.assert_allclose(profile, want.max(0), rtol=1e-9, atol=1e-12)
+    L, k = divmod(int(np.argmax(want)), B)
+    assert (i, j) == (k, k + L + 1)
+    assert T == pytest.approx(want.max(), rel=1e-9)
+
+
 def test_periodogram_finds_a_planted_period():
     rng = np.random.default_rng(1)
     A, N = _bins(rng, B=400)

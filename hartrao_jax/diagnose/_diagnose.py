@@ -156,9 +156,8 @@ def _start_spec(ctx: _Context, S: Sequence[_Scan], start_names: tuple[str, ...],
 
 def _search(ctx: _Context, S: Sequence[_Scan], spec: _Spec, confounded: dict, wanted):
     """Locate and explain: the joint system, its tests and every option of this step."""
-    if spec.times:
-        for sc in S:
-            _locate_time(sc, ctx.config)
+    if spec.times:  # each scan's own searches, the scans over the cores
+        each_in_threads(lambda sc: _locate_time(sc, ctx.config), S, "locate")
     local = _local_candidates(ctx, S, spec)
     joint = _Joint(ctx, S, spec, local)
     tests = [joint.test(c) for c in _candidates(joint, S, local)]

@@ -356,17 +356,27 @@ def _covariate_tests(ctx: _Context, scans: Sequence[_Scan], sigma0: float, names
     base = []
     Mgg = np.zeros((G, 3, 3))
     ug = np.zeros((G, 3))
-    for sc in scans:
+    for k, sc in enumerate(scans):
         u = sc.used & (sc.m > 0)
         q = np.where(u, 1.0 / np.where(sc.m > 0, sc.m, 1.0), 0.0)
         pp = u & (sc.panel >= 0)
         D = _panel_columns(ctx, sc) * sc.s_rho[:, None]  # d condition / d plane parameters
-        base.append((sc, u, q, pp, D, _covariate_values(sc)))
+        # the faces binned (enough points in use) and the sums' terms of their points, which
+        # no covariate changes (taken out once: the same values as of every point's)
+        faces = [(fc, sel) for fc, sel in ((fc, u & (sc.face == fc)) for fc in (1, 2))
+                 if sel.sum() >= 4 * nb]
+        ok = np.logical_or.reduce([sel for _, sel in faces]) if faces else np.zeros_like(u)
+        okp = ok & pp
+        qb = q * sc.b0
+        terms = ((q * sc.b0**2)[ok], (qb * sc.F)[ok], [(qb * D[:, a])[okp] for a in range(3)],
+                 k * per_scan * G + sc.panel[okp])
+        base.append((sc, faces, ok, okp, terms, _covariate_values(sc)))
+        Dp, F, cell = D[pp], sc.F[pp], sc.panel[pp]
+        qD = q[pp][:, None] * Dp
         for a in range(3):
-            ug[:, a] += np.bincount(sc.panel[pp], (q * D[:, a] * sc.F)[pp], minlength=G)
+            ug[:, a] += np.bincount(cell, qD[:, a] * F, minlength=G)
             for b in range(3):
-                Mgg[:, a, b] += np.bincount(sc.panel[pp], (q * D[:, a] * D[:, b])[pp],
-                                            minlength=G)
+                Mgg[:, a, b] += np.bincount(cell, qD[:, a] * Dp[:, b], minlength=G)
     Mi = np.linalg.pinv(Mgg, rcond=1e-10)
 
     def test(name) -> dict | None:
@@ -376,24 +386,20 @@ def _covariate_tests(ctx: _Context, scans: Sequence[_Scan], sigma0: float, names
         ub = np.zeros(B)
         Mbg = np.zeros((B * G, 3))
         ids_all = []
-        for k, (sc, u, q, pp, D, vals) in enumerate(base):
+        for k, (sc, faces, ok, okp, (qbb, qbF, qbD, cell0), vals) in enumerate(base):
             v = vals[name]
             ids = np.full(len(v), -1)
-            for fc in (1, 2):
-                sel = u & (sc.face == fc)
-                if sel.sum() < 4 * nb:
-                    continue
-                qs = np.quantile(v[sel], np.linspace(0, 1, nb + 1)[1:-1])
-                ids[sel] = (fc - 1) * nb + np.searchsorted(qs, v[sel], side="right")
+            for fc, sel in faces:
+                vs = v[sel]
+                qs = np.quantile(vs, np.linspace(0, 1, nb + 1)[1:-1])
+                ids[sel] = (fc - 1) * nb + np.searchsorted(qs, vs, side="right")
             ids_all.append(ids)
-            ok = ids >= 0
             gid = k * per_scan + ids[ok]
-            Mbb += np.bincount(gid, (q * sc.b0**2)[ok], minlength=B)
-            ub += np.bincount(gid, (q * sc.b0 * sc.F)[ok], minlength=B)
-            okp = ok & pp
-            cell = (k * per_scan + ids[okp]) * G + sc.panel[okp]
+            Mbb += np.bincount(gid, qbb, minlength=B)
+            ub += np.bincount(gid, qbF, minlength=B)
+            cell = cell0 + ids[okp] * G
             for a in range(3):
-                Mbg[:, a] += np.bincount(cell, (q * sc.b0 * D[:, a])[okp], minlength=B * G)
+                Mbg[:, a] += np.bincount(cell, qbD[a], minlength=B * G)
         live = Mbb > 0
         if live.sum() < 2:
             return None
@@ -492,18 +498,22 @@ def _dish_test(ctx: _Context, scans: Sequence[_Scan], sigma0: float):
         q = np.where(u, 1.0 / np.where(sc.m > 0, sc.m, 1.0), 0.0)
         cell = _panel_cells(ctx, sc)
         cells.append(cell)
-        P = _panel_columns(ctx, sc)
-        s = sc.s_rho
-        r = -sc.F / s  # mismatch along the normal
-        w = q * s * s
+        # the points in use taken out once (the products are those of every point's, value
+        # for value: the same sums)
+        P = _panel_columns(ctx, sc)[u]
+        s = sc.s_rho[u]
+        r = -sc.F[u] / s  # mismatch along the normal
+        w = q[u] * s * s
         ci, pi_ = cell[u], sc.panel[u]
-        Mcc += np.bincount(ci, w[u], minlength=G * C)
-        uc += np.bincount(ci, (w * r)[u], minlength=G * C)
+        Mcc += np.bincount(ci, w, minlength=G * C)
+        wr = w * r
+        uc += np.bincount(ci, wr, minlength=G * C)
         for a in range(3):
-            Mcp[:, a] += np.bincount(ci, (w * P[:, a])[u], minlength=G * C)
-            up[:, a] += np.bincount(pi_, (w * r * P[:, a])[u], minlength=G)
+            wP = w * P[:, a]
+            Mcp[:, a] += np.bincount(ci, wP, minlength=G * C)
+            up[:, a] += np.bincount(pi_, wr * P[:, a], minlength=G)
             for b in range(3):
-                Mpp[:, a, b] += np.bincount(pi_, (w * P[:, a] * P[:, b])[u], minlength=G)
+                Mpp[:, a, b] += np.bincount(pi_, wP * P[:, b], minlength=G)
     Tg = np.zeros(G)
     dof = np.zeros(G, int)
     est = np.zeros(G * C)

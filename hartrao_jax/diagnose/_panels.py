@@ -25,15 +25,18 @@ def _estimate_panels(ctx: _Context, scans: Sequence[_Scan], spec: _Spec) -> dict
     cnt = np.zeros(G)
     for sc in scans:
         ok = sc.used & (sc.m > 0) & (sc.panel >= 0)
-        q = np.where(ok, 1.0 / np.where(sc.m > 0, sc.m, 1.0), 0.0) * sc.s_rho**2
-        r = sc.mismatch_m + _panel_known(ctx, sc, spec.panels)  # the whole panel deviation
-        P = _panel_columns(ctx, sc)
+        # the points in use taken out first (the same values as of every point's)
+        q = (1.0 / sc.m[ok]) * sc.s_rho[ok] ** 2
+        r = (sc.mismatch_m + _panel_known(ctx, sc, spec.panels))[ok]  # the whole deviation
+        P = _panel_columns(ctx, sc)[ok]
         pid = sc.panel[ok]
         cnt += np.bincount(pid, minlength=G)
+        qr = q * r
         for a in range(3):
-            u[:, a] += np.bincount(pid, (q * r * P[:, a])[ok], minlength=G)
+            qP = q * P[:, a]
+            u[:, a] += np.bincount(pid, qr * P[:, a], minlength=G)
             for b in range(3):
-                M[:, a, b] += np.bincount(pid, (q * P[:, a] * P[:, b])[ok], minlength=G)
+                M[:, a, b] += np.bincount(pid, qP * P[:, b], minlength=G)
     sol = np.zeros((G, 3))
     for g in range(G):
         if cnt[g] >= 12:

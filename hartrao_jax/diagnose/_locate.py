@@ -98,7 +98,7 @@ import numpy as np
 from scipy import ndimage
 
 from .._config import each_in_threads, usable_cores
-from ..geometry._geometry import cell_code, grid_sum
+from ..geometry._geometry import cell_code, column_bounds, grid_indices, grid_sum
 
 WIDTHS_M: tuple[float, ...] = (0.3, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
 BACKGROUND = 3.0  # background window (Gaussian sigma) in units of the width
@@ -173,10 +173,11 @@ def _gauss(a: np.ndarray, s_cells: float, lead: int = 0) -> np.ndarray:
 
 def _density(xy: np.ndarray) -> float:
     """Median point density (1/m^2) over occupied cells of about 30 points."""
-    span = np.ptp(xy, axis=0)
+    lo, hi = column_bounds(xy)
+    span = hi - lo
     area0 = max(float(span[0] * span[1]), 1e-6)
     h = max(math.sqrt(30.0 * area0 / len(xy)), 1e-3)
-    ij = np.floor((xy - xy.min(0)) / h).astype(np.int64)
+    ij = grid_indices(xy, lo, h)
     _, cnt = np.unique(cell_code(ij), return_counts=True)
     return float(np.median(cnt)) / (h * h)
 
@@ -331,11 +332,12 @@ def grid_of(xy: np.ndarray, w: float) -> tuple[np.ndarray, tuple[int, int], np.n
     cell size h = w / 4)``; shape ``(0, 0)`` when it would exceed 2.5e7 cells."""
     h = w / 4.0
     pad = 4 * BACKGROUND * w
-    lo = xy.min(0) - pad
-    shape = tuple(int(v) for v in np.ceil((xy.max(0) + pad - lo) / h).astype(int) + 1)
+    lo, hi = column_bounds(xy)
+    lo = lo - pad
+    shape = tuple(int(v) for v in np.ceil((hi + pad - lo) / h).astype(int) + 1)
     if shape[0] * shape[1] > 2.5e7:
         return lo, (0, 0), np.zeros((0, 2), np.int64), h
-    return lo, shape, np.floor((xy - lo) / h).astype(np.int64), h
+    return lo, shape, grid_indices(xy, lo, h), h
 
 
 def coverage(C: np.ndarray, sw: float, h: float, density: float, min_coverage: float = 0.7,

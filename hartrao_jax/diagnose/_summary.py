@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry._geometry import column_bounds
 from ._state import Finding, _Context, _num, _Scan
 
 
@@ -20,7 +21,7 @@ def _extent(sc: _Scan | _Moment) -> list[float]:
     w = sc.window & np.all(np.isfinite(sc.X_tel[:, :2]), 1)
     if not w.any():
         return [-1.0, 1.0, -1.0, 1.0]
-    lo, hi = sc.X_tel[w, :2].min(0), sc.X_tel[w, :2].max(0)
+    lo, hi = column_bounds(sc.X_tel[w, :2])
     c, h = 0.5 * (lo + hi), 0.5 * float(np.max(hi - lo)) * 1.02 + 1e-3
     return [float(c[0] - h), float(c[0] + h), float(c[1] - h), float(c[1] + h)]
 

@@ -339,6 +339,26 @@ def _ring_cells_compiled(X, ring_edges_m: tuple, panels_per_ring: tuple):
     return ids.astype(jnp.int32), local
 
 
+def column_bounds(a: Float[np.ndarray, "n k"]) -> tuple[Float[np.ndarray, " k"],
+                                                      Float[np.ndarray, " k"]]:
+    """``(a.min(0), a.max(0))``, the least and the greatest value of each column of ``a``,
+    taken column by column: NumPy reduces a tall array of few columns along its rows one row
+    at a time (5.2e5 rows of two: 13 ms for ``a.min(0)``, 0.35 ms per column)."""
+    cols = [a[:, k] for k in range(a.shape[1])]
+    return np.array([c.min() for c in cols]), np.array([c.max() for c in cols])
+
+
+def grid_indices(xy: Float[np.ndarray, "n k"], lo: Float[np.ndarray, " k"],
+                 h: float) -> Int[np.ndarray, "n k"]:
+    """The cells ``floor((xy - lo) / h)`` (int64) of a grid of spacing ``h`` from ``lo``,
+    column by column (as :func:`column_bounds`: 5.2e5 points of two coordinates 17 -> 3 ms);
+    the same values."""
+    ij = np.empty(np.shape(xy), np.int64)
+    for k in range(ij.shape[1]):
+        ij[:, k] = np.floor((xy[:, k] - lo[k]) / h)
+    return ij
+
+
 def cell_code(ij: Int[np.ndarray, "n 2"]) -> Int[np.ndarray, " n"]:
     """One int64 per grid index pair (each index within +-2^30), ordered as the pairs are
     lexicographically: sorting or counting the codes is that of the pairs, without

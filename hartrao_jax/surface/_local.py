@@ -19,7 +19,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy import ndimage
 
-from ..geometry._geometry import grid_sum
+from ..geometry._geometry import column_bounds, grid_sum
 
 
 @dataclass(frozen=True)
@@ -138,8 +138,9 @@ def find_local_deformations(
     out: list[LocalDeformation] = []
     mask = np.ones(len(dev), bool)
     cell = min(scales_m) / 2
-    origin = xy.min(axis=0) - 8 * max(scales_m)
-    shape = tuple(np.ceil((xy.max(axis=0) + 8 * max(scales_m) - origin) / cell).astype(int) + 1)
+    lo, hi = column_bounds(xy)
+    origin = lo - 8 * max(scales_m)
+    shape = tuple(np.ceil((hi + 8 * max(scales_m) - origin) / cell).astype(int) + 1)
     for _ in range(max_tries):
         if len(out) >= max_count:
             break

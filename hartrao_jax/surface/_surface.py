@@ -53,7 +53,7 @@ from ..fit._align import mean_heading, scan_heading
 from ..fit._fit import fit_campaign, fit_scan
 from ..fit._position_record import panel_predictions
 from ..fit._records import read_residuals, write_fit
-from ..geometry._geometry import face_of, panel_geometry, panel_ids
+from ..geometry._geometry import column_bounds, face_of, panel_geometry, panel_ids
 from ..preprocess._preprocess import preprocess_keep
 from ._disturbed import cut_keep, detect_disturbed_campaign, detect_disturbed_residuals
 
@@ -350,8 +350,9 @@ def cycle_average(X1: np.ndarray, d1: np.ndarray, p1: np.ndarray,
     side = radius_m * math.sqrt(2.0)
     ext = [a for a in (X1[:, :2], X2[:, :2]) if len(a)]
     if ext:
-        lo_xy = np.min([a.min(axis=0) for a in ext], axis=0)
-        hi_xy = np.max([a.max(axis=0) for a in ext], axis=0)
+        bounds = [column_bounds(a) for a in ext]
+        lo_xy = np.min([b[0] for b in bounds], axis=0)
+        hi_xy = np.max([b[1] for b in bounds], axis=0)
         origin = np.floor(lo_xy / side) * side - side
         span = int(np.ceil((hi_xy - origin).max() / side)) + 2
         if span * span * (top + 1) >= 2**62:

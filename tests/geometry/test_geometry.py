@@ -163,3 +163,18 @@ def test_grid_sum_and_cell_codes_equal_add_at_and_unique_rows():
     ones = np.zeros(shape)
     np.add.at(ones, (g[:, 0], g[:, 1]), 1.0)
     assert np.array_equal(grid_sum(g, shape), ones)
+
+
+def test_column_bounds_and_grid_indices_equal_numpys_row_reductions():
+    """``column_bounds`` is ``(a.min(0), a.max(0))`` and ``grid_indices`` is
+    ``floor((xy - lo) / h)`` as int64, value for value, on a strided view as well."""
+    from hartrao_jax.geometry._geometry import column_bounds, grid_indices
+
+    rng = np.random.default_rng(4)
+    X = rng.normal(size=(20_001, 3)) * 9.0
+    for a in (X, X[:, :2], X[::3, 1:]):
+        lo, hi = column_bounds(a)
+        assert np.array_equal(lo, a.min(0)) and np.array_equal(hi, a.max(0))
+        start = lo - 0.37
+        assert np.array_equal(grid_indices(a, start, 0.05),
+                              np.floor((a - start) / 0.05).astype(np.int64))

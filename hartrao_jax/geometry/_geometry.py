@@ -390,7 +390,7 @@ def square_cells(
     of other squares get cell -1 (so chunks of one recording share one numbering); default: the
     squares that ``X`` occupies."""
     X = np.asarray(X, float)
-    ij = np.floor(X[:, :2] / cell_m).astype(np.int64)
+    ij = grid_indices(X[:, :2], np.zeros(2), cell_m)  # (x - 0 is x: the same cells)
     if keys is None:
         codes, cell = np.unique(cell_code(ij), return_inverse=True)
         keys, cell = _cell_pairs(codes), cell.reshape(-1).astype(np.int64)

@@ -19,7 +19,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy import ndimage
 
-from ..geometry._geometry import column_bounds, grid_sum
+from ..geometry._geometry import column_bounds, grid_indices, grid_sum
 
 
 @dataclass(frozen=True)
@@ -44,7 +44,7 @@ class LocalDeformation:
 
 
 def _bandpass_z(xy, dev, sigma_dev, scale, cell, origin, shape):
-    ij = np.floor((xy - origin) / cell).astype(int)
+    ij = grid_indices(xy, origin, cell)
     S, C = grid_sum(ij, shape, dev), grid_sum(ij, shape)
     s = scale / cell
 

@@ -53,7 +53,7 @@ from ..fit._align import mean_heading, scan_heading
 from ..fit._fit import fit_campaign, fit_scan
 from ..fit._position_record import panel_predictions
 from ..fit._records import read_residuals, write_fit
-from ..geometry._geometry import column_bounds, face_of, panel_geometry, panel_ids
+from ..geometry._geometry import column_bounds, face_of, grid_indices, panel_geometry, panel_ids
 from ..preprocess._preprocess import preprocess_keep
 from ._disturbed import cut_keep, detect_disturbed_campaign, detect_disturbed_residuals
 
@@ -310,7 +310,7 @@ def cycle_points(scan: str, cycle: int, X: np.ndarray, deviation_m: np.ndarray,
 
 def _cell_keys(X: np.ndarray, panel: np.ndarray, side: float, origin: np.ndarray,
                span: int) -> np.ndarray:
-    ij = np.floor((X[:, :2] - origin) / side).astype(np.int64)
+    ij = grid_indices(X[:, :2], origin, side)
     return (panel.astype(np.int64) * span + ij[:, 1]) * span + ij[:, 0]
 
 

@@ -375,7 +375,7 @@ def _covariate_tests(ctx: _Context, scans: Sequence[_Scan], sigma0: float, names
                  if sel.sum() >= 4 * nb]
         ok = np.logical_or.reduce([sel for _, sel in faces]) if faces else np.zeros_like(u)
         okp = ok & pp
-        qb = q * sc.b0
+        qb = q * sc.b0  # (q * b0**2 below, not qb * b0: the products as before, bit for bit)
         terms = ((q * sc.b0**2)[ok], (qb * sc.F)[ok], [(qb * D[:, a])[okp] for a in range(3)],
                  k * per_scan * G + sc.panel[okp])
         base.append((sc, faces, ok, okp, terms, _covariate_values(sc)))

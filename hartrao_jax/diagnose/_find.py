@@ -478,12 +478,38 @@ def _panel_cells(ctx: _Context, sc: _Scan) -> np.ndarray:
     return np.where(ok, k * nr * na + cell, -1)
 
 
-def _panel_columns(ctx: _Context, sc: _Scan) -> np.ndarray:
-    """Normal-deviation columns of a panel plane (offset, radial tilt, tangential tilt)."""
-    k = np.where(sc.panel >= 0, sc.panel, 0)
+def _panel_columns(ctx: _Context, sc: _Scan, rows: np.ndarray | None = None) -> np.ndarray:
+    """Normal-deviation columns of a panel plane (offset, radial tilt, tangential tilt), of
+    every point or of the points ``rows`` (a mask or indices: the same values)."""
+    rho, psi, panel = (sc.rho, sc.psi, sc.panel) if rows is None else (
+        sc.rho[rows], sc.psi[rows], sc.panel[rows])
+    k = np.where(panel >= 0, panel, 0)
     g = ctx.geo
-    dpsi = np.mod(sc.psi - g["psi_c"][k] + np.pi, 2 * np.pi) - np.pi
-    return np.column_stack([np.ones_like(sc.rho), sc.rho - g["rho_c"][k], g["rho_c"][k] * dpsi])
+    dpsi = np.mod(psi - g["psi_c"][k] + np.pi, 2 * np.pi) - np.pi
+    return np.column_stack([np.ones_like(rho), rho - g["rho_c"][k], g["rho_c"][k] * dpsi])
+
+
+def _panel_points(ctx: _Context, sc: _Scan):
+    """The points in use on a panel: ``(mask, w, P, panel)``, their weights along the surface
+    normal ``w = s^2 / m`` (m^-2), their panel-plane columns ``P`` (:func:`_panel_columns`)
+    and their panels. Taken out once: every product of the callers is then formed over these
+    points only (the same values as of every point's, compacted)."""
+    u = sc.used & (sc.m > 0) & (sc.panel >= 0)
+    s = sc.s_rho[u]
+    return u, (1.0 / sc.m[u]) * s * s, _panel_columns(ctx, sc, u), sc.panel[u]
+
+
+def _add_plane_sums(M: np.ndarray, up: np.ndarray, pid: np.ndarray, w: np.ndarray,
+                    P: np.ndarray, r: np.ndarray) -> None:
+    """Add points' share of their panels' plane normal equations: ``M[g] += sum w P P^T``,
+    ``up[g] += sum w r P`` (``M`` (G, 3, 3), ``up`` (G, 3); ``r`` the normal mismatch, m)."""
+    G = len(M)
+    wr = w * r
+    for a in range(3):
+        wP = w * P[:, a]
+        up[:, a] += np.bincount(pid, wr * P[:, a], minlength=G)
+        for b in range(3):
+            M[:, a, b] += np.bincount(pid, wP * P[:, b], minlength=G)
 
 
 def _dish_test(ctx: _Context, scans: Sequence[_Scan], sigma0: float):
@@ -502,25 +528,16 @@ def _dish_test(ctx: _Context, scans: Sequence[_Scan], sigma0: float):
     up = np.zeros((G, 3))
     cells = []
     for sc in scans:
-        u = sc.used & (sc.m > 0) & (sc.panel >= 0)
         cell = _panel_cells(ctx, sc)
         cells.append(cell)
-        # the points in use taken out once (the products are those of every point's, value
-        # for value: the same sums)
-        P = _panel_columns(ctx, sc)[u]
-        s = sc.s_rho[u]
-        r = -sc.F[u] / s  # mismatch along the normal
-        w = (1.0 / sc.m[u]) * s * s
-        ci, pi_ = cell[u], sc.panel[u]
+        u, w, P, pi_ = _panel_points(ctx, sc)
+        r = -sc.F[u] / sc.s_rho[u]  # mismatch along the normal
+        ci = cell[u]
         Mcc += np.bincount(ci, w, minlength=G * C)
-        wr = w * r
-        uc += np.bincount(ci, wr, minlength=G * C)
+        uc += np.bincount(ci, w * r, minlength=G * C)
         for a in range(3):
-            wP = w * P[:, a]
-            Mcp[:, a] += np.bincount(ci, wP, minlength=G * C)
-            up[:, a] += np.bincount(pi_, wr * P[:, a], minlength=G)
-            for b in range(3):
-                Mpp[:, a, b] += np.bincount(pi_, wP * P[:, b], minlength=G)
+            Mcp[:, a] += np.bincount(ci, w * P[:, a], minlength=G * C)
+        _add_plane_sums(Mpp, up, pi_, w, P, r)
     Tg = np.zeros(G)
     dof = np.zeros(G, int)
     est = np.zeros(G * C)

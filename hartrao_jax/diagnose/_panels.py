@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from ._explain import _Joint, _Test
-from ._find import _panel_columns
+from ._find import _add_plane_sums, _panel_points
 from ._state import ZERNIKE_TESTED, _Context, _panel_known, _refit_all, _Scan, _Spec
 
 
@@ -24,19 +24,10 @@ def _estimate_panels(ctx: _Context, scans: Sequence[_Scan], spec: _Spec) -> dict
     u = np.zeros((G, 3))
     cnt = np.zeros(G)
     for sc in scans:
-        ok = sc.used & (sc.m > 0) & (sc.panel >= 0)
-        # the points in use taken out first (the same values as of every point's)
-        q = (1.0 / sc.m[ok]) * sc.s_rho[ok] ** 2
+        ok, q, P, pid = _panel_points(ctx, sc)
         r = (sc.mismatch_m + _panel_known(ctx, sc, spec.panels))[ok]  # the whole deviation
-        P = _panel_columns(ctx, sc)[ok]
-        pid = sc.panel[ok]
         cnt += np.bincount(pid, minlength=G)
-        qr = q * r
-        for a in range(3):
-            qP = q * P[:, a]
-            u[:, a] += np.bincount(pid, qr * P[:, a], minlength=G)
-            for b in range(3):
-                M[:, a, b] += np.bincount(pid, qP * P[:, b], minlength=G)
+        _add_plane_sums(M, u, pid, q, P, r)
     sol = np.zeros((G, 3))
     for g in range(G):
         if cnt[g] >= 12:

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..campaign._safeio import write_bytes_atomic
+from ..geometry._geometry import cell_code, grid_indices
 from ..surface._surface import (
     PanelLayout,
     point_spacing,
@@ -133,9 +134,7 @@ def face_boundary(X: np.ndarray, face: np.ndarray, cell_m: float | None = None
     if cell_m is None:
         sp = point_spacing(X)
         cell_m = 3.0 * (sp if np.isfinite(sp) else 0.1)
-    ij = np.floor(X / cell_m).astype(np.int64)
-    key = ij[:, 0] * 1_000_003 + ij[:, 1]
-    u, inv = np.unique(key, return_inverse=True)
+    u, inv = np.unique(cell_code(grid_indices(X, (0.0, 0.0), cell_m)), return_inverse=True)
     inv = inv.reshape(-1)
     f1 = np.bincount(inv, weights=(face == 1), minlength=len(u))
     f2 = np.bincount(inv, weights=(face == 2), minlength=len(u))
@@ -178,8 +177,7 @@ def mean_spacing(X: np.ndarray, cell_m: float = 0.25) -> float:
     if len(X) < 3:
         return 0.1
     sub = X[_subsample(len(X), 1_000_000, seed=2)]
-    ij = np.floor(sub[:, :2] / cell_m).astype(np.int64)
-    area = len(np.unique(ij[:, 0] * 1_000_003 + ij[:, 1])) * cell_m**2
+    area = len(np.unique(cell_code(grid_indices(sub[:, :2], (0.0, 0.0), cell_m)))) * cell_m**2
     return float(math.sqrt(area / len(X)))
 
 

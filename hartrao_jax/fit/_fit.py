@@ -614,7 +614,7 @@ def fit_position(
         if tel.ring_edges_m is not None and tel.panels_per_ring is not None:
             cell, design, *rest = hit_cells(
                 mdl, l, x_white, c, sig, kappa, tel.ring_edges_m, tel.panels_per_ring,
-                with_v=start is not None, with_xy=bool(groups))
+                with_v=start is not None, with_xy=bool(groups), live=n)
             v_start = rest.pop(0) if start is not None else None
             X_hit = rest.pop(0) if groups else None
             n_cells, desc = panel_layout(tel.panels_per_ring)

@@ -47,7 +47,8 @@ def hit_points_and_residuals(model: ParaboloidModel, l, x, c, sigma_l, kappa_rad
 
 
 def hit_cells(model: ParaboloidModel, l, x, c, sigma_l, kappa_rad, ring_edges_m,
-              panels_per_ring, *, with_v: bool, with_xy: bool) -> tuple[np.ndarray, ...]:
+              panels_per_ring, *, with_v: bool, with_xy: bool, live: int | None = None
+              ) -> tuple[np.ndarray, ...]:
     """The panels the beams hit (:func:`hit_points` into :func:`..geometry.ring_cells`, in one
     program): ``(cell (n,) int32, -1 outside every panel; design (n, 3) float32)``, the design
     ``(1, radial, tangential)`` of a point's panel offset and tilts (m; zeros outside), then,
@@ -56,12 +57,19 @@ def hit_cells(model: ParaboloidModel, l, x, c, sigma_l, kappa_rad, ring_edges_m,
 
     As :func:`hit_points` then :func:`..geometry.panel_cells` and the float32 copies a
     position's random effect keeps of them, without the hit points, the cells' float64 columns
-    and their copies in memory: 1.26e7 points 0.9 GB less written and read."""
+    and their copies in memory: 1.26e7 points 0.9 GB less written and read.
+
+    ``live``: the rows from ``live`` on are a size bucket's padding: where the table is taken
+    in blocks (:func:`.._config.by_row_blocks`) they are not computed, and are outside every
+    cell (cell -1, the rest zero)."""
     args = (on_device(sigma_l, np.float64), on_device(kappa_rad, np.float64),
             on_device(True, bool), tuple(map(float, ring_edges_m)),
             tuple(map(int, panels_per_ring)),
             with_v, with_xy)
-    return by_row_blocks(lambda l_, c_: _hit_cells(model, l_, x, c_, *args), (l, c))
+    out = by_row_blocks(lambda l_, c_: _hit_cells(model, l_, x, c_, *args), (l, c), live=live)
+    if live is not None and isinstance(out[0], np.ndarray):
+        out[0][live:] = -1  # (the padding's zeros would be cell 0)
+    return out
 
 
 def _by_blocks(model, l, x, c, sigma_l, kappa_rad, with_v: bool):

@@ -144,6 +144,17 @@ def test_hit_points_by_row_blocks_equal_one_call():
     assert all(isinstance(b, np.ndarray) and b.shape == w.shape for b, w in zip(blocks, whole))
     for b, w in zip(blocks, whole):
         np.testing.assert_allclose(b, w, rtol=1e-13, atol=1e-18)
+    # a size bucket's padding (rows from ``live`` on) is not computed: zeros there, the live
+    # rows as before; a table of at most one block of live rows is one call over every row
+    live = 41_000
+    part = by_row_blocks(fn, (lobs, c), block=8192, live=live)
+    for b, w in zip(part, whole):
+        assert b.shape == w.shape
+        np.testing.assert_allclose(b[:live], w[:live], rtol=1e-13, atol=1e-18)
+        assert not b[live:].any()
+    small = by_row_blocks(fn, (lobs, c), block=65_536, live=live)
+    for b, w in zip(small, whole):
+        np.testing.assert_allclose(np.asarray(b), w, rtol=1e-13, atol=1e-18)
 
 
 def test_hit_cells_equal_hit_points_then_panel_cells():

@@ -60,15 +60,17 @@ def hit_cells(model: ParaboloidModel, l, x, c, sigma_l, kappa_rad, ring_edges_m,
     and their copies in memory: 1.26e7 points 0.9 GB less written and read.
 
     ``live``: the rows from ``live`` on are a size bucket's padding: where the table is taken
-    in blocks (:func:`.._config.by_row_blocks`) they are not computed, and are outside every
-    cell (cell -1, the rest zero)."""
+    in blocks (:func:`.._config.by_row_blocks`) they are not computed and are outside every
+    cell (cell -1, the rest zero); a table of one call computes them as any row."""
     args = (on_device(sigma_l, np.float64), on_device(kappa_rad, np.float64),
             on_device(True, bool), tuple(map(float, ring_edges_m)),
             tuple(map(int, panels_per_ring)),
             with_v, with_xy)
     out = by_row_blocks(lambda l_, c_: _hit_cells(model, l_, x, c_, *args), (l, c), live=live)
-    if live is not None and isinstance(out[0], np.ndarray):
-        out[0][live:] = -1  # (the padding's zeros would be cell 0)
+    if live is not None and isinstance(out[0], np.ndarray):  # (taken in blocks)
+        for o in out:
+            o[live:] = 0
+        out[0][live:] = -1
     return out
 
 

@@ -252,3 +252,23 @@ def test_a_start_from_a_sample_solution_saves_passes_with_the_same_answer(thread
     assert np.max(np.abs(np.asarray(one.x) - np.asarray(ref.x)) / sd) < MIXED_TOL
     assert np.allclose(np.sqrt(np.diag(np.asarray(one.cov))), sd, rtol=1e-3)
     assert np.array_equal(np.asarray(one.weights) > 0, np.asarray(ref.weights) > 0)
+
+
+def test_chi2_sf_equals_scipys_chi_square_survival():
+    """The mode tests' chi-square survival (:func:`chi2_sf`, closed form for integer degrees of
+    freedom) equals ``scipy.special.chdtrc`` to 1e-12 relative from p = 1 down to 1e-290, for
+    1 to 40 degrees of freedom and a few large ones; 1 at and below 0, 0 at infinity, NaN
+    for NaN; a non-positive number of degrees of freedom is refused."""
+    from scipy.special import chdtrc
+
+    from hartrao_jax.solver._mixed import chi2_sf
+
+    for k in [*range(1, 41), 63, 253, 1000]:
+        for t in np.concatenate([[1e-12, 1e-6], np.geomspace(1e-3, 3000.0, 120)]):
+            want = float(chdtrc(k, t))
+            if want > 1e-290:
+                assert abs(chi2_sf(k, t) - want) <= 1e-12 * want, (k, t)
+    assert chi2_sf(3, 0.0) == chi2_sf(2, -1.0) == 1.0
+    assert chi2_sf(5, np.inf) == 0.0 and np.isnan(chi2_sf(1, np.nan))
+    with pytest.raises(ValueError, match="degrees of freedom"):
+        chi2_sf(0, 1.0)

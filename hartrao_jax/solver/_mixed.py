@@ -893,13 +893,16 @@ def chi2_sf(dof: int, t: float) -> float:
     """``P(chi2_dof > t)``, the chi-square survival function of an integer number of degrees
     of freedom, in closed form (``Q(k/2, t/2)``: a finite Poisson sum for even ``k``, with
     ``erfc`` for odd ``k``; each term in logarithms, so no term overflows). Equal to
-    ``scipy.special.chdtrc`` to 1e-13 relative (``tests/solver/test_mixed.py``), without
-    importing ``scipy.special`` (0.08 s of every ``fit`` command, for a few mode tests)."""
+    ``scipy.special.chdtrc`` within 5e-13 relative down to p = 1e-290 for 1-1000 degrees of
+    freedom (``tests/solver/test_mixed.py``), without importing ``scipy.special`` (0.08 s of
+    every ``fit`` command, for a few mode tests). 1 for ``t <= 0``, NaN for NaN."""
     k = int(dof)
     if k < 1:
         raise ValueError(f"degrees of freedom: expected an integer >= 1, found {dof}")
-    if not t > 0:  # (NaN as well: no evidence against the null)
-        return 1.0 if not math.isnan(t) else math.nan
+    if math.isnan(t):
+        return math.nan
+    if t <= 0:
+        return 1.0
     x = 0.5 * float(t)
     if math.isinf(x):
         return 0.0

@@ -43,7 +43,7 @@ class LocalDeformation:
 
 
 def _bandpass_z(xy, dev, sigma_dev, scale, cell, origin, shape):
-    from scipy import ndimage  # (here: 0.03 s of every command that imports the surface)
+    from scipy import ndimage  # (here: about 0.1 s of every command importing the surface)
 
     ij = grid_indices(xy, origin, cell)
     S, C = grid_sum(ij, shape, dev), grid_sum(ij, shape)

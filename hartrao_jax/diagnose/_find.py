@@ -48,17 +48,23 @@ def _time_bins(sc: _Scan, cfg: DiagnoseConfig):
 
 def _quadratic_3x3(S: np.ndarray, n: np.ndarray) -> np.ndarray:
     """``n^T S^-1 n`` per row of a stack of 3 x 3 matrices ``S`` (w, 3, 3) and vectors ``n``
-    (w, 3), by the adjugate: ``np.linalg.solve`` calls LAPACK once per matrix (the box search's
-    0.085 s per scan of 1024 bins, 0.05 s so; the statistic within 1e-8 relative)."""
-    a, b, c = S[:, 0, 0], S[:, 0, 1], S[:, 0, 2]
-    d, e, f = S[:, 1, 0], S[:, 1, 1], S[:, 1, 2]
-    g, h, i = S[:, 2, 0], S[:, 2, 1], S[:, 2, 2]
+    (w, 3), by the adjugate (:func:`_adjugate_form`): ``np.linalg.solve`` calls LAPACK once
+    per matrix (the box search's 0.085 s per scan of 1024 bins, 0.05 s so; the statistic
+    within 1e-8 relative)."""
+    return _adjugate_form([[S[:, r, k] for k in range(3)] for r in range(3)],
+                          n[:, 0], n[:, 1], n[:, 2])
+
+
+def _adjugate_form(S, x, y, z):
+    """``n^T S^-1 n`` of a 3 x 3 matrix given as its rows of entries ``S[r][k]`` and the vector
+    ``n = (x, y, z)``, each entry an array (elementwise over any shape, NumPy or JAX), by the
+    adjugate: ``n^T adj(S) n / det S``."""
+    (a, b, c), (d, e, f), (g, h, i) = S
     # rows of the adjugate (the cofactors' transpose)
     c00, c01, c02 = e * i - f * h, c * h - b * i, b * f - c * e
     c10, c11, c12 = f * g - d * i, a * i - c * g, c * d - a * f
     c20, c21, c22 = d * h - e * g, b * g - a * h, a * e - b * d
     det = a * c00 + b * c10 + c * c20
-    x, y, z = n[:, 0], n[:, 1], n[:, 2]
     return (x * (c00 * x + c01 * y + c02 * z) + y * (c10 * x + c11 * y + c12 * z)
             + z * (c20 * x + c21 * y + c22 * z)) / det
 
@@ -108,9 +114,9 @@ def _box_statistic(C, Ninv, eps, n_bins, Lmax, L_rows: int):
     ``n_bins - 1``, is longer than ``Lmax`` bins or holds no points), from the prefix sums
     ``C`` (bins + 1, 9) (the distinct entries of ``N`` (:data:`_SYM3`), then ``n``), ``Ninv``
     (3, 3) the whole scan's ``N^-1`` (symmetric) and the regularisation ``eps`` of the
-    diagonal. As :func:`_quadratic_3x3` of ``S_W``, written out per entry of the symmetric
-    matrices: one program instead of a loop over the window lengths (1024 bins, 307 lengths:
-    3.6 against 52 ms; the statistic within 1e-8 relative)."""
+    diagonal. :func:`_adjugate_form` of ``S_W`` per entry of the symmetric matrices: one
+    program instead of a loop over the window lengths (1024 bins, 307 lengths: 3.6 against
+    52 ms; the statistic within 1e-8 relative)."""
     B = C.shape[0] - 1
     first = jnp.arange(B)[None, :]
     length = jnp.arange(1, L_rows + 1)[:, None]
@@ -123,14 +129,11 @@ def _box_statistic(C, Ninv, eps, n_bins, Lmax, L_rows: int):
     def s(i, j):  # S_W = N_W - N_W N^-1 N_W (+ eps on the diagonal)
         return N[i][j] - sum(R[i][k] * N[k][j] for k in range(3)) + (eps if i == j else 0.0)
 
-    a, b, c, e, f, g = s(0, 0), s(0, 1), s(0, 2), s(1, 1), s(1, 2), s(2, 2)
-    c00, c11, c22 = e * g - f * f, a * g - c * c, a * e - b * b  # the adjugate (symmetric)
-    c01, c02, c12 = c * f - b * g, b * f - c * e, b * c - a * f
-    det = a * c00 + b * c01 + c * c02
-    q = (c00 * x * x + c11 * y * y + c22 * z * z
-         + 2 * (c01 * x * y + c02 * x * z + c12 * y * z))
     live = (last <= n_bins) & (length <= Lmax) & (n00 + n11 + n22 > 0)
-    return jnp.where(live, q / jnp.where(live, det, 1.0), 0.0)
+    # each distinct entry once; the windows that hold no statistic take the identity (no
+    # division by a zero determinant there)
+    a, b, c, e, f, g = (jnp.where(live, s(i, j), float(i == j)) for i, j in _SYM3)
+    return jnp.where(live, _adjugate_form([[a, b, c], [b, e, f], [c, f, g]], x, y, z), 0.0)
 
 
 def _edge_candidates(t: np.ndarray, edges: np.ndarray, k: int, n_cand: int) -> np.ndarray:

@@ -67,9 +67,7 @@ def hit_cells(model: ParaboloidModel, l, x, c, sigma_l, kappa_rad, ring_edges_m,
             tuple(map(int, panels_per_ring)),
             with_v, with_xy)
     out = by_row_blocks(lambda l_, c_: _hit_cells(model, l_, x, c_, *args), (l, c), live=live)
-    if live is not None and isinstance(out[0], np.ndarray):  # (taken in blocks)
-        for o in out:
-            o[live:] = 0
+    if live is not None and isinstance(out[0], np.ndarray):  # (taken in blocks: zeros there)
         out[0][live:] = -1
     return out
 

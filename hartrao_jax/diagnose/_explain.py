@@ -14,7 +14,6 @@ from dataclasses import dataclass, field
 
 import jax
 import numpy as np
-from scipy import special
 
 from .._config import each_in_threads, on_device, threads_for
 from .._programs import Uncacheable, spec
@@ -25,6 +24,7 @@ from ..model._model import (
     ZERNIKE_PREFIX,
 )
 from ..physics._catalog import INSTRUMENT, inseparable_pairs
+from ..solver._mixed import chi2_sf
 from ..solver._mixed_stream import MixedSums, mixed_chunk, mixed_step
 from ._state import (
     ZERNIKE_TESTED,
@@ -93,7 +93,7 @@ def _z_of(T: float, dof: int) -> float:
 
 
 def _p_of(T: float, dof: int) -> float:
-    return float(special.chdtrc(max(dof, 1), max(T, 0.0)))  # chi-square survival
+    return chi2_sf(max(dof, 1), max(T, 0.0))
 
 
 K_CELL = 3  # per surface cell: offset (m) and two tilts (rad) about its centre
@@ -579,8 +579,8 @@ def _log_sf(T: float, dof: int) -> float:
     """Natural log of the chi-square survival function, accurate far in the tail."""
     T = max(float(T), 0.0)
     k = max(int(dof), 1)
-    p = float(special.gammaincc(k / 2.0, T / 2.0))
+    p = chi2_sf(k, T)
     if p > 1e-300:
         return math.log(p)
     a, x = k / 2.0, T / 2.0  # asymptotic upper incomplete gamma: x^(a-1) e^-x / Gamma(a)
-    return (a - 1) * math.log(x) - x - special.gammaln(a) + math.log1p((a - 1) / x)
+    return (a - 1) * math.log(x) - x - math.lgamma(a) + math.log1p((a - 1) / x)

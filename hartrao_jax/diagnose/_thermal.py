@@ -11,9 +11,9 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-from scipy import special
 
 from ..physics._catalog import EFFECTS
+from ..solver._mixed import chi2_sf
 from ._state import Finding, _Context, _global_sigma0, _rms, _Scan
 
 log = logging.getLogger("hartrao_jax")
@@ -77,7 +77,7 @@ def _thermal(ctx: _Context, S: Sequence[_Scan], m_tests: int):
     c1, Q1, chi1, r1 = wls(base + [T])
     vf = max(1.0, chi1 / dof)
     stat = (chi0 - chi1) / vf
-    p = float(special.chdtrc(1, stat))  # chi-square survival
+    p = chi2_sf(1, stat)
     b, sb = float(c1[-1]), float(math.sqrt(Q1[-1, -1] * vf))
     size = abs(b) * float(np.ptp(T))
     cfg = ctx.config

@@ -895,7 +895,8 @@ def chi2_sf(dof: int, t: float) -> float:
     ``erfc`` for odd ``k``; each term in logarithms, so no term overflows). Equal to
     ``scipy.special.chdtrc`` within 5e-13 relative down to p = 1e-290 for 1-1000 degrees of
     freedom (``tests/solver/test_mixed.py``), without importing ``scipy.special`` (0.08 s of
-    every ``fit`` command, for a few mode tests). 1 for ``t <= 0``, NaN for NaN."""
+    every ``fit`` command, for a few mode tests). 1 for ``t <= 0``, NaN for NaN. The package's
+    one chi-square survival: the mode tests' and the diagnosis' p-values."""
     k = int(dof)
     if k < 1:
         raise ValueError(f"degrees of freedom: expected an integer >= 1, found {dof}")

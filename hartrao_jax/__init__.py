@@ -11,11 +11,15 @@ The pipeline, in the order data flows:
   ``sensitivity/``, ``report/``, ``cli/``: see ``ARCHITECTURE.md``
 
 Importing the package turns on JAX's float64 (``jax_enable_x64``): the adjustment needs it.
+It also adds XLA's CPU options of ``_config.XLA_FLAGS`` to ``$XLA_FLAGS`` (YNNPACK fusions off:
+faster here), unless that variable already sets them.
 """
 
 from ._config import enable_x64 as _enable_x64
+from ._config import set_xla_flags as _set_xla_flags
 
 _enable_x64()
+_set_xla_flags()
 
 from .campaign import (  # noqa: E402
     Campaign,

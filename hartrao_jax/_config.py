@@ -168,6 +168,31 @@ def enable_x64() -> None:
     jax.config.update("jax_enable_x64", True)
 
 
+#: XLA options the package adds to ``$XLA_FLAGS`` (:func:`set_xla_flags`). YNNPACK fusions
+#: off: XLA:CPU (jaxlib 0.10) hands every ``dot`` and some element-wise and reduction
+#: fusions to YNNPACK, whose float64 kernels ran the per-point 3 x 3 rotations of the
+#: condition and their derivatives, ``(n, 3) x (3, 3)`` products, at 5-16 % of a command's
+#: CPU; XLA's own loops do them in less. Measured (``benchmarks/ab.py``, 5 alternated pairs
+#: each, ``benchmarks/results/profile.md``): the 1.30e7-row position's ``fit`` 1.3 s faster
+#: (median), the 12-scan ``fit`` 0.5 s, ``diagnose`` 0.6 s; results equal to 4e-8 relative
+#: (the order of float64 sums).
+XLA_FLAGS = ("--xla_cpu_experimental_ynn_fusion_type=",)
+
+
+def set_xla_flags(flags: Sequence[str] = XLA_FLAGS) -> str:
+    """Add ``flags`` (``--name=value``) to ``$XLA_FLAGS``, each unless that variable already
+    names its option (a user's own setting wins); returns the variable's value.
+
+    XLA reads the variable when JAX starts its first backend: importing the package does this
+    before any computation of its own, but not after a program that ran JAX first."""
+    have = os.environ.get("XLA_FLAGS", "").split()
+    named = {f.split("=", 1)[0] for f in have}
+    add = [f for f in flags if f.split("=", 1)[0] not in named]
+    if add:
+        os.environ["XLA_FLAGS"] = " ".join(have + add)
+    return os.environ.get("XLA_FLAGS", "")
+
+
 def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     """Persistent XLA compilation cache, so a second CLI run does not compile again; its
     ``programs`` folder keeps :func:`._programs.cached_jit`'s programs, so that it does not

@@ -221,3 +221,40 @@ def test_on_device_is_jnp_asarray_without_a_program():
         assert isinstance(a, jax.Array)
         assert (a.dtype, a.shape, a.weak_type) == (want.dtype, want.shape, want.weak_type)
         np.testing.assert_array_equal(np.asarray(a), np.asarray(want))
+
+
+def test_xla_flags_are_added_unless_the_environment_names_them(monkeypatch):
+    """The package's XLA options join ``$XLA_FLAGS``; an option the variable already sets
+    (to any value) is left as the user set it, and the other options are kept."""
+    from hartrao_jax._config import set_xla_flags
+
+    ynn = "--xla_cpu_experimental_ynn_fusion_type"
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    assert set_xla_flags((f"{ynn}=",)) == f"{ynn}="
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false")
+    assert set_xla_flags((f"{ynn}=",)).split() == ["--xla_cpu_multi_thread_eigen=false",
+                                                    f"{ynn}="]
+    monkeypatch.setenv("XLA_FLAGS", f"{ynn}=dot --xla_cpu_multi_thread_eigen=false")
+    assert set_xla_flags((f"{ynn}=",)) == f"{ynn}=dot --xla_cpu_multi_thread_eigen=false"
+
+
+def test_importing_the_package_turns_ynnpack_fusions_off():
+    """In a fresh process, ``import hartrao_jax`` sets the option before JAX starts: a
+    compiled ``(n, 3) x (3, 3)`` product holds no YNNPACK fusion; with the user's own
+    ``$XLA_FLAGS`` asking for them, it does."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import hartrao_jax, jax, jax.numpy as jnp\n"
+            "f = jax.jit(lambda a, b: a @ b)\n"
+            "print('ynn' in f.lower(jnp.ones((4096, 3)), jnp.ones((3, 3))).compile()"
+            ".as_text().lower())\n")
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    got = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, check=True).stdout.split()
+    assert got == ["False"]
+    env["XLA_FLAGS"] = "--xla_cpu_experimental_ynn_fusion_type=dot"
+    got = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, check=True).stdout.split()
+    assert got == ["True"]

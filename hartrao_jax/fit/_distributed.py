@@ -46,6 +46,7 @@ from .._config import (
     keep_freed_environment,
     release_compiled_programs,
     set_blas_threads,
+    set_xla_flags,
 )
 from ..campaign._campaign import load_campaign, read_scan
 from ..campaign._safeio import OutputDir
@@ -95,9 +96,13 @@ MALLOC_VAR = "MALLOC_TRIM_THRESHOLD_"  # see _pre_spawn_environ
 def worker_setup() -> None:
     """Runs in every worker: float64, the persistent compilation cache and one BLAS thread
     (the worker's libraries are loaded before this runs: their number is set, not only the
-    environment's)."""
+    environment's). ``$XLA_FLAGS`` gets the worker's options it does not name yet: importing
+    the package to run this has already added its own there (:func:`.._config.set_xla_flags`)."""
     for k, v in WORKER_ENV.items():
-        os.environ.setdefault(k, v)
+        if k == "XLA_FLAGS":
+            set_xla_flags(v.split())
+        else:
+            os.environ.setdefault(k, v)
 
     set_blas_threads()
     enable_x64()

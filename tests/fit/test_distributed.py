@@ -423,3 +423,23 @@ def test_dask_campaign_prior_resumes_on_the_worker_that_holds_it(tmp_path):
         for n in ("tx", "ty", "tz", "rx", "ry", "f", "x4", "x6", "x7"):
             assert got[pos][n]["value"] == pytest.approx(p[n]["value"], abs=1e-6 * p[n]["sigma"])
             assert got[pos][n]["sigma"] == pytest.approx(p[n]["sigma"], rel=1e-6)
+
+
+def test_a_worker_adds_its_xla_options_to_the_packages(monkeypatch):
+    """A remote worker imports the package (which adds its XLA options) before its setup
+    runs: the setup adds the worker's own options beside them instead of leaving them out,
+    and a variable the worker was started with keeps its values."""
+    import hartrao_jax.fit._distributed as dist
+
+    for name in ("set_blas_threads", "enable_x64", "enable_compilation_cache"):
+        monkeypatch.setattr(dist, name, lambda: None)
+    for k in dist.WORKER_ENV:
+        monkeypatch.delenv(k, raising=False)
+    ynn = "--xla_cpu_experimental_ynn_fusion_type="
+    monkeypatch.setenv("XLA_FLAGS", ynn)
+    dist.worker_setup()
+    assert os.environ["XLA_FLAGS"].split() == [ynn, dist.WORKER_ENV["XLA_FLAGS"]]
+    assert os.environ["OMP_NUM_THREADS"] == "1"
+    monkeypatch.setenv("XLA_FLAGS", f"{ynn} --xla_cpu_multi_thread_eigen=true")
+    dist.worker_setup()
+    assert os.environ["XLA_FLAGS"] == f"{ynn} --xla_cpu_multi_thread_eigen=true"

@@ -74,7 +74,7 @@ def _horner(z, coefficients):
     return acc
 
 
-def sincos_f64(x: Float[Array, "..."]) -> tuple[Array, Array]:
+def sincos_f64(x: Float[Array, "*shape"]) -> tuple[Array, Array]:
     """``(sin x, cos x)`` of float64 ``x`` (rad) in arithmetic XLA vectorises: the nearest
     multiple ``k`` of pi/2 taken off in three parts, then Taylor polynomials on
     ``[-pi/4, pi/4]`` and the quadrant ``k mod 4``. Within 2 units in the last place of

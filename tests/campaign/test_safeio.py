@@ -106,16 +106,20 @@ def test_output_dir_write_each_in_threads(tmp_path):
     assert not temporaries(root)
 
 
-def test_digest_taken_while_writing(tmp_path, monkeypatch):
-    """A Parquet table hashed as it is written (``_files.HashingFile``, its pages handed to
-    the writeback every few bytes here) has the manifest entry of the file read back, reads
-    back whole, and an :class:`OutputDir` lists it; a writer's digest that does not match
-    the file's size is not trusted (the file is read)."""
+@pytest.mark.parametrize("direct", ["1", "0"])
+def test_digest_taken_while_writing(tmp_path, monkeypatch, direct):
+    """A Parquet table hashed as it is written (``_files.HashingFile``: around the page cache
+    through a small aligned buffer here, or through the page cache, its pages handed to the
+    writeback every few bytes) has the manifest entry of the file read back, reads back
+    whole, and an :class:`OutputDir` lists it; a writer's digest that does not match the
+    file's size is not trusted (the file is read)."""
     import pyarrow.parquet as pq
 
     from hartrao_jax import _files
 
+    monkeypatch.setenv(_files.DIRECT_WRITES_ENV, direct)
     monkeypatch.setattr(_files, "WRITEBACK_BYTES", 4096)
+    monkeypatch.setattr(_files, "DIRECT_BYTES", 1 << 16)
     rng = np.random.default_rng(0)
     cols = {"a": rng.normal(size=(50_000, 3))[:, 1], "b": np.arange(50_000)}
     got = write_columns(cols, tmp_path / "t.parquet", row_group_rows=8192)
@@ -136,6 +140,47 @@ def test_digest_taken_while_writing(tmp_path, monkeypatch):
     assert files["t.parquet"] == got.entry()
     assert files["x.bin"] == {"bytes": 3, "sha256": hashlib.sha256(b"abc").hexdigest()}
 
+
+
+def test_hashing_file_of_any_length_reads_back_the_same(tmp_path, monkeypatch):
+    """Every length, writes of any size: the file holds the bytes written and its digest,
+    whether written around the page cache (whole buffers, whole blocks of the rest, then its
+    last bytes) or through it; a file system that opens ``O_DIRECT`` but refuses the write
+    gets the same file through the page cache."""
+    import errno
+    import os
+
+    from hartrao_jax import _files
+
+    monkeypatch.setattr(_files, "DIRECT_BYTES", 1 << 14)
+    data = np.random.default_rng(1).bytes(3 * (1 << 14) + 4096 + 77)
+    for direct in ("1", "0"):
+        monkeypatch.setenv(_files.DIRECT_WRITES_ENV, direct)
+        for n in (0, 1, 4095, 4096, 1 << 14, (1 << 14) + 1, len(data)):
+            path = tmp_path / f"f{direct}-{n}.bin"
+            with _files.HashingFile(path) as f:
+                for a in range(0, n, 5000):
+                    f.write(data[a:min(n, a + 5000)])
+            assert path.read_bytes() == data[:n]
+            assert f.digest == _files.FileDigest(n, hashlib.sha256(data[:n]).hexdigest())
+
+    monkeypatch.setenv(_files.DIRECT_WRITES_ENV, "1")
+    real_write, refused = os.write, []
+
+    def refuse_direct(fd, b):
+        fcntl = _files.fcntl
+        if fcntl is not None and hasattr(os, "O_DIRECT") and (
+                fcntl.fcntl(fd, fcntl.F_GETFL) & os.O_DIRECT):
+            refused.append(fd)
+            raise OSError(errno.EINVAL, "Invalid argument")
+        return real_write(fd, b)
+
+    monkeypatch.setattr(_files.os, "write", refuse_direct)
+    with _files.HashingFile(tmp_path / "refused.bin") as f:
+        f.write(data)
+    assert (tmp_path / "refused.bin").read_bytes() == data
+    assert f.digest.sha256 == hashlib.sha256(data).hexdigest()
+    assert len(refused) <= 1  # refused once (where opened so), then the page cache
 
 def test_parquet_codec_per_column(tmp_path):
     """Both writers store floating-point columns without a codec and integer and boolean ones

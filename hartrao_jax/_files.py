@@ -120,7 +120,7 @@ class HashingFile:
     (``O_DIRECT``) from a page-aligned buffer of :data:`DIRECT_BYTES`, its last part of less
     than a block written through the page cache. The kernel then neither copies them into
     new page-cache pages (which a VM backs as slowly as fresh memory) nor writes them back
-    later: a 680-MB residual table 2.0 -> 0.4 CPU-s of the kernel's, measured
+    later: the thread writing a 680-MB residual table 1.4-1.9 -> 1.0 CPU-s, measured
     (``benchmarks/results/profile.md``). Elsewhere every :data:`WRITEBACK_BYTES` the written
     pages are handed to the kernel's writeback (``posix_fadvise(DONTNEED)`` where there is
     one), so that a later ``fsync`` waits for the rest only.

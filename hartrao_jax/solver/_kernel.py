@@ -17,7 +17,6 @@ an argument and not batched by ``vmap``.
 
 from __future__ import annotations
 
-import math
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 
@@ -26,7 +25,6 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jax.extend import core as jcore
-from jaxtyping import Array, Float
 
 from .._config import (
     THREADS_ENV,  # noqa: F401  (this module's name before)
@@ -35,6 +33,7 @@ from .._config import (
 )
 from .._config import thread_pool as _config_pool
 from .._programs import cached_jit
+from ..geometry._trig import sincos_f64
 
 # --------------------------------------------------------------------------------------------
 # sin/cos computed once: custom-JVP sincos materialised behind a runtime lax.cond
@@ -54,42 +53,6 @@ def point_weights(F, b, v, w, s2):
     ok = (w > 0) & (m > 0)
     q = jnp.where(ok, w / jnp.where(ok, m, 1.0), 0.0)
     return wm, m, ok, q
-
-
-#: pi/2 in three parts (Cody and Waite): the first two of at most 26 significant bits, so that
-#: ``k * part`` is exact for ``|k| < 2**27``; their sum is pi/2 to 1.5e-33.
-_PIO2 = (float.fromhex("0x1.921fb5p+0"), float.fromhex("0x1.110b46p-26"),
-         float.fromhex("0x1.1a62633145c07p-54"))
-#: Taylor coefficients of ``sin r = r + r z (S3 + z (S5 + ...))`` and ``cos r = 1 - z / 2 + z^2
-#: (C4 + z (C6 + ...))``, ``z = r^2``, ``|r| <= pi/4``: the first term left out is below
-#: 1.2e-19 relative (r^19 / 19! and r^20 / 20! at pi/4).
-_SIN = tuple((-1) ** j / math.factorial(2 * j + 1) for j in range(1, 9))
-_COS = tuple((-1) ** j / math.factorial(2 * j) for j in range(2, 10))
-
-
-def _horner(z, coefficients):
-    acc = coefficients[-1]
-    for a in coefficients[-2::-1]:
-        acc = a + z * acc
-    return acc
-
-
-def sincos_f64(x: Float[Array, "*shape"]) -> tuple[Array, Array]:
-    """``(sin x, cos x)`` of float64 ``x`` (rad) in arithmetic XLA vectorises: the nearest
-    multiple ``k`` of pi/2 taken off in three parts, then Taylor polynomials on
-    ``[-pi/4, pi/4]`` and the quadrant ``k mod 4``. Within 2 units in the last place of
-    NumPy's (libm's) values for ``|x| < 1e6`` (``tests/solver/test_kernel.py``); NaN for a
-    non-finite ``x``. XLA:CPU calls libm once per element for ``jnp.sin``/``jnp.cos`` in
-    float64 (15-20 ns each, measured); this takes about 3 ns for both."""
-    k = jnp.round(x * (2.0 / math.pi))
-    r = ((x - k * _PIO2[0]) - k * _PIO2[1]) - k * _PIO2[2]
-    z = r * r
-    s = r + r * z * _horner(z, _SIN)
-    c = 1.0 - 0.5 * z + z * z * _horner(z, _COS)
-    q = jnp.where(jnp.isfinite(k), k, 0.0).astype(jnp.int64)
-    odd = (q & 1) == 1
-    s, c = jnp.where(odd, c, s), jnp.where(odd, s, c)
-    return jnp.where((q & 2) == 2, -s, s), jnp.where(((q + 1) & 2) == 2, -c, c)
 
 
 def _trig(v):

@@ -39,7 +39,7 @@ def sincos_f64(x: Float[Array, "*shape"]) -> tuple[Array, Array]:
     ``[-pi/4, pi/4]`` and the quadrant ``k mod 4``. Within 2 units in the last place of
     NumPy's (libm's) values for ``|x| < 1e6`` (``tests/geometry/test_trig.py``); NaN for a
     non-finite ``x``. XLA:CPU calls libm once per element for ``jnp.sin``/``jnp.cos`` in
-    float64 (15-20 ns each, measured); this takes about 3 ns for both."""
+    float64 (26-29 ns for both, measured on 1e7 angles); this takes 4-6 ns for both."""
     k = jnp.round(x * (2.0 / math.pi))
     r = ((x - k * _PIO2[0]) - k * _PIO2[1]) - k * _PIO2[2]
     z = r * r
@@ -49,7 +49,6 @@ def sincos_f64(x: Float[Array, "*shape"]) -> tuple[Array, Array]:
     odd = (q & 1) == 1
     s, c = jnp.where(odd, c, s), jnp.where(odd, s, c)
     return jnp.where((q & 2) == 2, -s, s), jnp.where(((q + 1) & 2) == 2, -c, c)
-
 
 
 #: Elements of one call of :func:`host_sincos`'s program (the last block padded): one
@@ -65,7 +64,8 @@ def _sincos_block(x):
 def host_sincos(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(np.sin(x), np.cos(x))`` of a float64 NumPy array (rad) by :func:`sincos_f64`, a block
     of :data:`HOST_BLOCK` elements per call of one compiled program: within 2 ulp of NumPy's
-    values at about a fifth of their time (the calls' overhead included)."""
+    values in about a quarter of their time, the calls' overhead included (6.5e6 angles
+    0.046 s against 0.20 s, measured)."""
     x = np.ascontiguousarray(x, dtype=np.float64)
     flat = x.reshape(-1)
     s, c = np.empty_like(flat), np.empty_like(flat)

@@ -99,7 +99,8 @@ DIRECT_WRITES_ENV = "HARTRAO_JAX_DIRECT_WRITES"
 def _open_new(path: str | os.PathLike) -> tuple[int, bool]:
     """``(descriptor, direct)``: ``path`` created (or truncated) for writing, with
     ``O_DIRECT`` where the system and the file system take it (Linux's ext4, xfs, btrfs;
-    not tmpfs), unless :data:`DIRECT_WRITES_ENV` is ``0``."""
+    tmpfs since Linux 6.6, as here; an older one refuses it at the open), unless
+    :data:`DIRECT_WRITES_ENV` is ``0``."""
     flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0)
     direct = getattr(os, "O_DIRECT", 0)
     if direct and fcntl is not None and os.environ.get(DIRECT_WRITES_ENV, "1") != "0":
